@@ -1,0 +1,1 @@
+"""One module per ``dibrgs`` sub-command; each defines ``register(subparsers)``."""
