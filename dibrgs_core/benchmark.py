@@ -1,0 +1,358 @@
+"""Benchmark suites: error against run time for DIBR-GS, the 3DGS baseline and ablations.
+
+Every run is an independent job (generate the scene if missing, ``dibrgs
+train``, ``dibrgs eval``) that returns a plain dict, so the same function
+runs in-process or as a Ray task on a cluster. Finished runs are stored as
+``<results>/runs/<scene>__<method>.json``; a restarted benchmark skips them
+and resumes unfinished trainings from their checkpoints.
+
+Units: times in seconds of training wall-clock (evaluation excluded), PSNR
+in dB, memory in MiB.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from .fileio import atomic_path, write_json, write_text
+
+log = logging.getLogger("dibrgs.benchmark")
+
+RESULT_COLUMNS = ["scene", "method", "psnr", "ssim", "lpips", "avge", "fps", "train_seconds",
+                  "gaussians", "anchors", "peak_memory_mib", "iterations", "preset"]
+
+# Method name -> extra `dibrgs train` flags.
+METHODS: dict[str, list[str]] = {
+    "dibrgs": [],
+    "3dgs": ["--method", "3dgs"],
+    "no-pseudo": ["--no-pseudo"],
+    "no-dense-init": ["--no-dense-init"],
+    "ibr-none": ["--ibr", "none"],
+    "no-height": ["--no-height"],
+    "oracle-depth": ["--depth-prior", "gt"],
+}
+ABLATIONS = ["no-dense-init", "ibr-none", "no-height", "no-pseudo", "oracle-depth"]
+# Labels as in the paper's ablation table.
+ABLATION_LABELS = {"no-dense-init": "w/o Dense Init.", "ibr-none": "w/o IBR Feature",
+                   "no-height": "w/o Height Map", "no-pseudo": "w/o Pseudo Views",
+                   "oracle-depth": "Oracle depth prior (gt)", "dibrgs": "Ours (DIBR-GS)"}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training + evaluation job."""
+
+    kind: str  # scene generator kind
+    resolution: int
+    method: str
+    seed: int = 0
+    preset: str = "cpu"
+    iterations: int | None = None
+
+    @property
+    def scene(self) -> str:
+        return f"{self.kind}{self.resolution}"
+
+    @property
+    def key(self) -> str:
+        return f"{self.scene}__{self.method}"
+
+
+@dataclass
+class Suite:
+    name: str
+    runs: list[RunSpec] = field(default_factory=list)
+
+
+def make_suite(name: str, preset: str = "cpu", iterations: int | None = None) -> Suite:
+    """``quick``: one 128x128 city, 3dgs / DIBR-GS / DIBR-GS without pseudo views.
+    ``full``: four 256x256 scenes with 3dgs and DIBR-GS, plus the ablations on the city.
+    ``tiny``: a 64x64 city with two short runs, for tests of the machinery."""
+    if name == "quick":
+        runs = [RunSpec("city", 128, m, preset=preset, iterations=iterations)
+                for m in ("3dgs", "dibrgs", "no-pseudo")]
+    elif name == "full":
+        runs = []
+        for kind in ("city", "mountain", "village", "stadium"):
+            runs += [RunSpec(kind, 256, m, preset=preset, iterations=iterations) for m in ("3dgs", "dibrgs")]
+        runs += [RunSpec("city", 256, m, preset=preset, iterations=iterations) for m in ABLATIONS]
+    elif name == "tiny":
+        runs = [RunSpec("city", 64, m, preset=preset, iterations=iterations) for m in ("dibrgs", "no-pseudo")]
+    else:
+        raise ValueError(f"unknown suite {name!r} (quick, full, tiny)")
+    return Suite(name, runs)
+
+
+def _dibrgs(argv: list[str], log_path: Path) -> None:
+    """Run a ``dibrgs`` command in a child process (so peak memory is its own)."""
+    cmd = [sys.executable, "-m", "dibrgs_core", *argv]
+    with open(log_path, "a") as f:
+        f.write(f"$ {' '.join(cmd)}\n")
+        f.flush()
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
+    if proc.returncode != 0:
+        raise RuntimeError(f"`dibrgs {argv[0]}` failed with exit code {proc.returncode}; see {log_path}")
+
+
+def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> dict[str, Any]:
+    """Generate the scene if needed, train (resuming), evaluate; return the result row and curve.
+
+    Runs on whichever machine executes it (locally or a Ray worker): the
+    scene is regenerated from its seed there if absent, so workers need no
+    shared file system.
+    """
+    work_root = Path(work_root)
+    scene_dir = work_root / "scenes" / f"{spec.scene}_s{spec.seed}"
+    work = work_root / "runs" / spec.key
+    work.mkdir(parents=True, exist_ok=True)
+    logf = work / "benchmark.log"
+    if not (scene_dir / "Cams").is_dir():
+        from .scenegen import make_scene
+
+        # Another local worker may render the same scene: build in a private
+        # folder and rename, first one wins.
+        tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
+        make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp)
+        try:
+            os.replace(tmp, scene_dir)
+        except OSError:
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
+    train = ["train", str(scene_dir), "--out", str(work), "--preset", spec.preset, "--resume",
+             *METHODS[spec.method]]
+    if spec.iterations:
+        train += ["--iterations", str(spec.iterations)]
+    _dibrgs(train, logf)
+    ev = ["eval", str(work)]
+    if lpips:
+        ev += ["--lpips", lpips]
+    _dibrgs(ev, logf)
+    metrics = json.loads((work / "metrics.json").read_text())
+    curve = read_curve(work / "curve.csv")
+    peak = metrics.get("peak_memory_mib")
+    if peak is None:  # children's peak RSS, in KiB on Linux
+        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    row = {"scene": spec.scene, "method": spec.method, "psnr": metrics.get("psnr"),
+           "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"), "avge": metrics.get("avge"),
+           "fps": metrics.get("fps"), "train_seconds": metrics.get("train_seconds",
+                                                                     curve[-1]["seconds"] if curve else None),
+           "gaussians": metrics.get("gaussians"), "anchors": metrics.get("anchors"),
+           "peak_memory_mib": peak, "iterations": metrics.get("iterations"), "preset": spec.preset}
+    return {"spec": asdict(spec), "row": row, "curve": curve, "host": platform.node()}
+
+
+def read_curve(path: Path) -> list[dict[str, float]]:
+    """Read a training run's curve.csv into [{'seconds', 'iteration', 'psnr', 'ssim'}]."""
+    if not path.exists():
+        return []
+    out = []
+    with open(path) as f:
+        for r in csv.DictReader(f):
+            sec = r.get("seconds", r.get("elapsed_s", r.get("train_seconds")))
+            out.append({"seconds": float(sec), "iteration": int(float(r.get("iteration", 0))),
+                        "psnr": float(r["psnr"]), "ssim": float(r["ssim"])})
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Dispatch
+# ---------------------------------------------------------------------------
+def _result_path(results: Path, spec: RunSpec) -> Path:
+    return results / "runs" / f"{spec.key}.json"
+
+
+def pending(suite: Suite, results: Path) -> list[RunSpec]:
+    return [s for s in suite.runs if not _result_path(results, s).exists()]
+
+
+def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: str | None = None,
+              progress: Callable[[str], None] = print) -> None:
+    specs = list(specs)
+    for i, spec in enumerate(specs, 1):
+        progress(f"[{i}/{len(specs)}] {spec.key}")
+        t0 = time.perf_counter()
+        res = run_one(spec, work_root, lpips)
+        write_json(_result_path(results, spec), res)
+        progress(f"[{i}/{len(specs)}] {spec.key}: PSNR {res['row']['psnr']:.2f} dB "
+                 f"({time.perf_counter() - t0:.0f} s)")
+
+
+def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: str, lpips: str | None = None,
+            num_cpus: float = 2, num_gpus: float = 0, max_retries: int = 3,
+            progress: Callable[[str], None] = print) -> None:
+    """Submit every run as a Ray task to the cluster at ``address`` (``auto``, ``ray://host:port``,
+    or ``local`` to start a private instance). A task whose worker dies is retried by Ray
+    (``max_retries``); finished runs are saved as they arrive, so a killed driver resumes."""
+    import ray
+
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=max(1, os.cpu_count() or 1), include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+    task = ray.remote(num_cpus=num_cpus, num_gpus=num_gpus, max_retries=max_retries,
+                      retry_exceptions=False)(run_one)
+    specs = list(specs)
+    refs = {task.remote(s, str(work_root), lpips): s for s in specs}
+    done = 0
+    while refs:
+        ready, _ = ray.wait(list(refs), num_returns=1)
+        spec = refs.pop(ready[0])
+        res = ray.get(ready[0])
+        write_json(_result_path(results, spec), res)
+        done += 1
+        progress(f"[{done}/{len(specs)}] {spec.key} on {res['host']}: PSNR {res['row']['psnr']:.2f} dB")
+
+
+# ---------------------------------------------------------------------------
+# Pages
+# ---------------------------------------------------------------------------
+def load_results(results: Path, suite: Suite | None = None) -> list[dict[str, Any]]:
+    keys = None if suite is None else {s.key for s in suite.runs}
+    out = []
+    for p in sorted((results / "runs").glob("*.json")):
+        r = json.loads(p.read_text())
+        if keys is None or RunSpec(**r["spec"]).key in keys:
+            out.append(r)
+    return out
+
+
+def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in RESULT_COLUMNS})
+
+
+def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
+    """One panel a scene, one line a method: held-out PSNR against training seconds (log x)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["row"]["scene"] for r in res})
+    n = max(1, len(scenes))
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
+            c = [p for p in r["curve"] if p["seconds"] > 0]
+            if c:
+                ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], marker=".", label=r["row"]["method"])
+        ax.set_xscale("log")
+        ax.set_title(scene)
+        ax.set_xlabel("training wall-clock (s)")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+def _fmt(v: Any, nd: int = 2) -> str:
+    if v is None or v == "":
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def markdown_tables(res: list[dict[str, Any]]) -> str:
+    rows = [r["row"] for r in res]
+    lines: list[str] = []
+    methods = [m for m in ("3dgs", "dibrgs") if any(r["method"] == m for r in rows)]
+    if methods:
+        lines += ["### Methods (mean over scenes; as the paper's Table I)", "",
+                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | Gaussians |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for m in methods:
+            rs = [r for r in rows if r["method"] == m]
+
+            def mean(k: str) -> float | None:
+                vals = [r[k] for r in rs if r.get(k) is not None]
+                return sum(vals) / len(vals) if vals else None
+
+            lines.append(f"| {m} | {_fmt(mean('psnr'))} | {_fmt(mean('ssim'), 3)} | {_fmt(mean('lpips'), 3)} | "
+                         f"{_fmt(mean('avge'), 3)} | {_fmt(mean('fps'), 1)} | {_fmt(mean('train_seconds'), 0)} | "
+                         f"{_fmt(mean('gaussians'), 0)} |")
+        scenes = sorted({r["scene"] for r in rows})
+        lines += ["", "### Per scene PSNR / SSIM (as the paper's Table II)", "",
+                  "| Metric | Method | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
+        for metric, nd in (("psnr", 2), ("ssim", 3), ("lpips", 3)):
+            for m in methods:
+                vals = []
+                for s in scenes:
+                    hit = [r for r in rows if r["method"] == m and r["scene"] == s]
+                    vals.append(_fmt(hit[0][metric], nd) if hit else "-")
+                lines.append(f"| {metric.upper()} | {m} | " + " | ".join(vals) + " |")
+    abl = [r for r in rows if r["method"] in ABLATIONS or r["method"] == "dibrgs"]
+    abl_scenes = sorted({r["scene"] for r in rows if r["method"] in ABLATIONS})
+    for s in abl_scenes:
+        lines += ["", f"### Ablation of components on {s} (as the paper's architecture ablation)", "",
+                  "| Setting | PSNR | SSIM | LPIPS | AVGE | train s |", "|---|---|---|---|---|---|"]
+        for m in ABLATIONS + ["dibrgs"]:
+            hit = [r for r in abl if r["method"] == m and r["scene"] == s]
+            if hit:
+                r = hit[0]
+                lines.append(f"| {ABLATION_LABELS[m]} | {_fmt(r['psnr'])} | {_fmt(r['ssim'], 3)} | "
+                             f"{_fmt(r['lpips'], 3)} | {_fmt(r['avge'], 3)} | {_fmt(r['train_seconds'], 0)} |")
+    return "\n".join(lines) + "\n"
+
+
+def machine_description() -> str:
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import torch
+
+    return (f"{os.cpu_count()} CPU cores ({model}), {platform.system()} {platform.release()}, "
+            f"Python {platform.python_version()}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+
+
+def update_benchmarks_md(md_path: Path, suite: str, command: str, body: str, figure_rel: str) -> None:
+    """Replace (or append) the section for ``suite`` in docs/benchmarks.md, leaving other sections."""
+    start, end = f"<!-- benchmark:{suite}:start -->", f"<!-- benchmark:{suite}:end -->"
+    section = (f"{start}\n## Benchmark suite `{suite}`\n\n"
+               f"Command: `{command}`  \nDate: {time.strftime('%Y-%m-%d')}  \nMachine: {machine_description()}\n\n"
+               f"![held-out PSNR against training time]({figure_rel})\n\n{body}{end}")
+    text = md_path.read_text() if md_path.exists() else "# Benchmarks\n"
+    if start in text and end in text:
+        text = text.split(start)[0] + section + text.split(end, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    write_text(md_path, text)
+
+
+def write_pages(results: Path, suite: Suite, docs: Path, command: str) -> list[dict[str, Any]]:
+    """Write results.csv and curves.png over every finished run (all suites: their
+    scenes differ by resolution), and the markdown section of ``suite``."""
+    everything = load_results(results)
+    res = load_results(results, suite)
+    if not res:
+        return res
+    write_csv([r["row"] for r in everything], docs / "benchmarks" / "results.csv")
+    fig = docs / "benchmarks" / "curves.png"
+    plot_curves(everything, fig)
+    update_benchmarks_md(docs / "benchmarks.md", suite.name, command, markdown_tables(res),
+                         fig.relative_to(docs).as_posix())
+    return res
