@@ -1,0 +1,150 @@
+"""Image losses and metrics in torch: differentiable SSIM, the paper's photometric loss, PSNR.
+
+Image layout: **(H, W, C)** (channels last, as the rasterizer returns them) or
+(H, W) for a single channel; values in [0, 1]. All functions return 0-d tensors
+that stay finite for any finite input, including constant and all-black images
+and masks without a single valid pixel.
+
+SSIM follows Wang et al. (2004) with a Gaussian window (size 11, sigma 1.5),
+C1 = 0.01^2, C2 = 0.03^2 for a data range of 1 and population (not sample)
+covariances, i.e. ``skimage.metrics.structural_similarity(...,
+gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)``.
+Like scikit-image, the mean SSIM leaves out a border of ``window // 2`` pixels
+so that no window reaches outside the image; the per-pixel map used by the
+loss is defined everywhere by replicating the border.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+_C1 = 0.01 ** 2
+_C2 = 0.03 ** 2
+
+
+def _to_nchw(img: torch.Tensor) -> torch.Tensor:
+    """(H,W) or (H,W,C) -> (1,C,H,W)."""
+    if img.dim() == 2:
+        img = img[..., None]
+    if img.dim() != 3:
+        raise ValueError(f"expected an (H,W) or (H,W,C) image, got shape {tuple(img.shape)}")
+    return img.permute(2, 0, 1)[None]
+
+
+def _gauss_1d(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    r = window // 2
+    x = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
+    return g / g.sum()
+
+
+def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian blur of (1,C,H,W), borders replicated (output same size)."""
+    C = x.shape[1]
+    r = g.numel() // 2
+    x = F.pad(x, (r, r, r, r), mode="replicate")
+    x = F.conv2d(x, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
+    return F.conv2d(x, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
+
+
+def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Per-pixel SSIM, shape (H, W, C). Differentiable with respect to both inputs."""
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be a positive odd size, got {window}")
+    x, y = _to_nchw(pred), _to_nchw(gt.to(pred.dtype))
+    g = _gauss_1d(window, sigma, x.dtype, x.device)
+    mx, my = _blur(x, g), _blur(y, g)
+    # Population variances; tiny negative values from cancellation are harmless
+    # because C2 > 0 keeps the denominator positive.
+    vx = _blur(x * x, g) - mx * mx
+    vy = _blur(y * y, g) - my * my
+    cxy = _blur(x * y, g) - mx * my
+    num = (2 * mx * my + _C1) * (2 * cxy + _C2)
+    den = (mx * mx + my * my + _C1) * (vx + vy + _C2)
+    s = num / den
+    out = s[0].permute(1, 2, 0)
+    return out if pred.dim() == 3 else out[..., 0]
+
+
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM of two (H,W,C) or (H,W) images in [0,1] (0-d tensor, differentiable).
+
+    Matches scikit-image's Gaussian-weighted SSIM: the mean excludes a border of
+    ``window // 2`` pixels when the image is large enough to have an interior.
+    """
+    m = ssim_map(pred, gt, window, sigma)
+    r = window // 2
+    H, W = m.shape[0], m.shape[1]
+    if H > 2 * r and W > 2 * r:
+        m = m[r:H - r, r:W - r]
+    return m.mean()
+
+
+def _mask_hw1(mask: torch.Tensor, H: int, W: int, like: torch.Tensor) -> torch.Tensor:
+    m = mask.to(dtype=like.dtype, device=like.device)
+    if m.dim() == 3:
+        m = m[..., :1]
+    elif m.dim() == 2:
+        m = m[..., None]
+    if m.shape[:2] != (H, W):
+        raise ValueError(f"mask shape {tuple(mask.shape)} does not match image {H}x{W}")
+    return m
+
+
+def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
+                     mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The paper's loss ``(1 - lam) * L1 + lam * (1 - SSIM)`` for (H,W,C) images.
+
+    ``mask`` (H,W) or (H,W,1), bool or float weights in [0,1], restricts both
+    terms to valid pixels (pseudo views with holes): L1 is the weighted mean
+    absolute error and the D-SSIM term the weighted mean of the SSIM map. A mask
+    without any valid pixel gives a loss of exactly 0 whose gradients are 0.
+    """
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
+    gt = gt.to(pred.dtype)
+    if mask is None:
+        l1 = (pred - gt).abs().mean()
+        return (1.0 - lam) * l1 + lam * (1.0 - ssim(pred, gt))
+    H, W = pred.shape[0], pred.shape[1]
+    m = _mask_hw1(mask, H, W, pred)
+    wsum = m.sum()
+    if float(wsum) <= 0.0:
+        # Keep the graph (zero gradients) without dividing by zero.
+        return (pred * 0.0).sum()
+    C = pred.shape[2] if pred.dim() == 3 else 1
+    diff = (pred - gt).abs()
+    if diff.dim() == 2:
+        diff = diff[..., None]
+    l1 = (diff * m).sum() / (wsum * C)
+    smap = ssim_map(pred, gt)
+    if smap.dim() == 2:
+        smap = smap[..., None]
+    dssim = ((1.0 - smap) * m).sum() / (wsum * C)
+    return (1.0 - lam) * l1 + lam * dssim
+
+
+def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB for images in [0,1] (0-d tensor).
+
+    The MSE is floored at 1e-10 so identical images give 100 dB, not Inf. With a
+    ``mask`` (H,W) only valid pixels count; an empty mask gives 0 dB.
+    """
+    gt = gt.to(pred.dtype)
+    se = (pred - gt) ** 2
+    if mask is None:
+        mse = se.mean()
+    else:
+        if se.dim() == 2:
+            se = se[..., None]
+        m = _mask_hw1(mask, pred.shape[0], pred.shape[1], pred)
+        wsum = m.sum()
+        if float(wsum) <= 0.0:
+            return torch.zeros((), dtype=pred.dtype, device=pred.device)
+        mse = (se * m).sum() / (wsum * se.shape[-1])
+    return -10.0 * torch.log10(torch.clamp(mse, min=1e-10))
+
+
+__all__ = ["ssim", "ssim_map", "photometric_loss", "psnr"]
