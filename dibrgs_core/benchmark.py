@@ -190,10 +190,12 @@ def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: s
 
 def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: str, lpips: str | None = None,
             num_cpus: float = 2, num_gpus: float = 0, max_retries: int = 3,
-            progress: Callable[[str], None] = print) -> None:
+            progress: Callable[[str], None] = print,
+            job: Callable[..., dict[str, Any]] = run_one) -> None:
     """Submit every run as a Ray task to the cluster at ``address`` (``auto``, ``ray://host:port``,
     or ``local`` to start a private instance). A task whose worker dies is retried by Ray
-    (``max_retries``); finished runs are saved as they arrive, so a killed driver resumes."""
+    (``max_retries``); finished runs are saved as they arrive, so a killed driver resumes.
+    ``job`` is the function each task runs (``run_one``; tests pass a variant)."""
     import ray
 
     if not ray.is_initialized():
@@ -202,7 +204,7 @@ def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: s
         else:
             ray.init(address=address, log_to_driver=False)
     task = ray.remote(num_cpus=num_cpus, num_gpus=num_gpus, max_retries=max_retries,
-                      retry_exceptions=False)(run_one)
+                      retry_exceptions=False)(job)
     specs = list(specs)
     refs = {task.remote(s, str(work_root), lpips): s for s in specs}
     done = 0

@@ -1,0 +1,50 @@
+"""The benchmark machinery: a tiny suite through a local Ray instance, resume, pages."""
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import pytest
+
+from dibrgs_core import benchmark as bm
+
+
+def _flaky_job(spec, work_root, lpips=None):
+    """run_one, but the first attempt of each run kills its own worker process."""
+    marker = Path(work_root) / f"attempted_{spec.key}"
+    if not marker.exists():
+        marker.write_text("1")
+        os._exit(1)  # a dying worker, not an exception
+    return bm.run_one(spec, work_root, lpips)
+
+
+def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene):
+    ray = pytest.importorskip("ray", reason="ray is an optional extra: pip install -e '.[ray]'")
+    work = tmp_path / "bench"
+    # Reuse the session's tiny scene instead of rendering it again.
+    scene_dir = work / "scenes" / "city64_s0"
+    scene_dir.parent.mkdir(parents=True)
+    os.symlink(tiny_scene, scene_dir)
+    suite = bm.make_suite("tiny", preset="test", iterations=60)
+    results = work / "results"
+    try:
+        bm.run_ray(bm.pending(suite, results), work, results, "local", num_cpus=1, job=_flaky_job)
+    finally:
+        ray.shutdown()
+    assert bm.pending(suite, results) == []  # both runs finished despite the killed workers
+    assert all((work / f"attempted_{s.key}").exists() for s in suite.runs)
+    docs = tmp_path / "docs"
+    res = bm.write_pages(results, suite, docs, "python scripts/benchmark.py --suite tiny")
+    assert len(res) == 2
+    rows = list(csv.DictReader(open(docs / "benchmarks" / "results.csv")))
+    assert {r["method"] for r in rows} == {"dibrgs", "no-pseudo"}
+    for r in rows:
+        assert 5.0 < float(r["psnr"]) < 60.0
+        assert float(r["train_seconds"]) > 0
+    assert (docs / "benchmarks" / "curves.png").stat().st_size > 1000
+    md = (docs / "benchmarks.md").read_text()
+    assert "Benchmark suite `tiny`" in md and "w/o Pseudo Views" in md
+    # Rewriting the pages replaces the suite's section instead of appending a second one.
+    bm.write_pages(results, suite, docs, "again")
+    assert (docs / "benchmarks.md").read_text().count("Benchmark suite `tiny`") == 1
