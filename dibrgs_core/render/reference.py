@@ -1,0 +1,195 @@
+"""Reference rasterizer: tile binning and alpha compositing in plain torch.
+
+Runs on any device, is differentiable by autograd, and keeps memory bounded
+by processing tiles in chunks under activation checkpointing. It is the
+oracle for the fast C++ path and implements exactly the same rules:
+
+* 16x16 pixel tiles. A visible Gaussian is binned to the tiles of its 3-sigma
+  square ``floor((m - r) / 16) .. ceil((m + r) / 16)`` (gsplat's rule) - it
+  never contributes outside those tiles. Tiles are additionally skipped when
+  they cannot contain a pixel with ``alpha >= 1/255`` (the bounding box of
+  the ellipse ``q <= 2 ln(255 o)``, widened by a pixel); this cull is exact,
+  it only saves work.
+* Per pixel, Gaussians in increasing depth (ties by index). With
+  ``d = mean2d - (pixel + 0.5)`` and ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``:
+  skip when ``power > 0``; ``alpha = min(0.99, opacity * exp(power))``; skip
+  when ``alpha < 1/255``; stop (without this Gaussian) when
+  ``T * (1 - alpha) < 1e-4``; else add ``alpha T feature`` and ``T *= 1 - alpha``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+TILE = 16
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1.0e-4
+# Elements of a (tiles, 256, K) chunk tensor; bounds the reference's memory.
+_CHUNK_ELEMS = 1 << 22
+
+
+def tile_rects(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, width: int, height: int
+) -> Tensor:
+    """Per-Gaussian tile rectangle ``(x0, x1, y0, y1)`` (N, 4) int64, end-exclusive.
+
+    The 3-sigma tile square intersected with the tiles that may hold a pixel
+    with ``alpha >= 1/255``; empty (x1 <= x0 or y1 <= y0) for culled Gaussians.
+    """
+    tx, ty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    m = means2d.detach().to(torch.float64)
+    con = conics.detach().to(torch.float64)
+    op = opacities.detach().to(torch.float64)
+    r = radii.to(torch.float64)
+    # Half-extents of {q <= t}: sqrt(t * Sigma_xx), Sigma = conic^-1.
+    t = 2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300))
+    det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
+    det = torch.where(det > 0, det, torch.ones_like(det))
+    sxx = con[:, 2] / det
+    syy = con[:, 0] / det
+    tpos = torch.clamp(t, min=0.0)
+    ex = torch.sqrt(tpos * sxx) * (1 + 1e-5) + 1.0
+    ey = torch.sqrt(tpos * syy) * (1 + 1e-5) + 1.0
+    x0 = torch.maximum(torch.floor((m[:, 0] - r) / TILE), torch.floor((m[:, 0] - ex) / TILE))
+    x1 = torch.minimum(torch.ceil((m[:, 0] + r) / TILE), torch.floor((m[:, 0] + ex) / TILE) + 1)
+    y0 = torch.maximum(torch.floor((m[:, 1] - r) / TILE), torch.floor((m[:, 1] - ey) / TILE))
+    y1 = torch.minimum(torch.ceil((m[:, 1] + r) / TILE), torch.floor((m[:, 1] + ey) / TILE) + 1)
+    x0 = x0.clamp(0, tx)
+    x1 = x1.clamp(0, tx)
+    y0 = y0.clamp(0, ty)
+    y1 = y1.clamp(0, ty)
+    dead = (radii <= 0) | (t < 0) | ~torch.isfinite(m).all(-1)
+    x1 = torch.where(dead, x0, x1)
+    return torch.stack([x0, x1, y0, y1], dim=-1).to(torch.int64)
+
+
+def bin_gaussians(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """Tile lists: ``(offsets (num_tiles + 1,), gauss_ids (num_isect,))`` int64.
+
+    Gaussians of tile ``t`` are ``gauss_ids[offsets[t]:offsets[t + 1]]`` in
+    increasing depth (ties broken by index).
+    """
+    dev = means2d.device
+    tx, ty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    rect = tile_rects(means2d, conics, opacities, radii, width, height)
+    w = (rect[:, 1] - rect[:, 0]).clamp(min=0)
+    h = (rect[:, 3] - rect[:, 2]).clamp(min=0)
+    cnt = w * h
+    live = torch.nonzero(cnt > 0).squeeze(1)
+    order = live[torch.argsort(depths.detach()[live], stable=True)]
+    cnt_o = cnt[order]
+    total = int(cnt_o.sum())
+    gid = torch.repeat_interleave(order, cnt_o)
+    start = torch.repeat_interleave(torch.cumsum(cnt_o, 0) - cnt_o, cnt_o)
+    local = torch.arange(total, device=dev) - start
+    wg = w[gid]
+    tile = (rect[gid, 2] + local // wg) * tx + rect[gid, 0] + local % wg
+    tile_sorted, perm = torch.sort(tile, stable=True)
+    gid = gid[perm]
+    counts = torch.bincount(tile_sorted, minlength=tx * ty)
+    offsets = torch.zeros(tx * ty + 1, dtype=torch.int64, device=dev)
+    offsets[1:] = torch.cumsum(counts, 0)
+    return offsets, gid
+
+
+def _composite_chunk(
+    ids: Tensor,
+    valid: Tensor,
+    pix: Tensor,
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    feats: Tensor,
+) -> Tensor:
+    """Composite a chunk of tiles. ids/valid: (T, K); pix: (T, P, 2) -> (T, P, C)."""
+    m = means2d[ids]  # (T, K, 2)
+    con = conics[ids]
+    dx = m[:, None, :, 0] - pix[:, :, None, 0]  # (T, P, K)
+    dy = m[:, None, :, 1] - pix[:, :, None, 1]
+    power = -0.5 * (con[:, None, :, 0] * dx * dx + con[:, None, :, 2] * dy * dy) - con[:, None, :, 1] * dx * dy
+    alpha = torch.clamp(opacities[ids][:, None, :] * torch.exp(power), max=ALPHA_MAX)
+    ok = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
+    alpha = torch.where(ok, alpha, torch.zeros_like(alpha))
+    t_incl = torch.cumprod(1.0 - alpha, dim=-1)
+    keep = t_incl >= T_MIN
+    t_excl = torch.cat([torch.ones_like(t_incl[..., :1]), t_incl[..., :-1]], dim=-1)
+    wgt = torch.where(keep, alpha * t_excl, torch.zeros_like(alpha))
+    return torch.einsum("tpk,tkc->tpc", wgt, feats[ids])
+
+
+def composite_reference(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    feats: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+) -> Tensor:
+    """Alpha-composite features (N, C) front to back -> (H, W, C), autograd-differentiable.
+
+    No background is added; the caller composites one through an all-ones
+    feature channel (whose output is the accumulated alpha ``1 - T``).
+    """
+    dev, dt = feats.device, feats.dtype
+    C = feats.shape[1]
+    tx, ty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    offsets, gids = bin_gaussians(means2d, conics, opacities, depths, radii, width, height)
+    counts = offsets[1:] - offsets[:-1]
+    P = TILE * TILE
+    lin = torch.arange(P, device=dev)
+    loc = torch.stack([(lin % TILE).to(dt), (lin // TILE).to(dt)], dim=-1) + 0.5  # (P, 2)
+    out = torch.zeros(ty * tx, P, C, device=dev, dtype=dt)
+    nonempty = torch.nonzero(counts > 0).squeeze(1).tolist()
+    cnt_list = counts.tolist()
+    off_list = offsets.tolist()
+    need_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means2d, conics, opacities, feats)
+    )
+    i = 0
+    chunks = []
+    while i < len(nonempty):
+        j, kmax = i, 0
+        while j < len(nonempty):
+            k2 = max(kmax, cnt_list[nonempty[j]])
+            if j > i and (j - i + 1) * P * k2 > _CHUNK_ELEMS:
+                break
+            kmax = k2
+            j += 1
+        tiles = nonempty[i:j]
+        ids = torch.zeros(len(tiles), kmax, dtype=torch.int64, device=dev)
+        valid = torch.zeros(len(tiles), kmax, dtype=torch.bool, device=dev)
+        for r, t in enumerate(tiles):
+            n = cnt_list[t]
+            ids[r, :n] = gids[off_list[t] : off_list[t] + n]
+            valid[r, :n] = True
+        tt = torch.tensor(tiles, device=dev)
+        org = torch.stack([(tt % tx).to(dt), (tt // tx).to(dt)], dim=-1) * TILE  # (T, 2)
+        pix = org[:, None, :] + loc[None]
+        if need_grad:
+            res = checkpoint(
+                _composite_chunk, ids, valid, pix, means2d, conics, opacities, feats, use_reentrant=False
+            )
+        else:
+            res = _composite_chunk(ids, valid, pix, means2d, conics, opacities, feats)
+        chunks.append((tt, res))
+        i = j
+    if chunks:
+        tt = torch.cat([c[0] for c in chunks])
+        res = torch.cat([c[1] for c in chunks])
+        out = out.index_put((tt,), res)
+    img = out.reshape(ty, tx, TILE, TILE, C).permute(0, 2, 1, 3, 4).reshape(ty * TILE, tx * TILE, C)
+    return img[:height, :width]
