@@ -49,7 +49,7 @@ def composite(
     if backend != "reference" and feats.device.type == "cpu":
         try:
             from . import fast
-        except ModuleNotFoundError:  # C++ path not landed yet
+        except ImportError:  # C++ path not landed yet
             fast = None
         use_fast = fast is not None and fast.available(required=backend == "fast")
     elif backend == "fast":
