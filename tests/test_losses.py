@@ -72,9 +72,9 @@ def test_mask_restricts_loss_and_empty_mask_is_zero():
     left[:, :6] = True  # far enough from the error that SSIM windows barely reach it
     l_left = photometric_loss(pred, gt, mask=left)
     l_right = photometric_loss(pred, gt, mask=~left)
-    assert float(l_left) < 0.01 < float(l_right)
+    assert l_left.item() < 0.01 < l_right.item()
     empty = photometric_loss(pred, gt, mask=torch.zeros(24, 24, dtype=torch.bool))
-    assert float(empty) == 0.0
+    assert empty.item() == 0.0
     empty.backward()
     assert torch.isfinite(pred.grad).all() and float(pred.grad.abs().sum()) == 0.0
 

@@ -1,0 +1,512 @@
+"""IBR reference features for neural Gaussian anchors (paper: "IBR Feature Extraction").
+
+Each training image goes once through a frozen encoder; a learnable projection
+``P`` maps the encoder outputs to ``C_r`` channels and fuses them into one
+reference map per view of size ``(H//2, W//2)``. An anchor's IBR feature is the
+bilinear sample of that map at its projection, averaged over the training views
+where it lies in front of the camera and inside the image.
+
+Encoders (``IBRFeatures(encoder=...)``):
+
+* ``"dino"``: DINO-pretrained ResNet-50 (outputs of ``layer1``..``layer4``,
+  strides 4..32) and ViT-B/8 (patch tokens at stride 8 and the CLS token),
+  written in plain torch with the parameter names of the official checkpoints
+  ``dino_resnet50_pretrain.pth`` (torchvision ``resnet50`` names) and
+  ``dino_vitbase8_pretrain.pth`` (DINO ``vision_transformer.py`` names). ``P``
+  is a 1x1 convolution per ResNet stage, bilinearly upsampled, plus a linear
+  map of the patch tokens, repeated to pixels ("broadcast"), plus a linear map
+  of the CLS token added everywhere.
+* ``"pyramid"``: a weight-free pyramid of the image and its Sobel gradients at
+  1/2, 1/4, 1/8 and 1/16 resolution (6 channels per level: RGB, gx, gy,
+  |grad|); ``P`` is a 1x1 convolution per level, bilinearly upsampled.
+* ``"none"``: no IBR feature; :func:`build_ibr` returns ``None``.
+
+Pixel convention (as :mod:`dibrgs_core.cameras`): pixel ``(i, j)`` covers
+``[i, i+1] x [j, j+1]``, so full-resolution coordinate ``u`` maps to the
+normalised grid coordinate ``2 u / W - 1`` of ``grid_sample(align_corners=False)``
+for a map of any size that covers the whole image.
+
+Only ``P`` is stored in ``state_dict``; the frozen encoder outputs are
+recomputed from the images when the object is rebuilt (resume).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .cameras import Camera
+from .errors import InputError
+
+log = logging.getLogger("dibrgs.ibr_features")
+
+ENCODERS = ("dino", "pyramid", "none")
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+PYRAMID_SCALES = (2, 4, 8, 16)
+
+
+# ---------------------------------------------------------------------------
+# ResNet-50 (torchvision parameter names; torchvision itself is not used)
+# ---------------------------------------------------------------------------
+class _Bottleneck(nn.Module):
+    """ResNet v1.5 bottleneck: the stride sits on the 3x3 convolution."""
+
+    expansion = 4
+
+    def __init__(self, inplanes: int, planes: int, stride: int = 1, downsample: nn.Module | None = None):
+        super().__init__()
+        self.conv1 = nn.Conv2d(inplanes, planes, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(planes)
+        self.conv2 = nn.Conv2d(planes, planes, 3, stride=stride, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(planes)
+        self.conv3 = nn.Conv2d(planes, planes * self.expansion, 1, bias=False)
+        self.bn3 = nn.BatchNorm2d(planes * self.expansion)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = downsample
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        idt = x if self.downsample is None else self.downsample(x)
+        y = self.relu(self.bn1(self.conv1(x)))
+        y = self.relu(self.bn2(self.conv2(y)))
+        y = self.bn3(self.conv3(y))
+        return self.relu(y + idt)
+
+
+class ResNetFeatures(nn.Module):
+    """ResNet trunk returning the outputs of its four stages (strides 4, 8, 16, 32).
+
+    ``layers=(3, 4, 6, 3), width=64`` is ResNet-50; smaller settings exist for tests.
+    The classifier ``fc`` is absent (DINO replaces it by the identity).
+    """
+
+    def __init__(self, layers: Sequence[int] = (3, 4, 6, 3), width: int = 64):
+        super().__init__()
+        self.conv1 = nn.Conv2d(3, width, 7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.relu = nn.ReLU(inplace=True)
+        self.maxpool = nn.MaxPool2d(3, stride=2, padding=1)
+        inplanes = width
+        self.channels: list[int] = []
+        for i, n in enumerate(layers):
+            planes = width * 2 ** i
+            stride = 1 if i == 0 else 2
+            down = None
+            if stride != 1 or inplanes != planes * 4:
+                down = nn.Sequential(nn.Conv2d(inplanes, planes * 4, 1, stride=stride, bias=False),
+                                     nn.BatchNorm2d(planes * 4))
+            blocks = [_Bottleneck(inplanes, planes, stride, down)]
+            inplanes = planes * 4
+            blocks += [_Bottleneck(inplanes, planes) for _ in range(n - 1)]
+            setattr(self, f"layer{i + 1}", nn.Sequential(*blocks))
+            self.channels.append(inplanes)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        outs = []
+        for i in range(4):
+            x = getattr(self, f"layer{i + 1}")(x)
+            outs.append(x)
+        return outs
+
+
+# ---------------------------------------------------------------------------
+# ViT (DINO vision_transformer.py parameter names)
+# ---------------------------------------------------------------------------
+class _PatchEmbed(nn.Module):
+    def __init__(self, patch: int, dim: int):
+        super().__init__()
+        self.proj = nn.Conv2d(3, dim, kernel_size=patch, stride=patch)
+
+
+class _Attention(nn.Module):
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.heads = heads
+        self.qkv = nn.Linear(dim, dim * 3, bias=True)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        B, N, C = x.shape
+        q, k, v = self.qkv(x).reshape(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
+        y = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d)) v
+        return self.proj(y.transpose(1, 2).reshape(B, N, C))
+
+
+class _Mlp(nn.Module):
+    def __init__(self, dim: int, hidden: int):
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.act = nn.GELU()
+        self.fc2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(self.act(self.fc1(x)))
+
+
+class _Block(nn.Module):
+    def __init__(self, dim: int, heads: int, mlp_ratio: float):
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim, eps=1e-6)
+        self.attn = _Attention(dim, heads)
+        self.norm2 = nn.LayerNorm(dim, eps=1e-6)
+        self.mlp = _Mlp(dim, int(dim * mlp_ratio))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x + self.attn(self.norm1(x))
+        return x + self.mlp(self.norm2(x))
+
+
+class ViTFeatures(nn.Module):
+    """Vision transformer returning (CLS token (B, dim), patch tokens (B, dim, H/p, W/p)).
+
+    ``patch=8, dim=768, depth=12, heads=12`` is ViT-B/8; position embeddings are
+    stored for a 224x224 input (as in the checkpoint) and bicubically resized
+    to the token grid of the actual input. Input height and width must be
+    multiples of ``patch``.
+    """
+
+    def __init__(self, patch: int = 8, dim: int = 768, depth: int = 12, heads: int = 12,
+                 mlp_ratio: float = 4.0, img_size: int = 224):
+        super().__init__()
+        self.patch = patch
+        self.patch_embed = _PatchEmbed(patch, dim)
+        self.cls_token = nn.Parameter(torch.zeros(1, 1, dim))
+        self.pos_embed = nn.Parameter(torch.zeros(1, (img_size // patch) ** 2 + 1, dim))
+        nn.init.trunc_normal_(self.pos_embed, std=0.02)
+        nn.init.trunc_normal_(self.cls_token, std=0.02)
+        self.blocks = nn.ModuleList([_Block(dim, heads, mlp_ratio) for _ in range(depth)])
+        self.norm = nn.LayerNorm(dim, eps=1e-6)
+
+    def _pos(self, h: int, w: int) -> torch.Tensor:
+        pe = self.pos_embed
+        n = pe.shape[1] - 1
+        g = int(round(n ** 0.5))
+        if g * g == n and (h, w) == (g, g):
+            return pe
+        grid = pe[:, 1:].reshape(1, g, g, -1).permute(0, 3, 1, 2)
+        grid = F.interpolate(grid, size=(h, w), mode="bicubic", align_corners=False)
+        return torch.cat([pe[:, :1], grid.flatten(2).transpose(1, 2)], dim=1)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        B, _, H, W = x.shape
+        if H % self.patch or W % self.patch:
+            raise ValueError(f"ViT input {H}x{W} is not a multiple of the patch size {self.patch}")
+        t = self.patch_embed.proj(x)
+        h, w = t.shape[-2:]
+        t = torch.cat([self.cls_token.expand(B, -1, -1), t.flatten(2).transpose(1, 2)], dim=1)
+        t = t + self._pos(h, w)
+        for blk in self.blocks:
+            t = blk(t)
+        t = self.norm(t)
+        return t[:, 0], t[:, 1:].transpose(1, 2).reshape(B, -1, h, w)
+
+
+def dino_resnet50() -> ResNetFeatures:
+    """Full-size ResNet-50 trunk (random weights until loaded)."""
+    return ResNetFeatures((3, 4, 6, 3), 64)
+
+
+def dino_vitb8() -> ViTFeatures:
+    """Full-size ViT-B/8 (random weights until loaded)."""
+    return ViTFeatures(patch=8, dim=768, depth=12, heads=12)
+
+
+# ---------------------------------------------------------------------------
+# Loading checkpoints
+# ---------------------------------------------------------------------------
+def _unwrap(obj: object) -> object:
+    """Accept a bare state dict or DINO's training checkpoints ({'teacher': ...})."""
+    if isinstance(obj, dict):
+        for key in ("teacher", "state_dict", "model"):
+            if key in obj and isinstance(obj[key], dict):
+                return obj[key]
+    return obj
+
+
+def load_backbone_weights(module: nn.Module, path: str | Path, what: str) -> None:
+    """Load a checkpoint into ``module`` with strict key and shape matching.
+
+    Prefixes ``module.`` and ``backbone.`` (DINO training checkpoints) are
+    stripped and classifier/projection heads (``fc.*``, ``head.*``) dropped, as
+    neither is used. BatchNorm ``num_batches_tracked`` counters may be absent
+    (unused in eval mode). Anything else that does not match raises
+    :class:`InputError` naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, f"{what} weights not found")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for corrupt files
+        raise InputError(path, f"cannot read {what} weights as a torch checkpoint ({e})") from None
+    sd = _unwrap(obj)
+    if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
+        raise InputError(path, f"{what} weights: expected a state dict of tensors")
+    clean: dict[str, torch.Tensor] = {}
+    for k, v in sd.items():
+        for pre in ("module.", "backbone."):
+            if k.startswith(pre):
+                k = k[len(pre):]
+        if k.startswith(("fc.", "head.")):
+            continue
+        clean[k] = v
+    own = module.state_dict()
+    missing = sorted(k for k in own if k not in clean and not k.endswith("num_batches_tracked"))
+    unexpected = sorted(k for k in clean if k not in own)
+    bad_shape = sorted(k for k in clean if k in own and tuple(clean[k].shape) != tuple(own[k].shape))
+    if missing or unexpected or bad_shape:
+        parts = []
+        for name, keys in (("missing keys", missing), ("unexpected keys", unexpected),
+                           ("shape mismatches", bad_shape)):
+            if keys:
+                parts.append(f"{len(keys)} {name} (e.g. {', '.join(keys[:4])})")
+        raise InputError(path, f"not a {what} checkpoint: " + "; ".join(parts))
+    module.load_state_dict(clean, strict=False)
+    log.info("loaded %s weights from %s (%d tensors)", what, path, len(clean))
+
+
+# ---------------------------------------------------------------------------
+# Weight-free pyramid
+# ---------------------------------------------------------------------------
+def image_pyramid(images: torch.Tensor, scales: Sequence[int] = PYRAMID_SCALES) -> list[torch.Tensor]:
+    """(V,3,H,W) in [0,1] -> per scale s a (V,6,max(1,H//s),max(1,W//s)) map: RGB, gx, gy, |grad|.
+
+    Gradients are Sobel derivatives of the grey image at that level (per
+    level-pixel, divided by 8 so a unit step gives 0.5).
+    """
+    sob = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=images.dtype) / 8.0
+    kern = torch.stack([sob, sob.T])[:, None].to(images.device)
+    out = []
+    H, W = images.shape[-2:]
+    for s in scales:
+        lvl = F.adaptive_avg_pool2d(images, (max(1, H // s), max(1, W // s)))
+        grey = lvl.mean(1, keepdim=True)
+        g = F.conv2d(F.pad(grey, (1, 1, 1, 1), mode="replicate"), kern)
+        mag = torch.sqrt((g ** 2).sum(1, keepdim=True) + 1e-12)
+        out.append(torch.cat([lvl, g, mag], dim=1))
+    return out
+
+
+# ---------------------------------------------------------------------------
+# The module used by the trainer
+# ---------------------------------------------------------------------------
+class IBRFeatures(nn.Module):
+    """Per-anchor IBR features from the training images (see the module docstring).
+
+    Args:
+        encoder: ``"dino"`` or ``"pyramid"`` (use :func:`build_ibr` for ``"none"``).
+        images: (V,3,H,W) training images in [0,1].
+        cameras: the V training cameras (their width/height must be W/H).
+        c_r: reference feature channels (paper: 32).
+        dino_resnet, dino_vit: local paths of ``dino_resnet50_pretrain.pth``
+            and ``dino_vitbase8_pretrain.pth`` (both required for ``"dino"``).
+        resnet, vit: already-loaded backbones to use instead of the paths
+            (tests build small ones).
+
+    The frozen encoder runs once here, without gradients; only the projection
+    ``P`` (:meth:`projection_parameters`) is trainable and saved in
+    ``state_dict``.
+    """
+
+    def __init__(self, encoder: str, images: torch.Tensor, cameras: Sequence[Camera], c_r: int = 32,
+                 dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None, *,
+                 resnet: nn.Module | None = None, vit: nn.Module | None = None):
+        super().__init__()
+        if encoder not in ("dino", "pyramid"):
+            raise ValueError(f"IBRFeatures encoder must be 'dino' or 'pyramid', got {encoder!r}")
+        if images.dim() != 4 or images.shape[1] != 3:
+            raise ValueError(f"images must be (V,3,H,W), got {tuple(images.shape)}")
+        V, _, H, W = images.shape
+        if len(cameras) != V:
+            raise ValueError(f"{V} images but {len(cameras)} cameras")
+        for c in cameras:
+            if (c.width, c.height) != (W, H):
+                raise ValueError(f"camera {c.name!r} is {c.width}x{c.height}, images are {W}x{H}")
+        self.encoder = encoder
+        self.c_r = int(c_r)
+        self.width, self.height = int(W), int(H)
+        self.map_size = (max(1, H // 2), max(1, W // 2))
+        images = images.detach().float().clamp(0.0, 1.0)
+        self.register_buffer("K", torch.tensor(np.stack([c.K for c in cameras]), dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("w2c", torch.tensor(np.stack([c.w2c for c in cameras]), dtype=torch.float32),
+                             persistent=False)
+
+        self._levels: list[str] = []
+        if encoder == "pyramid":
+            feats = image_pyramid(images)
+            self.proj = nn.ModuleDict({f"level{i}": nn.Conv2d(f.shape[1], self.c_r, 1)
+                                       for i, f in enumerate(feats)})
+            for i, f in enumerate(feats):
+                self._add_feature(f"level{i}", f)
+        else:
+            resnet, vit = self._backbones(dino_resnet, dino_vit, resnet, vit)
+            stages, cls, tokens = self._run_dino(images, resnet, vit)
+            proj: dict[str, nn.Module] = {f"stage{i + 1}": nn.Conv2d(f.shape[1], self.c_r, 1)
+                                          for i, f in enumerate(stages)}
+            proj["vit_tokens"] = nn.Linear(tokens.shape[1], self.c_r)
+            proj["vit_cls"] = nn.Linear(cls.shape[1], self.c_r)
+            self.proj = nn.ModuleDict(proj)
+            for i, f in enumerate(stages):
+                self._add_feature(f"stage{i + 1}", f)
+            self._add_feature("vit_tokens", tokens)
+            self.register_buffer("feat_vit_cls", cls, persistent=False)
+        self._cache: tuple[tuple, torch.Tensor] | None = None
+
+    # -- construction helpers ----------------------------------------------
+    def _add_feature(self, name: str, f: torch.Tensor) -> None:
+        self.register_buffer(f"feat_{name}", f.contiguous(), persistent=False)
+        self._levels.append(name)
+
+    @staticmethod
+    def _backbones(resnet_path, vit_path, resnet, vit) -> tuple[nn.Module, nn.Module]:
+        if resnet is None:
+            if resnet_path is None:
+                raise InputError(None, "IBR encoder 'dino' needs the DINO ResNet-50 weights "
+                                       "(dino_resnet50_pretrain.pth)")
+            resnet = dino_resnet50()
+            load_backbone_weights(resnet, resnet_path, "DINO ResNet-50")
+        if vit is None:
+            if vit_path is None:
+                raise InputError(None, "IBR encoder 'dino' needs the DINO ViT-B/8 weights "
+                                       "(dino_vitbase8_pretrain.pth)")
+            vit = dino_vitb8()
+            load_backbone_weights(vit, vit_path, "DINO ViT-B/8")
+        return resnet.eval(), vit.eval()
+
+    @staticmethod
+    @torch.no_grad()
+    def _run_dino(images: torch.Tensor, resnet: nn.Module, vit: nn.Module
+                  ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+        mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        x = (images - mean) / std
+        H, W = x.shape[-2:]
+        p = getattr(vit, "patch", 8)
+        # The ViT needs multiples of the patch size; resizing keeps the image
+        # extent, so token (a, b) still covers the same fraction of the image.
+        Hp, Wp = max(p, round(H / p) * p), max(p, round(W / p) * p)
+        stages: list[list[torch.Tensor]] = [[], [], [], []]
+        cls_l, tok_l = [], []
+        for v in range(x.shape[0]):  # one view at a time bounds the memory
+            xv = x[v:v + 1]
+            for i, f in enumerate(resnet(xv)):
+                stages[i].append(f)
+            xv = xv if (Hp, Wp) == (H, W) else F.interpolate(xv, size=(Hp, Wp), mode="bilinear",
+                                                              align_corners=False)
+            c, t = vit(xv)
+            cls_l.append(c)
+            tok_l.append(t)
+            log.info("DINO features: view %d/%d", v + 1, x.shape[0])
+        return [torch.cat(s) for s in stages], torch.cat(cls_l), torch.cat(tok_l)
+
+    # -- public API ----------------------------------------------------------
+    def projection_parameters(self) -> list[nn.Parameter]:
+        """The trainable projection ``P`` (paper: AdamW, lr 1e-4, frozen after 2/3 of training)."""
+        return list(self.proj.parameters())
+
+    def feature_maps(self) -> torch.Tensor:
+        """Fused reference maps (V, C_r, H//2, W//2) through the current ``P``.
+
+        Cached while no gradient can flow into ``P`` (frozen or under
+        ``torch.no_grad``); the cache is keyed on the parameters' versions so
+        loading new weights invalidates it.
+        """
+        params = self.projection_parameters()
+        needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
+        key = tuple(p._version for p in params) + tuple(p.data_ptr() for p in params)
+        if not needs_grad and self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        size = self.map_size
+        out = None
+        for name in self._levels:
+            f = getattr(self, f"feat_{name}")
+            if name == "vit_tokens":
+                y = self.proj[name](f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+                y = F.interpolate(y, size=size, mode="nearest")  # repeat each token over its patch
+            else:
+                y = F.interpolate(self.proj[name](f), size=size, mode="bilinear", align_corners=False)
+            out = y if out is None else out + y
+        if self.encoder == "dino":
+            out = out + self.proj["vit_cls"](self.feat_vit_cls)[:, :, None, None]
+        if needs_grad:
+            self._cache = None
+        else:
+            out = out.detach()
+            self._cache = (key, out)
+        return out
+
+    def forward(self, anchors: torch.Tensor) -> torch.Tensor:
+        """IBR feature (N, C_r) of anchors (N,3) in world coordinates.
+
+        Averages the bilinear samples over the views where the anchor is in
+        front (z > 0) and projects inside the image; anchors seen by no view get
+        zeros. Anchor positions receive no gradient from here (the sampled
+        features are for appearance, not geometry).
+        """
+        maps = self.feature_maps()
+        X = anchors.detach().to(device=maps.device, dtype=maps.dtype)
+        if X.shape[0] == 0:
+            return maps.new_zeros((0, self.c_r))
+        R, t = self.w2c[:, :3, :3], self.w2c[:, :3, 3]
+        Xc = torch.einsum("vij,nj->vni", R, X) + t[:, None, :]  # (V,N,3)
+        z = Xc[..., 2]
+        front = z > 1e-6
+        zs = torch.where(front, z, torch.ones_like(z))
+        pix = torch.einsum("vij,vnj->vni", self.K, Xc / zs[..., None])
+        u, v = pix[..., 0], pix[..., 1]
+        ok = front & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        grid = torch.stack([2.0 * u / self.width - 1.0, 2.0 * v / self.height - 1.0], dim=-1)
+        grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into grid_sample
+        s = F.grid_sample(maps, grid[:, None], mode="bilinear", padding_mode="border",
+                          align_corners=False)[:, :, 0]  # (V,C,N)
+        w = ok.to(maps.dtype)
+        total = (s * w[:, None]).sum(0)  # (C,N)
+        count = w.sum(0).clamp(min=1.0)
+        return (total / count).T
+
+
+def resolve_encoder(requested: str, dino_paths: tuple[str | Path | None, str | Path | None]
+                    ) -> tuple[str, str]:
+    """Pick the IBR encoder: returns ``(name in ENCODERS, reason for the report)``.
+
+    ``dino_paths`` is ``(resnet50 checkpoint, vitb8 checkpoint)``, each possibly
+    None. ``"auto"`` gives ``"dino"`` when both are given, else ``"pyramid"``.
+    Asking for ``"dino"`` without both files raises :class:`InputError`.
+    """
+    resnet_p, vit_p = dino_paths
+    have = resnet_p is not None and vit_p is not None
+    if requested in ("dino", "auto") and have:
+        for p in (resnet_p, vit_p):
+            if not Path(p).is_file():
+                raise InputError(p, "DINO weights not found")
+        why = "requested" if requested == "dino" else "auto: DINO ResNet-50 and ViT-B/8 weights given"
+        return "dino", why
+    if requested == "dino":
+        raise InputError(None, "IBR encoder 'dino' needs both DINO weight files: ResNet-50 "
+                               "(dino_resnet50_pretrain.pth) and ViT-B/8 (dino_vitbase8_pretrain.pth)")
+    if requested == "auto":
+        return "pyramid", ("auto: no DINO weights given (both ResNet-50 and ViT-B/8 are needed), "
+                           "using the weight-free image/gradient pyramid")
+    if requested in ("pyramid", "none"):
+        return requested, "requested"
+    raise InputError(None, f"unknown IBR encoder {requested!r}; choose auto, dino, pyramid or none")
+
+
+def build_ibr(name: str, images: torch.Tensor, cameras: Sequence[Camera], c_r: int = 32,
+              dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None
+              ) -> IBRFeatures | None:
+    """IBRFeatures for ``name`` in {"dino", "pyramid"}; None for ``"none"``."""
+    if name == "none":
+        return None
+    return IBRFeatures(name, images, cameras, c_r=c_r, dino_resnet=dino_resnet, dino_vit=dino_vit)
+
+
+__all__ = ["ENCODERS", "IBRFeatures", "ResNetFeatures", "ViTFeatures", "dino_resnet50", "dino_vitb8",
+           "load_backbone_weights", "image_pyramid", "resolve_encoder", "build_ibr"]
