@@ -1,0 +1,250 @@
+"""Weight-free plane-sweep multi-view stereo in torch.
+
+For each reference view, fronto-parallel depth planes (uniform in inverse
+depth) warp the other training views into the reference; the photometric
+cost is ``1 - NCC`` over a square window, averaged over the best half of the
+source views (robust to occlusion in one of them). Winner-take-all picks the
+best plane, a parabola through its neighbours refines it below one plane,
+and the confidence comes from the cost curve: how much lower the best
+minimum is than the best one away from it (peak ratio).
+
+Depths are z-depths in world units along the reference camera's +z axis.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .cameras import Camera
+
+log = logging.getLogger("dibrgs.mvs")
+
+
+@dataclass
+class MvsConfig:
+    """Plane-sweep options.
+
+    Attributes:
+        num_depths: depth planes between near and far (uniform in 1/depth).
+        window: NCC window side in pixels (odd).
+        min_ncc: pixels whose best NCC is lower are marked invalid.
+        min_confidence: pixels whose peak-ratio confidence is lower are invalid.
+        min_texture: minimum reference-window standard deviation (image
+            units in [0,1]) for NCC to be meaningful.
+        consistency_tol: geometric check between views: a depth is kept when
+            it agrees, within this relative tolerance, with the depth another
+            view estimated at its reprojection.
+        min_consistent_views: how many other views must agree (0 disables
+            the check).
+        plane_chunk: planes evaluated per batch (memory / speed trade-off).
+    """
+
+    num_depths: int = 96
+    window: int = 7
+    min_ncc: float = 0.6
+    min_confidence: float = 0.1
+    min_texture: float = 0.01
+    plane_chunk: int = 8
+    consistency_tol: float = 0.02
+    min_consistent_views: int = 1
+
+
+@dataclass
+class MvsResult:
+    """Per-view depth (HxW float32, NaN where invalid) and confidence (HxW float32 in [0,1])."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    ncc: np.ndarray
+
+
+def _gray(img: np.ndarray):
+    import torch
+
+    g = np.asarray(img, np.float32)
+    if g.ndim == 3:
+        g = g[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
+    return torch.from_numpy(np.nan_to_num(g, nan=0.0).copy())[None, None]
+
+
+def _box(x, w: int):
+    import torch.nn.functional as F
+
+    return F.avg_pool2d(x, w, stride=1, padding=w // 2, count_include_pad=False)
+
+
+def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera, np.ndarray]], near: float, far: float,
+                config: MvsConfig | None = None) -> MvsResult:
+    """Depth of ``ref`` by plane sweeping against ``sources`` between ``near`` and ``far`` (world units)."""
+    import torch
+    import torch.nn.functional as F
+
+    cfg = config or MvsConfig()
+    H, W = ref.height, ref.width
+    w = cfg.window | 1
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        raise ValueError(f"plane_sweep: bad depth range ({near}, {far})")
+    if not sources:
+        nan = np.full((H, W), np.nan, np.float32)
+        return MvsResult(nan, np.zeros((H, W), np.float32), np.zeros((H, W), np.float32))
+    with torch.no_grad():
+        r = _gray(ref_img).double().float()
+        mu_r = _box(r, w)
+        var_r = (_box(r * r, w) - mu_r ** 2).clamp_min(0)
+        sd_r = var_r.sqrt()
+        # Pixel-centre rays of the reference camera (camera frame, z = 1).
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                              indexing="ij")
+        pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(-1, 3)
+        rays = pix @ torch.from_numpy(np.linalg.inv(ref.K)).T
+        inv = torch.linspace(1.0 / near, 1.0 / far, cfg.num_depths, dtype=torch.float64)
+        depths = 1.0 / inv
+        src_data = []
+        for cam, img in sources:
+            R_rel = cam.R @ ref.R.T
+            t_rel = cam.t - R_rel @ ref.t
+            A = (rays @ torch.from_numpy(cam.K @ R_rel).T).float()  # (HW,3): direction part
+            B = torch.from_numpy(cam.K @ t_rel).float()  # (3,)
+            src_data.append((A, B, _gray(img), cam.width, cam.height))
+        n_keep = max(1, math.ceil(len(sources) / 2))
+        cost = torch.empty(cfg.num_depths, H, W)
+        for k0 in range(0, cfg.num_depths, cfg.plane_chunk):
+            ds = depths[k0:k0 + cfg.plane_chunk].float()
+            n = len(ds)
+            per_src = []
+            for A, B, s, sw, sh in src_data:
+                p = ds[:, None, None] * A[None] + B[None, None]  # (n, HW, 3)
+                z = p[..., 2]
+                zs = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+                gx = (p[..., 0] / zs) / sw * 2 - 1
+                gy = (p[..., 1] / zs) / sh * 2 - 1
+                inside = (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1)
+                grid = torch.stack([gx, gy], -1).reshape(n, H, W, 2)
+                grid = torch.nan_to_num(grid, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2)
+                warped = F.grid_sample(s.expand(n, 1, -1, -1), grid, mode="bilinear", padding_mode="border",
+                                       align_corners=False)
+                mu_s = _box(warped, w)
+                var_s = (_box(warped * warped, w) - mu_s ** 2).clamp_min(0)
+                cov = _box(warped * r, w) - mu_s * mu_r
+                ncc = cov / (var_s * var_r + 1e-10).sqrt()
+                c = (1 - ncc.clamp(-1, 1))[:, 0]
+                c = torch.where(inside.reshape(n, H, W), c, torch.full_like(c, float("inf")))
+                per_src.append(c)
+            stack = torch.stack(per_src, 0)  # (S, n, H, W)
+            best = torch.sort(stack, dim=0).values[:n_keep]
+            finite = torch.isfinite(best)
+            cnt = finite.sum(0)
+            agg = torch.where(finite, best, torch.zeros_like(best)).sum(0) / cnt.clamp_min(1)
+            cost[k0:k0 + n] = torch.where(cnt > 0, agg, torch.full_like(agg, 2.0))
+        c1, k1 = cost.min(0)
+        # Sub-plane refinement: parabola through the neighbouring costs in inverse depth.
+        km = (k1 - 1).clamp(0, cfg.num_depths - 1)
+        kp = (k1 + 1).clamp(0, cfg.num_depths - 1)
+        cm = cost.gather(0, km[None])[0]
+        cp = cost.gather(0, kp[None])[0]
+        denom = cm - 2 * c1 + cp
+        off = torch.where(denom > 1e-6, 0.5 * (cm - cp) / denom.clamp_min(1e-6), torch.zeros_like(denom))
+        off = torch.where((k1 > 0) & (k1 < cfg.num_depths - 1), off.clamp(-0.5, 0.5), torch.zeros_like(off))
+        step = (inv[1] - inv[0]).item() if cfg.num_depths > 1 else 0.0
+        inv_best = inv[k1].float() + off * step
+        depth = 1.0 / inv_best.clamp_min(1.0 / (far * 4))
+        # Confidence: the best minimum against the lowest cost two planes or more away.
+        idx = torch.arange(cfg.num_depths)[:, None, None]
+        away = (idx - k1[None]).abs() >= 2
+        c2 = torch.where(away, cost, torch.full_like(cost, 2.0)).min(0).values
+        conf = ((c2 - c1) / c2.clamp_min(1e-6)).clamp(0, 1)
+        ncc_best = 1 - c1
+        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture)
+        valid &= torch.isfinite(depth) & (c1 < 2)
+        depth = torch.where(valid, depth, torch.full_like(depth, float("nan")))
+        conf = torch.where(valid, conf, torch.zeros_like(conf))
+    return MvsResult(depth.numpy().astype(np.float32), conf.numpy().astype(np.float32),
+                     ncc_best.clamp(-1, 1).numpy().astype(np.float32))
+
+
+def depth_range_for(cam: Camera, sparse_points: np.ndarray | None, fallback_distance: float,
+                    margin: float = 1.25) -> tuple[float, float]:
+    """Plane-sweep range for ``cam``: SfM point depths (2nd-98th percentile, widened by ``margin``)
+    when at least 10 project in front of it, else the camera's ``depth_range``, else
+    ``[d/2, 2d]`` around ``fallback_distance`` (distance to the scene's look-at point)."""
+    if sparse_points is not None and len(sparse_points) >= 10:
+        uv, z = cam.project(sparse_points)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if ok.sum() >= 10:
+            lo, hi = np.percentile(z[ok], [2, 98])
+            near, far = lo / margin, hi * margin
+            if cam.depth_range is not None:  # the camera's range is a hard bound when given
+                near = max(near, cam.depth_range[0])
+                far = min(far, cam.depth_range[1])
+            if 0 < near < far:
+                return float(near), float(far)
+    if cam.depth_range is not None and 0 < cam.depth_range[0] < cam.depth_range[1]:
+        return float(cam.depth_range[0]), float(cam.depth_range[1])
+    d = max(float(fallback_distance), 1e-6)
+    return d / 2, d * 2
+
+
+def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_points: np.ndarray | None,
+               fallback_distance: float, config: MvsConfig | None = None, progress: bool = True) -> list[MvsResult]:
+    """Plane-sweep depth for every view against all the others.
+
+    Camera translations are re-expressed relative to the mean camera centre
+    (precision with georeferenced coordinates); depths do not change.
+    """
+    from tqdm import tqdm
+
+    cams = [_recentred(c, np.mean([c.center for c in cameras], axis=0)) for c in cameras]
+    pts = None
+    if sparse_points is not None and len(sparse_points):
+        pts = np.asarray(sparse_points, np.float64) - np.mean([c.center for c in cameras], axis=0)
+    out = []
+    for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
+        near, far = depth_range_for(cams[i], pts, fallback_distance)
+        srcs = [(cams[j], images[j]) for j in range(len(cams)) if j != i]
+        res = plane_sweep(cams[i], images[i], srcs, near, far, config)
+        log.info("MVS view %s: range [%.3g, %.3g], %.1f%% valid", cams[i].name, near, far,
+                 100.0 * np.isfinite(res.depth).mean())
+        out.append(res)
+    cfg = config or MvsConfig()
+    if cfg.min_consistent_views > 0 and len(cams) > 1:
+        out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views)
+    return out
+
+
+def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int) -> list[MvsResult]:
+    """Keep depths that at least ``min_views`` other views confirm (relative error < ``tol``)."""
+    filtered = []
+    for i, (ci, ri) in enumerate(zip(cams, results)):
+        d = ri.depth.reshape(-1)
+        ok = np.isfinite(d)
+        X = ci.backproject(np.where(ok, d, 1.0).reshape(ci.height, ci.width))
+        votes = np.zeros(d.size, np.int32)
+        for j, (cj, rj) in enumerate(zip(cams, results)):
+            if j == i:
+                continue
+            uv, z = cj.project(X)
+            u = np.floor(uv[:, 0]).astype(np.int64)
+            v = np.floor(uv[:, 1]).astype(np.int64)
+            inside = ok & (z > 0) & (u >= 0) & (u < cj.width) & (v >= 0) & (v < cj.height)
+            dj = np.full(d.size, np.nan)
+            dj[inside] = rj.depth[v[inside], u[inside]]
+            with np.errstate(invalid="ignore"):
+                votes += (np.abs(dj - z) <= tol * np.abs(z)).astype(np.int32)
+        keep = (ok & (votes >= min_views)).reshape(ci.height, ci.width)
+        filtered.append(MvsResult(np.where(keep, ri.depth, np.nan).astype(np.float32),
+                                  np.where(keep, ri.confidence, 0).astype(np.float32), ri.ncc))
+        log.info("MVS view %s: %.1f%% pass the %d-view consistency check", ci.name, 100.0 * keep.mean(), min_views)
+    return filtered
+
+
+def _recentred(cam: Camera, origin: np.ndarray) -> Camera:
+    """The same camera in a frame translated by ``-origin``."""
+    from dataclasses import replace
+
+    w2c = cam.w2c.copy()
+    w2c[:3, 3] = cam.t + cam.R @ origin
+    return replace(cam, w2c=w2c)

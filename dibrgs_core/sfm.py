@@ -1,0 +1,171 @@
+"""Sparse structure from motion with known poses (pycolmap, CPU).
+
+SIFT features of the training views, exhaustive matching with geometric
+verification, then triangulation with the given cameras held fixed: no pose
+or intrinsics re-estimation. Coordinates are handed to COLMAP relative to a
+local origin (georeferenced scenes have coordinates around 1e5, where float
+precision inside COLMAP's solvers would suffer) and moved back afterwards.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .cameras import Camera
+
+log = logging.getLogger("dibrgs.sfm")
+
+
+@dataclass
+class SparseCloud:
+    """Triangulated points in world coordinates.
+
+    Attributes:
+        points: (N,3) float64 world positions.
+        colors: (N,3) uint8 RGB.
+        track_lengths: (N,) number of images observing each point.
+        errors: (N,) mean reprojection error in pixels.
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    track_lengths: np.ndarray
+    errors: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "SparseCloud":
+        return cls(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class SfmConfig:
+    """Options of the sparse reconstruction.
+
+    Attributes:
+        max_num_features: SIFT features per image.
+        keep_two_view_tracks: keep points seen by only two views (with three
+            sparse views most tracks have length two).
+        min_angle_deg: minimum triangulation angle.
+        max_reproj_error: reprojection error (px) above which points are dropped.
+        num_threads: CPU threads for pycolmap.
+    """
+
+    max_num_features: int = 8192
+    keep_two_view_tracks: bool = True
+    min_angle_deg: float = 1.5
+    max_reproj_error: float = 4.0
+    num_threads: int = 2
+
+
+def _to_uint8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0) * 255.0).round().astype(np.uint8)
+
+
+def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
+                            config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
+    """Sparse points from images with known cameras.
+
+    Args:
+        cameras: one :class:`Camera` per image (world units, OpenCV axes).
+        images: HxWx3 float images in [0, 1].
+        origin: local origin subtracted from world coordinates inside COLMAP
+            (default: mean camera centre).
+        config: :class:`SfmConfig`.
+        work_dir: where COLMAP's database and images go (a temporary folder
+            when None; removed afterwards).
+
+    Returns a :class:`SparseCloud` (possibly empty; never raises for "too few
+    matches").
+    """
+    import pycolmap
+    from PIL import Image
+
+    cfg = config or SfmConfig()
+    cams = list(cameras)
+    if len(cams) != len(images):
+        raise ValueError("one image per camera expected")
+    if len(cams) < 2:
+        return SparseCloud.empty()
+    origin = np.mean([c.center for c in cams], axis=0) if origin is None else np.asarray(origin, np.float64)
+    own_tmp = work_dir is None
+    root = Path(tempfile.mkdtemp(prefix="dibrgs_sfm_")) if own_tmp else Path(work_dir)
+    try:
+        if root.exists() and not own_tmp:
+            shutil.rmtree(root)
+        img_dir = root / "images"
+        img_dir.mkdir(parents=True)
+        db_path = root / "database.db"
+        names = []
+        eo = pycolmap.FeatureExtractionOptions()
+        eo.num_threads = cfg.num_threads
+        eo.sift.max_num_features = cfg.max_num_features
+        for i, (cam, img) in enumerate(zip(cams, images)):
+            name = f"{i:04d}.png"
+            names.append(name)
+            Image.fromarray(_to_uint8(img)).save(img_dir / name)
+            # One PINHOLE camera per image with the known intrinsics.
+            ro = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
+                                             camera_params=f"{cam.fx!r},{cam.fy!r},{cam.cx!r},{cam.cy!r}")
+            pycolmap.extract_features(db_path, img_dir, image_names=[name], camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+        mo = pycolmap.FeatureMatchingOptions()
+        mo.num_threads = cfg.num_threads
+        pycolmap.match_exhaustive(db_path, matching_options=mo, device=pycolmap.Device.cpu)
+
+        db = pycolmap.Database.open(db_path)
+        try:
+            rec = pycolmap.Reconstruction()
+            for c in db.read_all_cameras():
+                rec.add_camera(c)
+            for r in db.read_all_rigs():
+                rec.add_rig(r)
+            for f in db.read_all_frames():
+                rec.add_frame(f)
+            db_images = db.read_all_images()
+            n_pairs = db.num_verified_image_pairs()
+        finally:
+            db.close()
+        by_name = dict(zip(names, cams))
+        for im in db_images:
+            rec.add_image(im)
+        for im in db_images:
+            cam = by_name[im.name]
+            # Local frame: X_local = X - origin, so t_local = t + R @ origin.
+            w2c = cam.w2c[:3].copy()
+            w2c[:, 3] = cam.t + cam.R @ origin
+            rec.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(w2c)
+            rec.register_frame(im.frame_id)
+        if n_pairs == 0:
+            log.info("SfM: no verified image pairs")
+            return SparseCloud.empty()
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.num_threads = cfg.num_threads
+        opts.triangulation.ignore_two_view_tracks = not cfg.keep_two_view_tracks
+        opts.triangulation.min_angle = cfg.min_angle_deg
+        opts.triangulation.complete_max_reproj_error = cfg.max_reproj_error
+        opts.triangulation.merge_max_reproj_error = cfg.max_reproj_error
+        out = root / "sparse"
+        out.mkdir(exist_ok=True)
+        res = pycolmap.triangulate_points(rec, db_path, img_dir, out, options=opts, refine_intrinsics=False)
+        pts = list(res.points3D.values())
+        if not pts:
+            return SparseCloud.empty()
+        P = np.array([p.xyz for p in pts], np.float64) + origin
+        col = np.array([p.color for p in pts], np.uint8).reshape(-1, 3)
+        tl = np.array([p.track.length() for p in pts], np.int64)
+        err = np.array([p.error for p in pts], np.float64)
+        keep = np.isfinite(P).all(1) & (err <= cfg.max_reproj_error)
+        log.info("SfM: %d points (mean track %.2f) from %d verified pairs", keep.sum(), tl[keep].mean() if keep.any() else 0, n_pairs)
+        return SparseCloud(P[keep], col[keep], tl[keep], err[keep])
+    finally:
+        if own_tmp:
+            shutil.rmtree(root, ignore_errors=True)

@@ -1,0 +1,182 @@
+"""Small synthetic aerial scenes for the geometry tests, rendered by numpy ray casting.
+
+A textured heightfield (ground plus box buildings) is ray-marched from an
+orbit of cameras, giving exact z-depth maps. World units mimic LEVIR-NVS
+(cameras ~120 units from the scene). ``up`` lets a test rotate the whole
+world so that the scene's up axis is not +Z; ``offset`` translates it (for
+georeferenced coordinates).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dibrgs_core.cameras import Camera, look_at
+
+try:  # the foundation helper's scene types, when present
+    from dibrgs_core.io_levir import Scene, View
+except ImportError:  # pragma: no cover - until io_levir lands
+    @dataclass
+    class View:  # type: ignore[no-redef]
+        camera: Camera
+        image: np.ndarray
+        depth: np.ndarray | None = None
+
+    @dataclass
+    class Scene:  # type: ignore[no-redef]
+        root: Path
+        views: dict
+        track: list = field(default_factory=list)
+        train: list = field(default_factory=list)
+        test: list = field(default_factory=list)
+
+        def train_views(self):
+            return [self.views[k] for k in self.train]
+
+        def test_views(self):
+            return [self.views[k] for k in self.test]
+
+
+def _value_noise(rng: np.random.Generator, x: np.ndarray, y: np.ndarray, scales=(40.0, 12.0, 4.0, 1.5)) -> np.ndarray:
+    """Smooth multi-octave colour noise at world (x, y): (N, 3) in [0, 1]."""
+    out = np.zeros(x.shape + (3,))
+    for k, s in enumerate(scales):
+        n = 64
+        grid = rng.random((n, n, 3))
+        u = (x / s) % (n - 1)
+        v = (y / s) % (n - 1)
+        i0, j0 = np.floor(u).astype(int), np.floor(v).astype(int)
+        fu, fv = (u - i0)[..., None], (v - j0)[..., None]
+        g = (grid[j0, i0] * (1 - fu) * (1 - fv) + grid[j0, i0 + 1] * fu * (1 - fv)
+             + grid[j0 + 1, i0] * (1 - fu) * fv + grid[j0 + 1, i0 + 1] * fu * fv)
+        out += g * (1.0 - 0.12 * k)
+    out -= out.min()
+    return out / max(out.max(), 1e-9)
+
+
+@dataclass
+class HeightField:
+    """Ground at height 0 with axis-aligned box buildings (x0, x1, y0, y1, h)."""
+
+    boxes: np.ndarray
+    seed: int = 0
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        h = np.zeros_like(x)
+        for x0, x1, y0, y1, bh in self.boxes:
+            inside = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+            h = np.where(inside, np.maximum(h, bh), h)
+        return h
+
+    def color(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        rng = np.random.default_rng(self.seed)
+        c = _value_noise(rng, x + 0.37 * z, y - 0.21 * z)
+        roof = (z > 0.5)[..., None]
+        return np.where(roof, 0.3 + 0.7 * c[..., ::-1], 0.1 + 0.8 * c)
+
+
+def city_heightfield(seed: int = 0, n_boxes: int = 12, extent: float = 60.0) -> HeightField:
+    rng = np.random.default_rng(seed)
+    boxes = []
+    for _ in range(n_boxes):
+        cx, cy = rng.uniform(-extent * 0.7, extent * 0.7, 2)
+        w, d = rng.uniform(6, 16, 2)
+        boxes.append((cx - w / 2, cx + w / 2, cy - d / 2, cy + d / 2, rng.uniform(5, 25)))
+    return HeightField(np.array(boxes), seed)
+
+
+def render(hf: HeightField, cam_local: Camera, ss: int = 2, step: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-march ``hf`` (in the local z-up frame). Returns (image HxWx3 float32, z-depth HxW float32)."""
+    W, H = cam_local.width, cam_local.height
+    hi = cam_local.scaled(ss) if ss > 1 else cam_local
+    o, d = hi.pixel_rays()
+    n = len(d)
+    t = np.full(n, np.nan)
+    # March from the top of the tallest box downwards; z-depth parameter t.
+    zmax = float(hf.boxes[:, 4].max()) + 1.0 if len(hf.boxes) else 1.0
+    t_start = np.maximum((o[:, 2] - zmax) / np.maximum(-d[:, 2], 1e-9), 0.0)
+    t_end = (o[:, 2] + 1.0) / np.maximum(-d[:, 2], 1e-9)
+    tc = t_start.copy()
+    prev = tc.copy()
+    active = d[:, 2] < -1e-6
+    while active.any():
+        p = o + d * tc[:, None]
+        below = p[:, 2] <= hf.height(p[:, 0], p[:, 1])
+        hit = active & below
+        if hit.any():  # bisection between prev and tc
+            lo, hi_t = prev[hit], tc[hit]
+            oo, dd = o[hit], d[hit]
+            for _ in range(20):
+                mid = 0.5 * (lo + hi_t)
+                pm = oo + dd * mid[:, None]
+                b = pm[:, 2] <= hf.height(pm[:, 0], pm[:, 1])
+                hi_t = np.where(b, mid, hi_t)
+                lo = np.where(b, lo, mid)
+            t[hit] = hi_t
+            active &= ~hit
+        prev = tc.copy()
+        tc = tc + step
+        active &= tc < t_end + step
+    t = np.where(np.isnan(t), t_end, t)
+    p = o + d * t[:, None]
+    col = hf.color(p[:, 0], p[:, 1], p[:, 2]).reshape(H * ss, W * ss, 3)
+    img = col.reshape(H, ss, W, ss, 3).mean(axis=(1, 3)).astype(np.float32)
+    # Depth at the pixel centre: render without supersampling for exactness.
+    if ss > 1:
+        _, depth = render(hf, cam_local, ss=1, step=step)
+    else:
+        depth = t.reshape(H, W).astype(np.float32)
+    return img, depth
+
+
+def rotation_to(up: np.ndarray) -> np.ndarray:
+    """A rotation taking +Z to ``up``."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, up)
+    c = float(z @ up)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * (1 / (1 + c))
+
+
+def make_synthetic_scene(size: int = 64, n_views: int = 3, seed: int = 0, radius: float = 50.0,
+                         height: float = 110.0, up=(0.0, 0.0, 1.0), offset=(0.0, 0.0, 0.0),
+                         fov_deg: float = 50.0, horizontal: bool = False, hf: HeightField | None = None):
+    """A Scene with ``n_views`` training views on an orbit (all views are training views).
+
+    ``horizontal=True`` puts the cameras at ground level looking sideways.
+    """
+    hf = hf or city_heightfield(seed)
+    Rw = rotation_to(np.asarray(up, float))  # local z-up -> world
+    off = np.asarray(offset, float)
+    f = size / 2 / np.tan(np.radians(fov_deg) / 2)
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    views = {}
+    for i in range(n_views):
+        th = 2 * np.pi * i / n_views + 0.3
+        if horizontal:
+            eye = np.array([150 * np.cos(th), 150 * np.sin(th), 8.0])
+            target = np.array([0.0, 0.0, 8.0])
+        else:
+            eye = np.array([radius * np.cos(th), radius * np.sin(th), height])
+            target = np.zeros(3)
+        w2c_local = look_at(eye, target, [0, 0, 1])
+        cam_local = Camera(K, w2c_local, size, size, name=f"{i:03d}")
+        img, depth = render(hf, cam_local)
+        # world = Rw @ local + off  =>  w2c_world = w2c_local @ [Rw^T, -Rw^T off]
+        T = np.eye(4)
+        T[:3, :3] = Rw.T
+        T[:3, 3] = -Rw.T @ off
+        near = max(1.0, float(np.nanmin(depth)) * 0.5)
+        cam = Camera(K, w2c_local @ T, size, size, name=f"{i:03d}", depth_range=(near, float(np.nanmax(depth)) * 1.5))
+        views[f"{i:03d}"] = View(camera=cam, image=img, depth=depth)
+    names = sorted(views)
+    try:
+        scene = Scene(root=Path("/nonexistent"), views=views, track=[], train=names, test=[])
+    except TypeError:  # pragma: no cover - io_levir's Scene with another signature
+        raise
+    return scene, hf
