@@ -1,0 +1,189 @@
+"""Tests for dibrgs_core.pseudo_views on an analytic two-layer scene with known depth and colour."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from dibrgs_core.cameras import Camera, fit_orbit, look_at
+from dibrgs_core.io_levir import View
+from dibrgs_core.pseudo_views import (EMPTY, PADDED, build_pseudo_views, complete_depth, remove_see_through,
+                                      sample_orbit_poses, warp_progressive, zbuffer_depth)
+
+TOP_H = 1.0  # height of the floating square [-0.6,0.6]^2 above the ground plane z=0
+
+
+def ground_tex(x, y):
+    return np.stack([0.5 + 0.4 * np.sin(3 * x), 0.5 + 0.4 * np.cos(2 * y), 0.5 + 0.3 * np.sin(x + y)], -1)
+
+
+def top_tex(x, y):
+    return np.stack([0.9 + 0 * x, 0.1 + 0.05 * np.sin(5 * y), 0.1 + 0 * x], -1)
+
+
+def cam_at(angle_deg: float, size: int = 64, radius: float = 4.0, height: float = 3.0) -> Camera:
+    a = np.radians(angle_deg)
+    K = np.array([[size * 0.9, 0, size / 2], [0, size * 0.9, size / 2], [0, 0, 1]])
+    eye = [radius * np.cos(a), radius * np.sin(a), height]
+    return Camera(K=K, w2c=look_at(eye, [0, 0, 0], [0, 0, 1]), width=size, height=size, name=f"c{angle_deg:g}")
+
+
+def render(cam: Camera, occluder: bool = True):
+    """Ray-cast the scene: (image (H,W,3) float32, z-depth (H,W) float32; 0 where the ray misses)."""
+    o, d = cam.pixel_rays()  # d has camera-z 1, so the ray parameter is the z-depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tg = np.where(d[:, 2] < 0, -o[:, 2] / d[:, 2], np.inf)
+        tt = np.where(d[:, 2] < 0, (TOP_H - o[:, 2]) / d[:, 2], np.inf)
+    pt = o + d * np.where(np.isfinite(tt), tt, 0)[:, None]
+    hit_top = occluder & np.isfinite(tt) & (np.abs(pt[:, 0]) <= 0.6) & (np.abs(pt[:, 1]) <= 0.6)
+    pg = o + d * np.where(np.isfinite(tg), tg, 0)[:, None]
+    img = np.where(hit_top[:, None], top_tex(pt[:, 0], pt[:, 1]), ground_tex(pg[:, 0], pg[:, 1]))
+    depth = np.where(hit_top, tt, np.where(np.isfinite(tg), tg, 0))
+    H, W = cam.height, cam.width
+    return img.reshape(H, W, 3).astype(np.float32), depth.reshape(H, W).astype(np.float32)
+
+
+def scene_points(step: float = 0.03, occluder: bool = True, extent: float = 4.0) -> np.ndarray:
+    g = np.arange(-extent, extent, step)
+    x, y = np.meshgrid(g, g)
+    pts = [np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)]
+    if occluder:
+        t = np.arange(-0.6, 0.6 + 1e-9, step)
+        x, y = np.meshgrid(t, t)
+        pts.append(np.stack([x.ravel(), y.ravel(), np.full(x.size, TOP_H)], 1))
+    return np.concatenate(pts)
+
+
+def test_warp_with_true_depth_reproduces_view():
+    a, b = cam_at(0), cam_at(35)
+    ia, da = render(a)
+    ib, db = render(b)
+    img, valid, fb = warp_progressive(b, db, [(a, ia, da)])
+    assert valid.mean() > 0.5
+    err = np.abs(img - ib)[valid].mean()
+    assert err < 0.02
+    assert set(np.unique(fb[valid])) == {0}
+    assert np.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
+
+
+def test_occlusion_test_rejects_hidden_pixels():
+    # the target looks from the other side: ground behind the square (from the source) is visible in it
+    a, b = cam_at(0), cam_at(180)
+    ia, da = render(a)
+    ib, db = render(b)
+    img, valid, fb = warp_progressive(b, db, [(a, ia, da)])
+    # analytic visibility of every target pixel's surface point in the source
+    X = b.backproject(db)
+    uv, z = a.project(X)
+    inside = (db.ravel() > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 64) & (uv[:, 1] >= 0) & (uv[:, 1] < 64)
+    xi, yi = uv[:, 0].astype(int).clip(0, 63), uv[:, 1].astype(int).clip(0, 63)
+    hidden = inside & (z > da[yi, xi] * 1.05)
+    assert hidden.sum() > 20  # the setup really has occluded pixels
+    assert not valid.ravel()[hidden].any()
+    assert np.abs(img - ib)[valid].mean() < 0.03
+    # without the test (source depth far behind everything) hidden pixels take the square's colour
+    img2, valid2, _ = warp_progressive(b, db, [(a, ia, np.full_like(da, 1e6))])
+    assert valid2.ravel()[hidden].all()
+    assert np.abs(img2 - ib).reshape(-1, 3)[hidden].mean() > 0.2
+    # hidden pixels are padded, not left empty
+    assert (fb.ravel()[hidden] == PADDED).all()
+
+
+def test_progressive_fill_covers_more_and_nearest_first():
+    t = cam_at(90)
+    it, dt = render(t)
+    srcs = [(c, *render(c)) for c in (cam_at(60), cam_at(200), cam_at(330))]
+    img1, v1, _ = warp_progressive(t, dt, srcs[:1])
+    img3, v3, fb3 = warp_progressive(t, dt, [srcs[2], srcs[1], srcs[0]])  # order given must not matter
+    assert v3.sum() > v1.sum() + 50
+    assert (v3 | ~v1).all()  # everything the nearest source filled stays filled ...
+    assert (fb3[v1] == 2).all()  # ... by it (index 2 in the list given)
+    assert np.abs(img3 - it)[v3].mean() < 0.03
+    assert (fb3 != EMPTY).all()  # padded everywhere else
+
+
+def test_zbuffer_and_completion_match_true_depth():
+    cam = cam_at(20, radius=3.0, height=5.0)  # oblique, but not grazing (z-buffer bias grows at grazing rows)
+    _, dtrue = render(cam)
+    pts = scene_points(step=0.08, extent=14.0)  # sparse: several pixels per point near the camera
+    raw = zbuffer_depth(pts, cam)
+    assert (raw > 0).mean() > 0.9
+    filled = complete_depth(raw)
+    assert (filled > 0).all() and np.isfinite(filled).all()
+    rel = np.abs(filled - dtrue) / dtrue
+    assert np.mean(rel < 0.02) > 0.95
+    # without splat footprints the same cloud leaves holes
+    assert (zbuffer_depth(pts, cam, spacing=0.0) > 0).mean() < (raw > 0).mean()
+
+
+def test_see_through_speckles_removed_edges_kept():
+    d = np.full((20, 20), 10.0, np.float32)
+    d[:, 10:] = 20.0  # a genuine occlusion edge
+    d[5, 4] = d[12, 6] = 20.0  # background leaking through the foreground
+    out = remove_see_through(d)
+    assert out[5, 4] == 0 and out[12, 6] == 0
+    assert (out[:, 10:] == 20).all() and (out[:, :10][out[:, :10] > 0] == 10).all()
+    filled = complete_depth(d)
+    assert filled[5, 4] == 10 and filled[12, 6] == 10 and filled[3, 15] == 20
+
+
+def test_empty_inputs_are_handled():
+    cam = cam_at(0, size=16)
+    assert (zbuffer_depth(np.zeros((0, 3)), cam) == 0).all()
+    assert (complete_depth(np.zeros((16, 16))) == 0).all()
+    img, valid, fb = warp_progressive(cam, np.zeros((16, 16)), [(cam_at(30, 16), np.ones((16, 16, 3)))])
+    assert not valid.any() and (fb == EMPTY).all() and np.isfinite(img).all()
+    # all points behind the camera
+    behind = np.array([[8.0, 0, 6.0], [9.0, 1.0, 7.0]])
+    assert (zbuffer_depth(behind, cam) == 0).all()
+
+
+def test_orbit_poses():
+    train = [cam_at(a) for a in (0, 120, 240)]
+    orbit = fit_orbit(train)
+    poses = sample_orbit_poses(train, 5, seed=3)
+    assert len(poses) == 5 and len({p.name for p in poses}) == 5
+    for p in poses:
+        assert abs(np.linalg.norm(p.center - orbit.center) - orbit.radius) < 1e-6
+        assert abs((p.center - orbit.center) @ orbit.normal) < 1e-6
+        uv, z = p.project(orbit.target[None])
+        assert z[0] > 0 and np.allclose(uv[0], [32, 32], atol=1e-6)
+        assert np.array_equal(p.K, train[0].K)
+    again = sample_orbit_poses(train, 5, seed=3)
+    assert all(np.allclose(a.w2c, b.w2c) for a, b in zip(poses, again))
+    assert not np.allclose(sample_orbit_poses(train, 5, seed=4)[0].w2c, poses[0].w2c)
+    path = [cam_at(10), cam_at(20)]
+    assert sample_orbit_poses(train, 5, 0, path=path) == path
+
+
+def test_build_pseudo_views_cache(tmp_path):
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 48), cam_at(120, 48), cam_at(240, 48))]
+    pts = scene_points(step=0.05)
+    pvs = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
+    assert len(pvs) == 2 and (tmp_path / "manifest.json").is_file()
+    for pv in pvs:
+        assert pv.image.shape == (48, 48, 3) and pv.image.dtype == np.float32
+        assert pv.valid.mean() > 0.3 and not (pv.valid & pv.padded).any()
+        ref, _ = render(pv.camera)
+        assert np.abs(pv.image - ref)[pv.valid].mean() < 0.05
+    again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
+    for a, b in zip(pvs, again):
+        assert np.array_equal(a.image, b.image) and np.array_equal(a.valid, b.valid)
+        assert np.allclose(a.camera.w2c, b.camera.w2c) and a.camera.name == b.camera.name
+    other = build_pseudo_views(views, pts, n=2, seed=1, cache_dir=tmp_path)
+    assert not np.allclose(other[0].camera.w2c, pvs[0].camera.w2c)
+    # no points at all: views without valid pixels, no crash
+    empty = build_pseudo_views(views, np.zeros((0, 3)), n=1, seed=0, cache_dir=tmp_path / "e")
+    assert not empty[0].valid.any() and np.isfinite(empty[0].image).all()
+
+
+def test_speed_256():
+    t = cam_at(90, size=256)
+    pts = scene_points(step=0.02)  # 160k points
+    srcs = [(c, *render(c)) for c in (cam_at(60, 256), cam_at(200, 256), cam_at(330, 256))]
+    t0 = time.perf_counter()
+    depth = complete_depth(zbuffer_depth(pts, t, spacing=0.02))
+    warp_progressive(t, depth, srcs)
+    dt = time.perf_counter() - t0
+    assert dt < 3.0, f"{dt:.2f}s for one 256x256 pseudo view"
