@@ -1,0 +1,42 @@
+#!/usr/bin/env python3
+"""Render a procedural aerial scene in LEVIR-NVS layout (thin CLI over dibrgs_core.scenegen).
+
+Runs with the bpy module or inside Blender:
+
+    python scripts/make_scene.py --kind city --resolution 512 --seed 0 --out /tmp/city
+    blender -b -P scripts/make_scene.py -- --kind city --resolution 512 --seed 0 --out /tmp/city
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+# Inside Blender the repository is not installed: import dibrgs_core from the checkout.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dibrgs_core.scenegen import KINDS, make_scene  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+        if "--" in argv:  # blender -b -P make_scene.py -- ARGS: Blender's own args come first
+            argv = argv[argv.index("--") + 1:]
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--kind", choices=KINDS, default="city")
+    p.add_argument("--resolution", type=int, default=512, help="image width = height, pixels")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True, help="output scene folder")
+    p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S")
+    out = make_scene(a.kind, a.resolution, a.seed, a.out, samples=a.samples)
+    print(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
