@@ -1,0 +1,297 @@
+"""Blender objects of the add-on: scene cameras, dense points, height map, path, fly-through.
+
+Poses and intrinsics go through ``dibrgs_core.cameras.to_blender`` /
+``from_blender`` only, so the Blender cameras reproduce the files exactly.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ._core import cameras, geometry, height_map, path as path_mod
+
+ROOT_COLLECTION = "DIBR-GS"
+TRAIN_COLLECTION = "DIBR-GS Train views"
+TEST_COLLECTION = "DIBR-GS Held-out views"
+OTHER_COLLECTION = "DIBR-GS Other views"
+RESULT_COLLECTION = "DIBR-GS Results"
+SPLIT_COLLECTIONS = {"train": TRAIN_COLLECTION, "test": TEST_COLLECTION, "other": OTHER_COLLECTION}
+PATH_NAME = "DIBR-GS Pseudo path"
+TARGET_NAME = "DIBR-GS Look-at target"
+POINTS_NAME = "DIBR-GS Dense points"
+HEIGHT_NAME = "DIBR-GS Height map"
+FLY_NAME = "DIBR-GS Fly-through camera"
+SCENE_TEXT = "DIBR-GS scene.json"
+
+
+# ---------------------------------------------------------------------------
+# collections
+# ---------------------------------------------------------------------------
+def collection(scene: bpy.types.Scene, name: str, parent: bpy.types.Collection | None = None
+               ) -> bpy.types.Collection:
+    """The collection ``name`` linked under ``parent`` (the scene's root collection by default)."""
+    coll = bpy.data.collections.get(name) or bpy.data.collections.new(name)
+    parent = parent or scene.collection
+    if coll.name not in parent.children:
+        parent.children.link(coll)
+    return coll
+
+
+def _root(scene: bpy.types.Scene) -> bpy.types.Collection:
+    return collection(scene, ROOT_COLLECTION)
+
+
+def remove_object(obj: bpy.types.Object) -> None:
+    data = obj.data
+    bpy.data.objects.remove(obj)
+    if data is not None and data.users == 0:
+        for kind, coll in ((bpy.types.Camera, bpy.data.cameras), (bpy.types.Mesh, bpy.data.meshes),
+                           (bpy.types.Curve, bpy.data.curves)):
+            if isinstance(data, kind):
+                coll.remove(data)
+                break
+
+
+def clear_collection(name: str) -> None:
+    coll = bpy.data.collections.get(name)
+    if coll is not None:
+        for obj in list(coll.objects):
+            remove_object(obj)
+
+
+# ---------------------------------------------------------------------------
+# cameras
+# ---------------------------------------------------------------------------
+def apply_camera(obj: bpy.types.Object, cam: "cameras.Camera", scene: bpy.types.Scene | None = None) -> None:
+    """Set ``obj``'s pose and camera data from an OpenCV camera (render size on ``scene`` if given)."""
+    p = cameras.to_blender(cam)
+    d = obj.data
+    d.type = "PERSP"
+    d.lens_unit = "MILLIMETERS"
+    d.sensor_fit = p.sensor_fit
+    d.sensor_width = p.sensor_width
+    d.sensor_height = p.sensor_height
+    d.lens = p.lens
+    d.shift_x, d.shift_y = p.shift_x, p.shift_y
+    d.clip_start, d.clip_end = p.clip_start, p.clip_end
+    obj.matrix_world = Matrix(p.matrix_world.tolist())
+    obj["dibrgs_resolution"] = (p.resolution_x, p.resolution_y)
+    obj["dibrgs_pixel_aspect"] = (p.pixel_aspect_x, p.pixel_aspect_y)
+    if scene is not None:
+        set_render_size(scene, p)
+
+
+def set_render_size(scene: bpy.types.Scene, p: "cameras.BlenderCameraParams") -> None:
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = p.resolution_x, p.resolution_y, 100
+    r.pixel_aspect_x, r.pixel_aspect_y = p.pixel_aspect_x, p.pixel_aspect_y
+
+
+def camera_from_object(obj: bpy.types.Object, scene: bpy.types.Scene) -> "cameras.Camera":
+    """The OpenCV camera a Blender camera object renders with the scene's render settings."""
+    if obj.type != "CAMERA":
+        raise ValueError(f"{obj.name} is not a camera")
+    d = obj.data
+    if d.type != "PERSP":
+        raise ValueError(f"{obj.name}: only perspective cameras can be rendered (type is {d.type})")
+    r = scene.render
+    scale = r.resolution_percentage / 100.0
+    p = cameras.BlenderCameraParams(
+        matrix_world=np.array(obj.matrix_world, dtype=np.float64), lens=d.lens, sensor_width=d.sensor_width,
+        sensor_height=d.sensor_height, sensor_fit=d.sensor_fit, shift_x=d.shift_x, shift_y=d.shift_y,
+        resolution_x=max(1, round(r.resolution_x * scale)), resolution_y=max(1, round(r.resolution_y * scale)),
+        pixel_aspect_x=r.pixel_aspect_x, pixel_aspect_y=r.pixel_aspect_y, clip_start=d.clip_start,
+        clip_end=d.clip_end, name=obj.get("dibrgs_view", obj.name))
+    return cameras.from_blender(p, depth_range=True)
+
+
+def new_camera_object(name: str, coll: bpy.types.Collection) -> bpy.types.Object:
+    obj = bpy.data.objects.new(name, bpy.data.cameras.new(name))
+    coll.objects.link(obj)
+    return obj
+
+
+def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, bpy.types.Object]:
+    """Camera objects for every view of a scene description (``dibrgs_core.bridge.describe``).
+
+    Replaces a previous import. Training views get their image as camera
+    background; the render resolution is set from the views. Returns view
+    id -> camera object.
+    """
+    scene = context.scene
+    for name in SPLIT_COLLECTIONS.values():
+        clear_collection(name)
+    root = _root(scene)
+    objs: dict[str, bpy.types.Object] = {}
+    for v in desc["views"]:
+        cam = cameras.camera_from_dict(v["camera"], source=desc["root"])
+        coll = collection(scene, SPLIT_COLLECTIONS[v["split"]], root)
+        obj = new_camera_object(v["name"], coll)
+        obj["dibrgs_view"] = v["name"]
+        obj["dibrgs_split"] = v["split"]
+        apply_camera(obj, cam, scene)
+        if v["split"] == "train" and v.get("image"):
+            img = bpy.data.images.load(v["image"], check_existing=True)
+            bg = obj.data.background_images.new()
+            bg.image = img
+            bg.alpha = 1.0
+            obj.data.show_background_images = True
+        objs[v["name"]] = obj
+    for name in SPLIT_COLLECTIONS.values():  # an empty split keeps no collection
+        coll = bpy.data.collections.get(name)
+        if coll is not None and not coll.objects:
+            bpy.data.collections.remove(coll)
+    train = [objs[n] for n in desc["train"] if n in objs]
+    scene.camera = train[0] if train else next(iter(objs.values()))
+    text = bpy.data.texts.get(SCENE_TEXT) or bpy.data.texts.new(SCENE_TEXT)
+    text.from_string(json.dumps(desc, indent=1))
+    return objs
+
+
+def scene_description() -> dict[str, Any]:
+    """The description stored by :func:`build_scene` (ValueError if no scene was imported)."""
+    text = bpy.data.texts.get(SCENE_TEXT)
+    if text is None:
+        raise ValueError("import a scene first")
+    return json.loads(text.as_string())
+
+
+def described_cameras(desc: dict[str, Any], split: str) -> list["cameras.Camera"]:
+    return [cameras.camera_from_dict(v["camera"], source=desc["root"]) for v in desc["views"]
+            if v["split"] == split]
+
+
+def reference_camera(desc: dict[str, Any], name: str = "") -> "cameras.Camera":
+    """The camera whose intrinsics pseudo and fly-through cameras copy (first training view by default)."""
+    views = {v["name"]: v for v in desc["views"]}
+    key = name if name in views else (desc["train"][0] if desc["train"] else next(iter(views)))
+    return cameras.camera_from_dict(views[key]["camera"], source=desc["root"])
+
+
+# ---------------------------------------------------------------------------
+# pseudo-view path
+# ---------------------------------------------------------------------------
+def fit_orbit(desc: dict[str, Any]) -> "cameras.Orbit":
+    """The acquisition orbit: fitted to the Track cameras if any, else to the training views."""
+    track = [cameras.camera_from_dict(c, source=desc["root"]) for c in desc.get("track", [])]
+    train = described_cameras(desc, "train")
+    all_views = train + described_cameras(desc, "test")
+    cams = track if len(track) >= 3 else (train if len(train) >= 3 else all_views)
+    up, _ = cameras.estimate_up(all_views or cams)
+    return cameras.fit_orbit(cams, up=up)
+
+
+def create_path(context: bpy.types.Context, orbit: "cameras.Orbit", n_ctrl: int = 8) -> bpy.types.Object:
+    """The orbit as an editable cyclic Bezier curve, plus a look-at Empty; both set on ``scene.dibrgs``.
+
+    Handles are 'ALIGNED' with the length that makes each segment a circular
+    arc to ~1e-6 of the radius for 8 points; moving a point moves its handles.
+    """
+    scene = context.scene
+    props = scene.dibrgs
+    for name in (PATH_NAME, TARGET_NAME):
+        if name in bpy.data.objects:
+            remove_object(bpy.data.objects[name])
+    pts = path_mod.orbit_control_points(orbit, n_ctrl)
+    tangent_len = 4.0 / 3.0 * math.tan(math.pi / (2 * n_ctrl)) * orbit.radius
+    cu = bpy.data.curves.new(PATH_NAME, "CURVE")
+    cu.dimensions = "3D"
+    cu.resolution_u = 32
+    sp = cu.splines.new("BEZIER")
+    sp.bezier_points.add(n_ctrl - 1)
+    for k, bp in enumerate(sp.bezier_points):
+        th = 2.0 * math.pi * k / n_ctrl
+        tangent = -math.sin(th) * orbit.basis[0] + math.cos(th) * orbit.basis[1]
+        bp.handle_left_type = bp.handle_right_type = "ALIGNED"
+        bp.co = pts[k]
+        bp.handle_left = pts[k] - tangent_len * tangent
+        bp.handle_right = pts[k] + tangent_len * tangent
+    sp.use_cyclic_u = True
+    root = _root(scene)
+    obj = bpy.data.objects.new(PATH_NAME, cu)
+    root.objects.link(obj)
+    target = bpy.data.objects.new(TARGET_NAME, None)
+    target.empty_display_type = "SPHERE"
+    target.empty_display_size = max(orbit.radius * 0.05, 1e-3)
+    target.location = orbit.target
+    root.objects.link(target)
+    props.path_curve = obj
+    props.path_target = target
+    props.scene_up = orbit.normal
+    return obj
+
+
+def curve_polyline(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[np.ndarray, bool]:
+    """World-space points of the evaluated curve as it is now (first spline), and whether it is closed."""
+    if obj is None or obj.type != "CURVE" or not obj.data.splines:
+        raise ValueError("the pseudo-view path must be a curve object with a spline")
+    depsgraph = context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(depsgraph)
+    mesh = ev.to_mesh()
+    try:
+        co = np.empty(len(mesh.vertices) * 3)
+        mesh.vertices.foreach_get("co", co)
+    finally:
+        ev.to_mesh_clear()
+    if len(co) == 0:
+        raise ValueError(f"the curve {obj.name} evaluates to no points")
+    mw = np.array(obj.matrix_world)
+    pts = co.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
+    first = obj.data.splines[0]
+    return pts, bool(first.use_cyclic_u)
+
+
+def path_cameras(context: bpy.types.Context, n: int, prefix: str) -> list["cameras.Camera"]:
+    """``n`` cameras sampled from the path curve as it is now, looking at the target object."""
+    props = context.scene.dibrgs
+    pts, closed = curve_polyline(context, props.path_curve)
+    if props.path_target is not None:
+        target = np.array(props.path_target.matrix_world.translation)
+    else:
+        target = fit_orbit(scene_description()).target
+    like = reference_camera(scene_description(), props.reference_view)
+    return path_mod.path_cameras(pts, n, target, np.array(props.scene_up), like, closed, prefix=prefix)
+
+
+# ---------------------------------------------------------------------------
+# initialisation outputs
+# ---------------------------------------------------------------------------
+def import_points(context: bpy.types.Context, ply: Path) -> bpy.types.Object:
+    """The dense point cloud as a vertex-only mesh with its colour attribute (Blender's PLY importer)."""
+    if POINTS_NAME in bpy.data.objects:
+        remove_object(bpy.data.objects[POINTS_NAME])
+    before = set(bpy.data.objects)
+    root = _root(context.scene)
+    with context.temp_override(collection=root):
+        bpy.ops.wm.ply_import(filepath=str(ply))
+    new = [o for o in bpy.data.objects if o not in before]
+    if len(new) != 1:
+        raise RuntimeError(f"importing {ply} created {len(new)} objects")
+    obj = new[0]
+    obj.name = obj.data.name = POINTS_NAME
+    for coll in list(obj.users_collection):
+        if coll != root:
+            coll.objects.unlink(obj)
+    if obj.name not in root.objects:
+        root.objects.link(obj)
+    return obj
+
+
+def import_height_map(context: bpy.types.Context, npz: Path) -> bpy.types.Object:
+    """The height map (``height_map.npz``) as a wireframe grid mesh: a vertex per cell at its bound."""
+    if HEIGHT_NAME in bpy.data.objects:
+        remove_object(bpy.data.objects[HEIGHT_NAME])
+    verts, quads = geometry.height_map_mesh(height_map.HeightMap.load(npz))
+    me = bpy.data.meshes.new(HEIGHT_NAME)
+    me.from_pydata(verts.tolist(), [], quads.tolist())
+    me.update()
+    obj = bpy.data.objects.new(HEIGHT_NAME, me)
+    obj.display_type = "WIRE"
+    _root(context.scene).objects.link(obj)
+    return obj
