@@ -166,7 +166,7 @@ def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float]) 
         raise ValueError("look_at: eye and target coincide")
     z /= n
     up = up / max(np.linalg.norm(up), 1e-300)
-    x = np.cross(z, -up)
+    x = np.cross(z, up)  # image right = forward x up (OpenCV: y down, so -y follows up)
     if np.linalg.norm(x) < 1e-9:  # looking straight along up: pick any image x
         alt = np.eye(3)[np.argmin(np.abs(z))]
         x = np.cross(z, alt)
