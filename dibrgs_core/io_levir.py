@@ -199,7 +199,7 @@ def read_cams_file(path: str | Path, size: tuple[int, int] | None = None) -> Cam
 
     ``size`` is the image (width, height); by default it comes from the
     matching ``../Images/<id>.*`` when present, else from the principal point
-    (``2 cx`` x ``2 cy``).
+    (``2 cx`` x ``2 cy``, rounded up).
     """
     path = Path(path)
     try:
@@ -214,7 +214,7 @@ def read_cams_file(path: str | Path, size: tuple[int, int] | None = None) -> Cam
         if img is not None:
             size = image_size(img)
         else:
-            size = (max(1, round(2 * K[0, 2])), max(1, round(2 * K[1, 2])))
+            size = (max(1, math.ceil(2 * K[0, 2] - 1e-6)), max(1, math.ceil(2 * K[1, 2] - 1e-6)))
     return Camera(K=K, w2c=w2c, width=size[0], height=size[1], name=path.stem, depth_range=dr)
 
 
@@ -341,6 +341,8 @@ def read_depth(path: str | Path) -> np.ndarray:
     except Exception as e:  # tifffile/OpenEXR raise many types for corrupt files
         raise InputError(path, f"unreadable depth map ({type(e).__name__}: {e})") from None
     d = np.asarray(d)
+    if d.size == 0:
+        raise InputError(path, "unreadable depth map (no pixel data)")
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[..., 0]
     if d.ndim != 2:
