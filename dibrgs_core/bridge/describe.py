@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         desc = describe_scene(args.scene)
     except InputError as e:
-        print(f"describe: error: {e}", file=sys.stderr)
+        print(str(e), file=sys.stderr)
         return 2
     write_json(args.out, desc)
     return 0
