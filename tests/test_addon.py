@@ -158,3 +158,37 @@ def test_editing_the_curve_moves_the_pseudo_views(tiny_scene, fresh):
     tgt = np.array(props.path_target.location)
     uv, z = turned[3].project(tgt[None])
     np.testing.assert_allclose(uv[0], [turned[3].cx, turned[3].cy], atol=1e-6)
+
+
+def test_initialise_imports_points_height_map_and_decisions(tiny_scene, fresh):
+    bpy.ops.dibrgs.import_scene(directory=str(tiny_scene))
+    assert bpy.ops.dibrgs.initialise(blocking=True) == {"FINISHED"}
+    sb = _mod("scene_build")
+    work = Path(fresh.dibrgs.work_dir)
+    import trimesh
+
+    ply = trimesh.load(work / "init" / "points.ply")
+    pts = bpy.data.objects[sb.POINTS_NAME]
+    me = pts.data
+    assert len(me.vertices) == len(ply.vertices) > 0 and len(me.polygons) == 0
+    co = np.array([v.co[:] for v in me.vertices])
+    np.testing.assert_allclose(co, ply.vertices, rtol=1e-6, atol=1e-4)
+    col = me.color_attributes[0]
+    assert col.domain == "POINT"
+    rgb = np.array([c.color[:3] for c in col.data])
+    assert rgb.std() > 0.01  # the scene's colours, not a constant
+    import json
+
+    rep = json.loads((work / "init" / "init_report.json").read_text())
+    panel = [(d.stage, d.step, d.applied, d.reason) for d in fresh.dibrgs.decisions]
+    assert panel == [(d["stage"], d["step"], d["applied"], d["reason"]) for d in rep["decisions"]]
+    if (work / "init" / "height_map.npz").exists():
+        from dibrgs_core.height_map import HeightMap
+
+        hm = HeightMap.load(work / "init" / "height_map.npz")
+        grid = bpy.data.objects[sb.HEIGHT_NAME].data
+        assert len(grid.vertices) == int(np.isfinite(hm.bounds).sum())
+        gv = np.array([v.co[:] for v in grid.vertices])
+        np.testing.assert_allclose(hm.bound_at(gv), ((gv - hm.origin) @ hm.up_frame.T)[:, 2], atol=1e-3)
+    else:
+        assert sb.HEIGHT_NAME not in bpy.data.objects
