@@ -412,26 +412,29 @@ class IBRFeatures(nn.Module):
         return list(self.proj.parameters())
 
     def feature_maps(self) -> torch.Tensor:
-        """Fused reference maps (V, C_r, H//2, W//2) through the current ``P``.
+        """Fused reference maps ``F_v`` (V, C_r, H//2, W//2) through the current ``P``.
 
-        Cached while no gradient can flow into ``P`` (frozen or under
-        ``torch.no_grad``); the cache is keyed on the parameters' versions so
-        loading new weights invalidates it.
+        ``P`` is applied at each level's own resolution (a 1x1 convolution is a
+        per-pixel linear map), then ResNet/pyramid levels are upsampled
+        bilinearly, ViT tokens repeated (nearest) and the CLS projection added
+        everywhere. Cached while no gradient can flow into ``P`` (frozen or
+        under ``torch.no_grad``); the cache key holds the parameters' versions,
+        so loading or changing weights invalidates it.
         """
         params = self.projection_parameters()
         needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
         key = tuple(p._version for p in params) + tuple(p.data_ptr() for p in params)
         if not needs_grad and self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        size = self.map_size
         out = None
         for name in self._levels:
-            f = getattr(self, f"feat_{name}")
+            f = getattr(self, f"feat_{name}").permute(0, 2, 3, 1)  # channels last
+            m = self.proj[name]
+            y = F.linear(f, m.weight.reshape(m.weight.shape[0], -1), m.bias).permute(0, 3, 1, 2)
             if name == "vit_tokens":
-                y = self.proj[name](f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
-                y = F.interpolate(y, size=size, mode="nearest")  # repeat each token over its patch
+                y = F.interpolate(y, size=self.map_size, mode="nearest")  # repeat each token over its patch
             else:
-                y = F.interpolate(self.proj[name](f), size=size, mode="bilinear", align_corners=False)
+                y = F.interpolate(y, size=self.map_size, mode="bilinear", align_corners=False)
             out = y if out is None else out + y
         if self.encoder == "dino":
             out = out + self.proj["vit_cls"](self.feat_vit_cls)[:, :, None, None]
@@ -445,10 +448,11 @@ class IBRFeatures(nn.Module):
     def forward(self, anchors: torch.Tensor) -> torch.Tensor:
         """IBR feature (N, C_r) of anchors (N,3) in world coordinates.
 
-        Averages the bilinear samples over the views where the anchor is in
-        front (z > 0) and projects inside the image; anchors seen by no view get
-        zeros. Anchor positions receive no gradient from here (the sampled
-        features are for appearance, not geometry).
+        Bilinear ``grid_sample`` (align_corners=False, border) of
+        :meth:`feature_maps` at each anchor's projection, averaged over the
+        views where it is in front (z > 0) and inside the image; anchors seen
+        by no view get zeros. Anchor positions receive no gradient from here
+        (the features serve appearance, not geometry).
         """
         maps = self.feature_maps()
         X = anchors.detach().to(device=maps.device, dtype=maps.dtype)
@@ -468,8 +472,7 @@ class IBRFeatures(nn.Module):
                           align_corners=False)[:, :, 0]  # (V,C,N)
         w = ok.to(maps.dtype)
         total = (s * w[:, None]).sum(0)  # (C,N)
-        count = w.sum(0).clamp(min=1.0)
-        return (total / count).T
+        return (total / w.sum(0).clamp(min=1.0)).T
 
 
 def resolve_encoder(requested: str, dino_paths: tuple[str | Path | None, str | Path | None]

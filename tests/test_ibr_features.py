@@ -186,11 +186,37 @@ def test_gradients_reach_projection_and_are_finite():
     # frozen P: maps are cached and still correct
     for p in ibr.projection_parameters():
         p.requires_grad_(False)
-    a = ibr.feature_maps()
-    assert ibr.feature_maps() is a
+    a = ibr(X)
+    assert not a.requires_grad and torch.equal(ibr(X), a)
     with torch.no_grad():
         ibr.proj["level0"].bias.add_(1.0)
-    assert not torch.equal(ibr.feature_maps(), a)
+    assert not torch.equal(ibr(X), a)  # the cache follows parameter changes
+
+
+@pytest.mark.parametrize("encoder", ["pyramid", "dino"])
+def test_forward_equals_sampling_the_fused_maps(encoder):
+    """Averaging over views: matches grid_sample on each view's full map, sizes not divisible by 8/32."""
+    images, cams = _scene(W=70, H=52, V=3)  # sizes that do not divide evenly
+    kw = dict(zip(("resnet", "vit"), _tiny_backbones(0))) if encoder == "dino" else {}
+    ibr = IBRFeatures(encoder, images, cams, c_r=8, **kw)
+    torch.manual_seed(1)
+    X = torch.randn(300, 3) * 1.5
+    with torch.no_grad():
+        maps = ibr.feature_maps()
+        got = ibr(X)
+    want = torch.zeros(300, 8)
+    cnt = torch.zeros(300, 1)
+    for i, c in enumerate(cams):
+        uv, z = c.project(X.double().numpy())
+        ok = torch.tensor((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 70) & (uv[:, 1] >= 0) & (uv[:, 1] < 52))
+        g = torch.tensor(np.stack([uv[:, 0] / 35 - 1, uv[:, 1] / 26 - 1], -1), dtype=torch.float32)
+        s = torch.nn.functional.grid_sample(maps[i:i + 1], g[None, None], mode="bilinear", padding_mode="border",
+                                            align_corners=False)[0, :, 0].T
+        want += s * ok[:, None]
+        cnt += ok[:, None]
+    assert (cnt > 0).sum() > 150 and (cnt == 0).sum() > 0
+    want = want / cnt.clamp(min=1)
+    assert torch.allclose(got, want, atol=1e-4)
 
 
 def test_resolve_encoder(tmp_path):
