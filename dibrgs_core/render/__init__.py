@@ -47,11 +47,9 @@ def composite(
         raise ValueError(f"unknown backend {backend!r}")
     use_fast = False
     if backend != "reference" and feats.device.type == "cpu":
-        try:
-            from . import fast
-        except ImportError:  # C++ path not landed yet
-            fast = None
-        use_fast = fast is not None and fast.available(required=backend == "fast")
+        from . import fast
+
+        use_fast = fast.available(required=backend == "fast")
     elif backend == "fast":
         raise ValueError("the fast backend runs on CPU tensors only")
     if use_fast:

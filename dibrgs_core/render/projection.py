@@ -62,6 +62,23 @@ class Projected:
     visible: Tensor
 
 
+def _rotmat_basis(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(16, 9) matrix A and (9,) offset e with ``R.flatten() = vec(q q^T) @ A + e``."""
+    A = torch.zeros(4, 4, 9, dtype=dtype, device=device)
+    w, x, y, z = range(4)
+    # Each rotation entry as +-2 * (sum of quaternion products), per 3DGS.
+    terms = {
+        0: [(-2, y, y), (-2, z, z)], 1: [(2, x, y), (-2, w, z)], 2: [(2, x, z), (2, w, y)],
+        3: [(2, x, y), (2, w, z)], 4: [(-2, x, x), (-2, z, z)], 5: [(2, y, z), (-2, w, x)],
+        6: [(2, x, z), (-2, w, y)], 7: [(2, y, z), (2, w, x)], 8: [(-2, x, x), (-2, y, y)],
+    }
+    for k, lst in terms.items():
+        for coef, i, j in lst:
+            A[i, j, k] += coef
+    e = torch.tensor([1, 0, 0, 0, 1, 0, 0, 0, 1], dtype=dtype, device=device)
+    return A.reshape(16, 9), e
+
+
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """Rotation matrices (N, 3, 3) from quaternions (N, 4) in ``(w, x, y, z)`` order.
 
@@ -73,16 +90,9 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ident = torch.zeros_like(quats)
     ident[..., 0] = 1.0
     q = torch.where(ok, quats, ident) * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2)))
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )
-    return R.reshape(quats.shape[:-1] + (3, 3))
+    A, e = _rotmat_basis(q.dtype, q.device)
+    qq = (q[:, :, None] * q[:, None, :]).reshape(-1, 16)
+    return (qq @ A + e).reshape(-1, 3, 3)
 
 
 def project_gaussians(
@@ -131,14 +141,14 @@ def project_gaussians(
     mx = fx * x / zs + cx
     my = fy * y / zs + cy
 
-    # Covariance in world then camera space.
-    Rq = quat_to_rotmat(quats.to(f64))
-    M = Rq * scales.to(f64)[:, None, :]
-    cov_w = M @ M.transpose(1, 2)
-    cov_c = R_w @ cov_w @ R_w.T
+    # Camera-space factor Mc = W R S (covariance Mc Mc^T), as one matmul with
+    # the shared camera rotation.
+    M = quat_to_rotmat(quats.to(f64)) * scales.to(f64)[:, None, :]
+    Mc = (R_w @ M.permute(1, 0, 2).reshape(3, -1)).reshape(3, -1, 3)  # (3 rows, N, 3)
 
     # Pinhole Jacobian at the mean, with x/z, y/z clamped to the widened FOV
-    # (keeps the linearisation sane for Gaussians far outside the image).
+    # (keeps the linearisation sane for Gaussians far outside the image):
+    # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] with tx, ty = clamped x/z, y/z.
     tan_fovx = 0.5 * width / fx
     tan_fovy = 0.5 * height / fy
     lim_xp = (width - cx) / fx + 0.3 * tan_fovx
@@ -147,14 +157,12 @@ def project_gaussians(
     lim_yn = cy / fy + 0.3 * tan_fovy
     txz = torch.minimum(torch.maximum(x / zs, -lim_xn), lim_xp)
     tyz = torch.minimum(torch.maximum(y / zs, -lim_yn), lim_yp)
-    zero = torch.zeros_like(zs)
-    J = torch.stack(
-        [fx / zs, zero, -fx * txz / zs, zero, fy / zs, -fy * tyz / zs], dim=-1
-    ).reshape(-1, 2, 3)
-    cov2d = J @ cov_c @ J.transpose(1, 2)
-    a = cov2d[:, 0, 0] + EPS2D
-    b = 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0])
-    c = cov2d[:, 1, 1] + EPS2D
+    u = (fx / zs)[:, None] * (Mc[0] - txz[:, None] * Mc[2])  # rows of J Mc
+    v = (fy / zs)[:, None] * (Mc[1] - tyz[:, None] * Mc[2])
+    # Dilated 2D covariance [[a, b], [b, c]] = J Mc Mc^T J^T + 0.3 I.
+    a = (u * u).sum(-1) + EPS2D
+    b = (u * v).sum(-1)
+    c = (v * v).sum(-1) + EPS2D
     det = a * c - b * b
     ok_det = det > 0
     det_s = torch.where(ok_det, det, torch.ones_like(det))

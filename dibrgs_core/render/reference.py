@@ -8,8 +8,8 @@ oracle for the fast C++ path and implements exactly the same rules:
   square ``floor((m - r) / 16) .. ceil((m + r) / 16)`` (gsplat's rule) - it
   never contributes outside those tiles. Tiles are additionally skipped when
   they cannot contain a pixel with ``alpha >= 1/255`` (the bounding box of
-  the ellipse ``q <= 2 ln(255 o)``, widened by a pixel); this cull is exact,
-  it only saves work.
+  the ellipse ``q <= 2 ln(255 o)``, slightly inflated and widened by a pixel);
+  this cull never changes a result, it only saves work.
 * Per pixel, Gaussians in increasing depth (ties by index). With
   ``d = mean2d - (pixel + 0.5)`` and ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``:
   skip when ``power > 0``; ``alpha = min(0.99, opacity * exp(power))``; skip
@@ -45,15 +45,17 @@ def tile_rects(
     con = conics.detach().to(torch.float64)
     op = opacities.detach().to(torch.float64)
     r = radii.to(torch.float64)
-    # Half-extents of {q <= t}: sqrt(t * Sigma_xx), Sigma = conic^-1.
-    t = 2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300))
+    # Half-extents of {q <= t}: sqrt(t * Sigma_xx), Sigma = conic^-1, for the
+    # level t = 2 ln(255 o), inflated so float32 rounding stays inside.
+    t = 2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300)) * 1.01 + 0.01
+    t = torch.where(op * 255.0 >= 1.0, t, torch.full_like(t, -1.0))
     det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
     det = torch.where(det > 0, det, torch.ones_like(det))
     sxx = con[:, 2] / det
     syy = con[:, 0] / det
     tpos = torch.clamp(t, min=0.0)
-    ex = torch.sqrt(tpos * sxx) * (1 + 1e-5) + 1.0
-    ey = torch.sqrt(tpos * syy) * (1 + 1e-5) + 1.0
+    ex = torch.sqrt(tpos * sxx) + 1.0
+    ey = torch.sqrt(tpos * syy) + 1.0
     x0 = torch.maximum(torch.floor((m[:, 0] - r) / TILE), torch.floor((m[:, 0] - ex) / TILE))
     x1 = torch.minimum(torch.ceil((m[:, 0] + r) / TILE), torch.floor((m[:, 0] + ex) / TILE) + 1)
     y0 = torch.maximum(torch.floor((m[:, 1] - r) / TILE), torch.floor((m[:, 1] - ey) / TILE))
