@@ -1,0 +1,240 @@
+"""Scaffold-GS anchor growing and pruning with the paper's height-constrained growth.
+
+Statistics (every iteration inside the growth window, as Scaffold-GS's
+``training_statis``):
+
+* per neural Gaussian: accumulated norm of its screen-space mean gradient and a
+  visit count, for Gaussians that were rasterized with a positive radius. Our
+  rasterizer's ``means2d`` are in pixels, 3DGS's in NDC (pixel = (ndc+1) W/2), so
+  gradients are scaled by (W/2, H/2) to make the 3DGS / Scaffold-GS threshold
+  2e-4 mean the same thing;
+* per anchor: accumulated Tanh opacity (negatives as 0) and a visit count.
+
+Growth (``adjust``, every ``densify_every`` of training between ``densify_from``
+and ``densify_until``), Scaffold-GS ``anchor_growing``: three levels i = 0, 1, 2
+with cells of 16, 4, 1 voxels (update_init_factor // update_hierachy_factor**i)
+and gradient thresholds tau * 2**i; a Gaussian is a candidate when its averaged
+gradient passes the level's threshold, it was seen in more than half of
+``success_threshold`` x interval iterations, and it survives a random pick with
+probability 1 - 0.5**(i+1). Candidates are snapped to the level's cell; cells
+already holding an anchor are dropped; new anchors get the max-pooled feature of
+their candidates, zero offsets and log scaling = log(cell). Unlike Scaffold-GS,
+the finer levels run even when a coarser one added nothing (there they are skipped),
+because the height veto below would otherwise switch off all growth in a scene
+where the coarsest level is vetoed.
+
+Height constraint (paper Sec. "Height-constrained Anchor Growth"): at the coarsest
+level only, candidate Gaussians above the height map's relaxed bound are dropped.
+
+Pruning: anchors visited more than ``success_threshold`` x interval times whose
+accumulated opacity is under ``min_opacity`` per visit are removed (Scaffold-GS
+prunes in the same call). Scaffold-GS also clamps log scales to 0.05 there, a
+constant in world units; we leave it out so the behaviour does not depend on the
+scene's units.
+
+Optimiser state stays consistent: new rows get zero Adam moments, removed rows
+lose theirs (``cat_rows`` / ``keep_rows``).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import torch
+from torch import nn
+
+from .config import GrowthConfig
+from .neural_gaussians import ANCHOR_PARAMS, Decoded, NeuralGaussians
+
+log = logging.getLogger("dibrgs.strategy")
+
+
+class HeightBound(Protocol):
+    def allows(self, points: Any) -> Any: ...
+
+
+# ---------------------------------------------------------------------------
+# Optimiser bookkeeping shared with the 3DGS baseline
+# ---------------------------------------------------------------------------
+def _swap_param(optimizer: torch.optim.Optimizer, module: nn.Module, name: str, new: torch.Tensor,
+                state_fn: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    """Replace parameter ``name`` of ``module`` (and its optimiser group) by ``new``.
+
+    ``state_fn`` maps each per-row optimiser moment to the new row layout.
+    """
+    trainable = getattr(module, name).requires_grad
+    param = nn.Parameter(new.detach().contiguous(), requires_grad=trainable)
+    for group in optimizer.param_groups:
+        if group.get("name") != name:
+            continue
+        old = group["params"][0]
+        state = optimizer.state.pop(old, None)
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    state[key] = state_fn(state[key])
+            optimizer.state[param] = state
+        group["params"][0] = param
+    setattr(module, name, param)
+
+
+def cat_rows(optimizer: torch.optim.Optimizer, module: nn.Module, ext: dict[str, torch.Tensor]) -> None:
+    """Append rows ``ext[name]`` to each named parameter; new rows get zero moments."""
+    for name, rows in ext.items():
+        old = getattr(module, name)
+        rows = rows.to(old.dtype)
+        _swap_param(optimizer, module, name, torch.cat([old.detach(), rows], 0),
+                    lambda s, r=rows: torch.cat([s, torch.zeros_like(r)], 0))
+
+
+def keep_rows(optimizer: torch.optim.Optimizer, module: nn.Module, names: tuple[str, ...],
+              keep: torch.Tensor) -> None:
+    """Keep only rows where ``keep`` (bool) is True in each named parameter and its moments."""
+    for name in names:
+        old = getattr(module, name)
+        _swap_param(optimizer, module, name, old.detach()[keep], lambda s: s[keep])
+
+
+# ---------------------------------------------------------------------------
+# Anchor growth
+# ---------------------------------------------------------------------------
+@dataclass
+class AdjustResult:
+    added: int
+    vetoed: int
+    pruned: int
+
+
+class AnchorStrategy:
+    """Accumulates growth statistics and grows / prunes anchors of a :class:`NeuralGaussians`."""
+
+    def __init__(self, model: NeuralGaussians, cfg: GrowthConfig, iterations: int,
+                 height_map: HeightBound | None = None) -> None:
+        self.cfg = cfg
+        self.height_map = height_map
+        self.k = model.n_offsets
+        n = model.num_anchors
+        self.offset_grad = torch.zeros(n * self.k)
+        self.offset_denom = torch.zeros(n * self.k)
+        self.opacity_accum = torch.zeros(n)
+        self.anchor_denom = torch.zeros(n)
+        self.stat_start = max(1, round(cfg.stat_start * iterations))
+        self.start = max(1, round(cfg.densify_from * iterations))
+        self.until = max(1, round(cfg.densify_until * iterations))
+        self.every = max(1, round(cfg.densify_every * iterations))
+
+    # -- schedule ----------------------------------------------------------
+    def collects(self, it: int) -> bool:
+        return self.stat_start < it < self.until
+
+    def adjusts(self, it: int) -> bool:
+        return self.collects(it) and it > self.start and it % self.every == 0
+
+    # -- statistics ----------------------------------------------------------
+    @torch.no_grad()
+    def update(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor,
+               width: int, height: int) -> None:
+        """Accumulate opacity and gradient statistics of one rendered view."""
+        vis = dec.anchor_visible
+        op = dec.neural_opacity.detach().clamp_min(0.0).view(-1, self.k).sum(1)
+        self.opacity_accum[vis] += op
+        self.anchor_denom[vis] += 1
+        if means2d_grad is None:
+            return
+        aidx = torch.nonzero(vis).squeeze(1)
+        gidx = (aidx[:, None] * self.k + torch.arange(self.k)).reshape(-1)[dec.selected]
+        seen = radii.reshape(-1) > 0
+        g = means2d_grad.detach()[seen] * torch.tensor([width / 2.0, height / 2.0])
+        norm = torch.nan_to_num(g.norm(dim=1), nan=0.0, posinf=0.0)
+        self.offset_grad.index_add_(0, gidx[seen], norm)
+        self.offset_denom.index_add_(0, gidx[seen], torch.ones_like(norm))
+
+    # -- growth and pruning ----------------------------------------------------
+    @torch.no_grad()
+    def adjust(self, model: NeuralGaussians, optimizer: torch.optim.Optimizer) -> AdjustResult:
+        cfg = self.cfg
+        interval = self.every
+        grads = torch.nan_to_num(self.offset_grad / self.offset_denom, nan=0.0, posinf=0.0)
+        offset_mask = self.offset_denom > interval * cfg.success_threshold * 0.5
+        n0 = model.num_anchors
+        added, vetoed = self._grow(model, optimizer, grads, offset_mask)
+        # Reset statistics of the Gaussians that were judged; pad for new anchors.
+        self.offset_denom[offset_mask] = 0
+        self.offset_grad[offset_mask] = 0
+        pad = (model.num_anchors - n0) * self.k
+        self.offset_denom = torch.cat([self.offset_denom, torch.zeros(pad)])
+        self.offset_grad = torch.cat([self.offset_grad, torch.zeros(pad)])
+        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(model.num_anchors - n0)])
+        self.anchor_denom = torch.cat([self.anchor_denom, torch.zeros(model.num_anchors - n0)])
+        # Prune anchors that stayed (nearly) transparent.
+        judged = self.anchor_denom > interval * cfg.success_threshold
+        prune = (self.opacity_accum < cfg.min_opacity * self.anchor_denom) & judged
+        self.opacity_accum[judged] = 0
+        self.anchor_denom[judged] = 0
+        keep = ~prune
+        if prune.any():
+            keep_rows(optimizer, model, ANCHOR_PARAMS, keep)
+            self.offset_grad = self.offset_grad.view(-1, self.k)[keep].reshape(-1)
+            self.offset_denom = self.offset_denom.view(-1, self.k)[keep].reshape(-1)
+            self.opacity_accum = self.opacity_accum[keep]
+            self.anchor_denom = self.anchor_denom[keep]
+        return AdjustResult(added=added, vetoed=vetoed, pruned=int(prune.sum()))
+
+    def _grow(self, model: NeuralGaussians, optimizer: torch.optim.Optimizer, grads: torch.Tensor,
+              offset_mask: torch.Tensor) -> tuple[int, int]:
+        cfg = self.cfg
+        k = self.k
+        init_len = model.num_anchors * k
+        added = vetoed = 0
+        for i in range(cfg.update_depth):
+            thr = cfg.grad_threshold * (cfg.update_hierarchy_factor // 2) ** i
+            cand = (grads >= thr) & offset_mask
+            cand &= torch.rand(cand.shape) > 0.5 ** (i + 1)
+            extra = model.num_anchors * k - init_len
+            if extra:
+                cand = torch.cat([cand, torch.zeros(extra, dtype=torch.bool)])
+            if not cand.any():
+                continue
+            scaling = model.anchor_scaling()
+            all_xyz = (model.anchor[:, None, :] + model.offset * scaling[:, None, :3]).reshape(-1, 3)
+            feats = model.anchor_feat.repeat_interleave(k, dim=0)
+            sel_xyz, sel_feat = all_xyz[cand], feats[cand]
+            if i == 0 and self.height_map is not None:
+                ok = torch.as_tensor(self.height_map.allows(sel_xyz.numpy()), dtype=torch.bool)
+                vetoed += int((~ok).sum())
+                sel_xyz, sel_feat = sel_xyz[ok], sel_feat[ok]
+            finite = torch.isfinite(sel_xyz).all(dim=1)
+            sel_xyz, sel_feat = sel_xyz[finite], sel_feat[finite]
+            if len(sel_xyz) == 0:
+                continue
+            size = model.voxel_size * (cfg.update_init_factor // cfg.update_hierarchy_factor ** i)
+            cells, inv = torch.unique(torch.round(sel_xyz / size).long(), dim=0, return_inverse=True)
+            existing = torch.unique(torch.round(model.anchor / size).long(), dim=0)
+            both = torch.cat([existing, cells], 0)
+            _, binv, counts = torch.unique(both, dim=0, return_inverse=True, return_counts=True)
+            new = counts[binv[len(existing):]] == 1
+            if not new.any():
+                continue
+            pooled = torch.full((len(cells), sel_feat.shape[1]), -math.inf)
+            pooled.scatter_reduce_(0, inv[:, None].expand_as(sel_feat), sel_feat, reduce="amax")
+            pos = cells[new].float() * size
+            m = len(pos)
+            cat_rows(optimizer, model, {
+                "anchor": pos,
+                "offset": torch.zeros(m, k, 3),
+                "anchor_feat": pooled[new],
+                "scaling": torch.full((m, 6), math.log(size)),
+            })
+            added += m
+        return added, vetoed
+
+    # -- persistence -------------------------------------------------------------
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"offset_grad": self.offset_grad, "offset_denom": self.offset_denom,
+                "opacity_accum": self.opacity_accum, "anchor_denom": self.anchor_denom}
+
+    def load_state_dict(self, d: dict[str, torch.Tensor]) -> None:
+        for key, val in d.items():
+            setattr(self, key, val.clone())
