@@ -40,6 +40,9 @@ class MvsConfig:
             view estimated at its reprojection.
         min_consistent_views: how many other views must agree (0 disables
             the check).
+        max_size: views whose longer side exceeds this are swept at a
+            reduced resolution (speed on CPU) and the depth is upsampled
+            (nearest) to the full size; 0 = always full size.
         plane_chunk: planes evaluated per batch (memory / speed trade-off).
     """
 
@@ -51,6 +54,7 @@ class MvsConfig:
     plane_chunk: int = 8
     consistency_tol: float = 0.02
     min_consistent_views: int = 1
+    max_size: int = 256
 
 
 @dataclass
@@ -197,6 +201,13 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     """
     from tqdm import tqdm
 
+    cfg = config or MvsConfig()
+    full = list(cameras)
+    longest = max(max(c.width, c.height) for c in full)
+    f = cfg.max_size / longest if cfg.max_size and longest > cfg.max_size else 1.0
+    if f < 1.0:
+        images = [_resize(im, c.scaled(f)) for im, c in zip(images, full)]
+        cameras = [c.scaled(f) for c in full]
     cams = [_recentred(c, np.mean([c.center for c in cameras], axis=0)) for c in cameras]
     pts = None
     if sparse_points is not None and len(sparse_points):
@@ -205,14 +216,32 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
         near, far = depth_range_for(cams[i], pts, fallback_distance)
         srcs = [(cams[j], images[j]) for j in range(len(cams)) if j != i]
-        res = plane_sweep(cams[i], images[i], srcs, near, far, config)
+        res = plane_sweep(cams[i], images[i], srcs, near, far, cfg)
         log.info("MVS view %s: range [%.3g, %.3g], %.1f%% valid", cams[i].name, near, far,
                  100.0 * np.isfinite(res.depth).mean())
         out.append(res)
-    cfg = config or MvsConfig()
     if cfg.min_consistent_views > 0 and len(cams) > 1:
         out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views)
+    if f < 1.0:
+        out = [MvsResult(*(_upsample(a, c) for a in (r.depth, r.confidence, r.ncc))) for r, c in zip(out, full)]
     return out
+
+
+def _resize(img: np.ndarray, cam: Camera) -> np.ndarray:
+    """Area-average an HxWxC image to the size of ``cam``."""
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(np.nan_to_num(np.asarray(img, np.float32))).permute(2, 0, 1)[None]
+    return F.interpolate(t, size=(cam.height, cam.width), mode="area")[0].permute(1, 2, 0).numpy()
+
+
+def _upsample(a: np.ndarray, cam: Camera) -> np.ndarray:
+    """Nearest-neighbour upsampling to ``cam``'s size (keeps NaN holes as holes)."""
+    h, w = a.shape
+    rows = np.minimum((np.arange(cam.height) + 0.5) * h / cam.height, h - 1).astype(np.int64)
+    cols = np.minimum((np.arange(cam.width) + 0.5) * w / cam.width, w - 1).astype(np.int64)
+    return a[rows][:, cols]
 
 
 def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int) -> list[MvsResult]:

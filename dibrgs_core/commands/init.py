@@ -33,6 +33,9 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(min(2, torch.get_num_threads()))
     train_ids = args.train_ids.split(",") if args.train_ids else None
     scene = read_any_scene(args.scene, train_ids=train_ids, load_depth=args.depth_prior == "gt")
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 1  # COLMAP progress lines would drown the decisions
     cfg = InitConfig(depth_prior=args.depth_prior, depth_model=args.depth_model, depth_map=args.depth_map,
                      refine=args.refine, scale=args.scale)
     if args.voxel is not None:

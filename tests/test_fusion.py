@@ -1,0 +1,103 @@
+"""Fusion: back-projection, dip test, overlap removal (keep lower), reprojection, voxels, PLY."""
+from __future__ import annotations
+
+import numpy as np
+
+from dibrgs_core.cameras import Camera, look_at, up_frame
+from dibrgs_core.fusion import (backproject_views, dip_cells, overlap_pairs_drop, read_ply, reproject_max_depth,
+                                to_frame, voxel_downsample, write_ply, zbuffer)
+
+
+def _cam(eye=(0, 0, 100.0), size=32):
+    K = np.array([[40.0, 0, size / 2], [0, 40.0, size / 2], [0, 0, 1]])
+    return Camera(K, look_at(eye, (0, 0, 0), (0, 1, 0)), size, size, "c")
+
+
+def test_backproject_then_zbuffer_roundtrip():
+    cam = _cam()
+    depth = np.full((32, 32), 100.0)
+    depth[5, 7] = np.nan
+    depth[6, 7] = 0.0
+    pts, cols, vid = backproject_views([cam], [depth], [np.ones((32, 32, 3)) * 0.5])
+    assert len(pts) == 32 * 32 - 2 and (vid == 0).all() and (cols == 128).all()
+    zb = zbuffer(cam, pts)
+    assert np.isnan(zb[5, 7]) and np.isnan(zb[6, 7])
+    assert np.allclose(zb[np.isfinite(zb)], 100.0)
+
+
+def _layered_cloud(rng, n=4000, gap=5.0):
+    """A ground layer (h~0) with a spurious copy 'gap' above it over half the area."""
+    xy = rng.uniform(0, 20, (n, 2))
+    h = rng.normal(0, 0.05, n)
+    dup = xy[: n // 2][xy[: n // 2, 0] < 10] + rng.normal(0, 0.02, (int((xy[: n // 2, 0] < 10).sum()), 2))
+    hd = gap + rng.normal(0, 0.05, len(dup))
+    return np.concatenate([np.column_stack([xy, h]), np.column_stack([dup, hd])]), len(dup)
+
+
+def test_dip_and_keep_lower_removes_upper_layer():
+    rng = np.random.default_rng(0)
+    local, n_dup = _layered_cloud(rng)
+    dip = dip_cells(local, cell=2.0, alpha=0.05, min_points=8)
+    assert dip.n_multimodal > 0
+    # Only cells on the doubled half are multimodal.
+    assert (local[dip.in_multimodal, 0] < 10.5).all()
+    drop = overlap_pairs_drop(local, dip.in_multimodal, 2.0, eps_xy=0.1, eps_z=1.0)
+    assert drop.any()
+    assert (local[drop, 2] > 2.5).all()  # only upper-layer points are dropped
+    assert (~drop[local[:, 2] < 2.5]).all()  # the lower layer is untouched
+
+
+def test_dip_stiff_cells():
+    # A cell of 2 points and a cell with all heights equal: not multimodal, no crash, no drops.
+    local = np.array([[0.1, 0.1, 0.0], [0.2, 0.1, 9.0]] + [[5.1 + 0.01 * i, 5.1, 3.0] for i in range(20)])
+    dip = dip_cells(local, cell=2.0, alpha=0.05, min_points=4)
+    assert dip.n_multimodal == 0 and dip.n_tested == 1 and not dip.in_multimodal.any()
+    assert not overlap_pairs_drop(local, dip.in_multimodal, 2.0, 0.1, 1.0).any()
+    # Forcing the 2-point cell as candidate still drops exactly the higher point.
+    drop = overlap_pairs_drop(local, np.r_[True, True, np.zeros(20, bool)], 2.0, 0.2, 1.0)
+    assert drop.tolist()[:2] == [False, True]
+    empty = dip_cells(np.zeros((0, 3)), 2.0)
+    assert empty.n_cells == 0
+
+
+def test_up_frame_is_used_not_z():
+    """The same layered cloud rotated so 'up' is +X: in the up frame the upper layer is found and dropped."""
+    rng = np.random.default_rng(1)
+    local, _ = _layered_cloud(rng)
+    up = np.array([1.0, 0.0, 0.0])
+    F = up_frame(up)
+    origin = np.array([4.0e5, 1.0e5, 30.0])
+    world = local @ F + origin  # local coordinates back to world
+    back = to_frame(world, F, origin)
+    assert np.allclose(back, local, atol=1e-6)
+    dip = dip_cells(back, 2.0)
+    drop = overlap_pairs_drop(back, dip.in_multimodal, 2.0, 0.1, 1.0)
+    assert drop.any() and (world[drop] @ up - origin @ up > 2.5).all()
+
+
+def test_reproject_max_depth_keeps_farthest():
+    cam = _cam(size=16)
+    near = np.full((16, 16), 90.0)
+    far = np.full((16, 16), 100.0)
+    out = reproject_max_depth([cam, cam], [near, far])
+    assert np.allclose(out[0], 100.0) and np.allclose(out[1], 100.0)
+    hole = near.copy()
+    hole[3, 3] = np.nan
+    out = reproject_max_depth([cam, cam], [hole, far])
+    assert np.isnan(out[0][3, 3])  # no new coverage in a view's holes
+
+
+def test_voxel_downsample_and_ply_roundtrip(tmp_path):
+    origin = np.array([1e5, 2e5, 0.0])
+    pts = origin + np.array([[0.1, 0.1, 0.1], [0.3, 0.2, 0.4], [1.5, 0.1, 0.1]])
+    cols = np.array([[0, 0, 0], [100, 200, 50], [9, 9, 9]], np.uint8)
+    P, C = voxel_downsample(pts, cols, 1.0, origin)
+    assert len(P) == 2
+    i = np.argmin(P[:, 0])
+    assert np.allclose(P[i] - origin, [0.2, 0.15, 0.25]) and C[i].tolist() == [50, 100, 25]
+    write_ply(tmp_path / "p.ply", P, C)
+    P2, C2 = read_ply(tmp_path / "p.ply")
+    assert np.allclose(P2, P, atol=1e-9) and (C2 == C).all()
+    assert not list(tmp_path.glob(".*tmp*"))  # atomic write leaves no temporary behind
+    P0, _ = voxel_downsample(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), 1.0)
+    assert P0.shape == (0, 3)
