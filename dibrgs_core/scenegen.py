@@ -349,11 +349,17 @@ def _add_mesh(bpy, name: str, md: MeshData, mat) -> None:
     bpy.context.scene.collection.objects.link(ob)
 
 
+def _enable_nodes(idblock) -> None:
+    """Give a material/world its node tree (Blender 5 always has one; use_nodes is deprecated)."""
+    if idblock.node_tree is None:
+        idblock.use_nodes = True
+
+
 class _Nodes:
     """Small helper to build shader node graphs by name."""
 
     def __init__(self, mat):
-        mat.use_nodes = True
+        _enable_nodes(mat)
         self.nt = mat.node_tree
         self.nt.nodes.clear()
 
@@ -581,7 +587,7 @@ def _build_scene(bpy, kind: str, resolution: int, rng: np.random.Generator, samp
     sun_ob.rotation_euler = (math.pi / 2 - el, 0.0, az)
     sc.collection.objects.link(sun_ob)
     world = bpy.data.worlds.new("sky")
-    world.use_nodes = True
+    _enable_nodes(world)
     bg = world.node_tree.nodes["Background"]
     bg.inputs["Color"].default_value = (0.45, 0.6, 0.85, 1.0)
     bg.inputs["Strength"].default_value = 0.7
@@ -659,7 +665,7 @@ def _depth_mode(bpy) -> None:
     g.link(em.outputs[0], out.inputs["Surface"])
     sc.view_layers[0].material_override = mat
     black = bpy.data.worlds.new("black")
-    black.use_nodes = True
+    _enable_nodes(black)
     black.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
     sc.world = black
     sc.cycles.samples = 1
