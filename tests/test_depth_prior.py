@@ -131,3 +131,14 @@ def test_alignment_degenerate_cases(scene128):
     bad[1::4] = 0.0
     al = align_view(cam, bad, pts, "inv", 120.0)
     assert np.isfinite([al.a, al.b]).all() and al.a > 0
+
+
+def test_mvs_reduced_resolution_path(scene128):
+    """Views larger than max_size are swept at reduced size; depth comes back at full size (median rel. error < 1%)."""
+    vs = scene128.train_views()
+    res = mvs_depths([v.camera for v in vs], [v.image for v in vs], None, 120.0, MvsConfig(max_size=64), progress=False)
+    for v, r in zip(vs, res):
+        assert r.depth.shape == v.depth.shape and r.confidence.shape == v.depth.shape
+        ok = np.isfinite(r.depth)
+        assert ok.mean() > 0.3
+        assert np.median(np.abs(r.depth[ok] - v.depth[ok]) / v.depth[ok]) < 0.01
