@@ -70,7 +70,9 @@ def test_mvs_recovers_synthetic_depth(scene128):
         assert ((r.confidence >= 0) & (r.confidence <= 1)).all()
 
 
+@pytest.mark.stability
 def test_map_disparity_handles_zero_and_nan():
+    """Inv./Neg. mapping of zero, negative and NaN disparities: finite depth or masked, never Inf."""
     d = np.array([[2.0, 0.0], [np.nan, -1.0]])
     inv = map_disparity(d, "inv")
     assert inv[0, 0] == 0.5 and np.isnan(inv[0, 1]) and np.isnan(inv[1, 0]) and np.isnan(inv[1, 1])
@@ -105,7 +107,9 @@ def test_alignment_recovers_inverse_disparity(scene128):
     assert np.median(np.abs(est - depth) / depth) < 0.05
 
 
+@pytest.mark.stability
 def test_alignment_degenerate_cases(scene128):
+    """Affine alignment with under 2 points, zero variance and negative scale: clear fallback and a logged reason."""
     v = scene128.train_views()[0]
     cam, depth = v.camera, v.depth.astype(np.float64)
     pseudo = map_disparity(1.0 / depth, "inv")

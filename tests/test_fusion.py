@@ -1,6 +1,8 @@
 """Fusion: back-projection, dip test, overlap removal (keep lower), reprojection, voxels, PLY."""
 from __future__ import annotations
 
+import pytest
+
 import numpy as np
 
 from dibrgs_core.cameras import Camera, look_at, up_frame
@@ -47,7 +49,9 @@ def test_dip_and_keep_lower_removes_upper_layer():
     assert (~drop[local[:, 2] < 2.5]).all()  # the lower layer is untouched
 
 
+@pytest.mark.stability
 def test_dip_stiff_cells():
+    """Dip test on a cell of 2 points and on a cell whose heights are all equal: no crash, unimodal, nothing dropped."""
     # A cell of 2 points and a cell with all heights equal: not multimodal, no crash, no drops.
     local = np.array([[0.1, 0.1, 0.0], [0.2, 0.1, 9.0]] + [[5.1 + 0.01 * i, 5.1, 3.0] for i in range(20)])
     dip = dip_cells(local, cell=2.0, alpha=0.05, min_points=4)
@@ -60,6 +64,7 @@ def test_dip_stiff_cells():
     assert empty.n_cells == 0
 
 
+@pytest.mark.stability
 def test_up_frame_is_used_not_z():
     """The same layered cloud rotated so 'up' is +X: in the up frame the upper layer is found and dropped."""
     rng = np.random.default_rng(1)

@@ -38,6 +38,7 @@ def test_bounds_and_allows_numpy_and_torch(tmp_path):
     assert np.array_equal(hm2.bounds, hm.bounds) and hm2.allows(q).tolist() == want
 
 
+@pytest.mark.stability
 def test_negative_heights_and_other_up_axis():
     """Up = -Y, georeferenced origin, all heights negative: relaxation still loosens the bound."""
     up = np.array([0.0, -1.0, 0.0])
@@ -55,7 +56,9 @@ def test_negative_heights_and_other_up_axis():
     assert hm.allows(torch.tensor(world)).float().mean() > 0.95
 
 
+@pytest.mark.stability
 def test_all_heights_equal_and_margin():
+    """Height map when every height is equal: finite bounds, points at that height allowed."""
     pts = np.column_stack([np.random.default_rng(0).uniform(0, 30, (500, 2)), np.full(500, 7.0)])
     hm = HeightMap.build(pts, np.eye(3), np.zeros(3), cell=10.0, margin=0.5)
     assert np.allclose(hm.bounds, 7.5)

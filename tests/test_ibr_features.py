@@ -169,7 +169,9 @@ def test_average_over_views_and_state_dict_small():
     assert all(k.startswith("proj.") for k in ibr.state_dict())
 
 
+@pytest.mark.stability
 def test_gradients_reach_projection_and_are_finite():
+    """IBR feature projection at extreme anchor positions: finite features and gradients reaching P."""
     images, cams = _scene()
     images[0].zero_()  # an all-black view
     ibr = build_ibr("pyramid", images, cams, c_r=8)

@@ -29,8 +29,10 @@ def _mae(scene, pts):
     return float(np.mean(np.concatenate(errs)))
 
 
+@pytest.mark.stability
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (2.5e5, 4.1e6, 120.0)])
 def test_initialise_mvs_end_to_end(tmp_path, offset):
+    """Whole geometry stage at normal and georeferenced (~1e5..4e6) coordinates: finite cloud within 5% of true depth."""
     scene, _ = make_synthetic_scene(96, offset=offset, up=(0.1, 0.3, 1.0))
     res = initialise(scene, tmp_path, InitConfig(depth_prior="mvs"))
     dec, vals = _decisions(tmp_path)
@@ -49,6 +51,7 @@ def test_initialise_mvs_end_to_end(tmp_path, offset):
     assert not hm.allows(cam.center[None] + 0.0)[0]
 
 
+@pytest.mark.stability
 def test_gt_prior_oracle_and_no_sfm_points(tmp_path):
     """Blank images: SfM finds nothing, MVS nothing; the gt prior still gives a cloud, with reasons logged."""
     scene, _ = make_synthetic_scene(48)
@@ -67,7 +70,9 @@ def test_gt_prior_oracle_and_no_sfm_points(tmp_path):
     assert dec["plane_fallback"]["applied"] and np.isfinite(res.points).all() and len(res.points) > 0
 
 
+@pytest.mark.stability
 def test_gt_with_nan_and_zero_depths(tmp_path):
+    """Depth prior with NaN and zero pixels: they are dropped, the cloud stays finite."""
     scene, _ = make_synthetic_scene(48)
     for v in scene.views.values():
         v.depth[::3] = np.nan
@@ -76,7 +81,9 @@ def test_gt_with_nan_and_zero_depths(tmp_path):
     assert np.isfinite(res.points).all() and len(res.points) > 100
 
 
+@pytest.mark.stability
 def test_horizontal_cameras_skip_overlap_and_height_map(tmp_path):
+    """Cameras looking horizontally: overlap removal and height map are skipped with a reason in the report."""
     scene, _ = make_synthetic_scene(48, horizontal=True)
     res = initialise(scene, tmp_path, InitConfig(depth_prior="gt"))
     dec, _ = _decisions(tmp_path)

@@ -128,7 +128,9 @@ def test_see_through_speckles_removed_edges_kept():
     assert filled[5, 4] == 10 and filled[12, 6] == 10 and filled[3, 15] == 20
 
 
+@pytest.mark.stability
 def test_empty_inputs_are_handled():
+    """Pseudo view from an empty point cloud / empty depth: empty mask, finite image, no crash."""
     cam = cam_at(0, size=16)
     assert (zbuffer_depth(np.zeros((0, 3)), cam) == 0).all()
     assert (complete_depth(np.zeros((16, 16))) == 0).all()
