@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import tempfile
 import time
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera, look_at, to_blender
-from .fileio import atomic_path, write_json
+from .fileio import write_json
 
 log = logging.getLogger("dibrgs.scenegen")
 
@@ -638,8 +637,10 @@ def _render_rgb(bpy, path: Path) -> np.ndarray:
     """Render the current camera; linear RGB float32 (H, W, 3) from Blender's multilayer EXR."""
     import OpenEXR
 
-    bpy.context.scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True)
+    sc = bpy.context.scene
+    bpy.ops.render.render(write_still=False)
+    # save_render writes with the scene's (multilayer EXR) settings, without write_still's log line.
+    bpy.data.images["Render Result"].save_render(filepath=str(path), scene=sc)
     with OpenEXR.File(str(path), separate_channels=True) as f:
         ch = f.channels()
         key = next(k for k in ch if k.endswith("Combined.R"))[:-1]
