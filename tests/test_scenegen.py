@@ -139,3 +139,25 @@ def test_every_kind_renders_and_seed_is_deterministic(tmp_path):
     a = read_scene(outs["stadium"]).views["001"].image
     b = read_scene(other).views["001"].image
     assert np.abs(a - b).mean() > 0.02
+
+
+def test_make_scene_script_and_info(tmp_path):
+    """The CLI script (with Blender-style '--' argument separation) followed by
+    `dibrgs info`, as in the issue's acceptance command."""
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    out = tmp_path / "s"
+    r = subprocess.run([sys.executable, str(REPO / "scripts" / "make_scene.py"), "--", "--kind", "village",
+                        "--resolution", "12", "--seed", "3", "--samples", "2", "--out", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert len(list((out / "Images").glob("*.png"))) == 21
+    r = subprocess.run([sys.executable, "-m", "dibrgs_core", "info", str(out)], capture_output=True, text=True,
+                       timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-2000:]
+    info = json.loads(r.stdout)
+    assert info["views"] == 21 and info["resolution"] == [12, 12]
+    assert info["orbit"]["radius"] == pytest.approx(150.0, abs=1e-3)
