@@ -463,16 +463,17 @@ def write_scene(root: str | Path, views: dict[str, View] | Iterable[View], track
     return root
 
 
-def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True) -> Scene:
+def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
+                   test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder itself)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
     if (root / "Cams").is_dir():
-        return read_scene(root, train_ids=train_ids, load_depth=load_depth)
+        return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids)
     from .io_colmap import find_colmap_model, read_colmap_scene
 
     if find_colmap_model(root) is not None:
-        return read_colmap_scene(root, train_ids=train_ids)
+        return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)
     raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
                            "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
