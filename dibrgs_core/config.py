@@ -36,13 +36,9 @@ class ModelConfig:
 
     feat_dim: int = 32
     n_offsets: int = 10
-    # Anchor voxel in the paper's units. The paper's units put its dense-cloud
-    # downsampling voxel at 1.0 and height-map cell at 10; LEVIR-NVS scenes span
-    # about 512 of them across a 512-pixel image, so one paper unit is about the
-    # scene's horizontal extent / 512 (``paper_units_across``). Our voxel in scene
-    # units is ``anchor_voxel * extent / paper_units_across``.
+    # Anchor voxel in the paper's (LEVIR-NVS) units; converted with the scene's
+    # scale (scene units per paper unit, as in init.py).
     anchor_voxel: float = 0.03
-    paper_units_across: float = 512.0
     # Budget on initial anchors (None = no budget). When the voxelised cloud has
     # more anchors, the voxel is doubled until it fits; the report says so.
     max_init_anchors: int | None = None

@@ -18,10 +18,12 @@ Distances fed to the MLPs are divided by ``dist_scale`` (the mean camera-to-scen
 distance at initialisation) so the decoders see O(1) inputs whatever the scene's
 units; Scaffold-GS feeds raw distances on scenes a few units across.
 
-Anchor voxel (documented rule): the paper's anchor grid is 0.03 in units where its
-dense-cloud voxel is 1.0; LEVIR-NVS scenes are about 512 such units across, so
-``voxel = 0.03 * extent / 512`` with ``extent`` the larger horizontal side of the
-initial cloud's 1-99 percentile box. A preset may cap the initial anchor count;
+Anchor voxel (documented rule): the paper's anchor grid is 0.03 in LEVIR-NVS units.
+Like the geometry stage (``init.py``), we convert paper units to scene units with
+``scale = median training-camera distance to the look-at point / 115`` (LEVIR-NVS
+cameras are about 115 units from the scene), so ``voxel = 0.03 * scale``. That is
+much finer than the dense cloud's 1.0-unit downsampling voxel, so in the paper
+every fused point becomes an anchor. A preset may cap the initial anchor count;
 the voxel then doubles until the cloud fits (reported).
 """
 from __future__ import annotations
@@ -55,28 +57,13 @@ def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
     return (keys * voxel).astype(np.float32)
 
 
-def scene_extent(points: np.ndarray, up_frame: np.ndarray | None = None) -> float:
-    """Larger horizontal side of the cloud's robust (1-99 percentile) bounding box.
+def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float) -> tuple[float, str]:
+    """The anchor voxel (scene units) for ``points`` and a sentence explaining it.
 
-    ``up_frame`` is the 3x3 world->(e1, e2, up) rotation; without it the
-    largest side of the box in world axes is used.
+    ``scale`` is scene units per paper unit (see the module docstring).
     """
-    p = np.asarray(points, np.float64)
-    if up_frame is not None:
-        p = p @ np.asarray(up_frame).T
-        lo, hi = np.percentile(p[:, :2], 1, axis=0), np.percentile(p[:, :2], 99, axis=0)
-    else:
-        lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
-    return float(max(np.max(hi - lo), 1e-6))
-
-
-def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, up_frame: np.ndarray | None = None
-                      ) -> tuple[float, str]:
-    """The anchor voxel for ``points`` under ``cfg`` and a sentence explaining it."""
-    extent = scene_extent(points, up_frame)
-    voxel = cfg.anchor_voxel * extent / cfg.paper_units_across
-    why = (f"{cfg.anchor_voxel} paper units x extent {extent:.4g} / {cfg.paper_units_across:g}"
-           f" = {voxel:.4g}")
+    voxel = cfg.anchor_voxel * scale
+    why = f"{cfg.anchor_voxel} paper units x {scale:.4g} scene units per paper unit = {voxel:.4g}"
     if cfg.max_init_anchors:
         n = len(voxelize(points, voxel))
         doublings = 0
@@ -129,7 +116,7 @@ class NeuralGaussians(nn.Module):
         self.anchor = nn.Parameter(anchors.float().clone())
         self.offset = nn.Parameter(torch.zeros(n, k, 3))
         self.anchor_feat = nn.Parameter(torch.zeros(n, fd))
-        self.scaling = nn.Parameter(init_log_scaling(anchors.float()).repeat(1, 2))
+        self.scaling = nn.Parameter(init_log_scaling(anchors.float()).repeat(1, 6))
         self.mlp_opacity = _mlp(fd + 4, fd, k, nn.Tanh())
         self.mlp_cov = _mlp(fd + 4, fd, 7 * k, None)
         self.mlp_color = _mlp(fd + 4, fd, 3 * k, nn.Sigmoid())
@@ -244,13 +231,16 @@ def init_log_scaling(points: torch.Tensor) -> torch.Tensor:
 
 
 def build_model(points: np.ndarray, cam_centers: np.ndarray, cfg: ModelConfig, use_ibr: bool,
-                up_frame: np.ndarray | None = None) -> tuple[NeuralGaussians, str]:
-    """Anchors on a voxel grid over ``points`` (N,3); returns the model and the voxel rule used."""
+                scale: float) -> tuple[NeuralGaussians, str]:
+    """Anchors on a voxel grid over ``points`` (N,3); returns the model and the voxel rule used.
+
+    ``scale``: scene units per paper unit (see the module docstring).
+    """
     pts = np.asarray(points, np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) == 0:
         raise ValueError("the initial point cloud is empty; cannot place anchors")
-    voxel, why = anchor_voxel_size(pts, cfg, up_frame)
+    voxel, why = anchor_voxel_size(pts, cfg, scale)
     anchors = torch.from_numpy(voxelize(pts, voxel))
     centre = np.median(pts, axis=0)
     dist_scale = float(np.mean(np.linalg.norm(np.asarray(cam_centers) - centre, axis=1)))

@@ -45,7 +45,7 @@ from .cameras import Camera, camera_from_dict, camera_to_dict
 from .config import TrainConfig, expon_lr
 from .errors import InputError
 from .fileio import atomic_path, write_json, write_text
-from .report import Report
+from .report import Decision, Report
 
 log = logging.getLogger("dibrgs.train")
 
@@ -448,23 +448,32 @@ class Trainer:
         self.report.values["extent"] = extent
 
     def _init_geometry(self, scene: Any) -> Any:
-        """Run (or reuse) the geometry initialisation; returns the InitResult."""
-        from . import init as ginit
+        """Run the geometry initialisation, or reuse ``WORK/init`` when it was made with the same options."""
+        from .height_map import HeightMap
+        from .init import InitConfig, InitResult, initialise
 
         out = self.work / "init"
-        kwargs: dict[str, Any] = {}
-        icfg = ginit.InitConfig()
-        if self.cfg.depth_prior != "auto" and hasattr(icfg, "depth_prior"):
+        icfg = InitConfig()
+        if self.cfg.depth_prior != "auto":
             icfg.depth_prior = self.cfg.depth_prior
-        if self.depth_model and hasattr(icfg, "depth_model"):
+        if self.depth_model:
             icfg.depth_model = self.depth_model
-        loader = getattr(ginit, "load_result", None)
-        if loader is not None and (out / "init_report.json").exists():
-            with contextlib.suppress(Exception):
-                res = loader(out)
-                log.info("reusing geometry initialisation in %s", out)
-                return res
-        return ginit.initialise(scene, out, icfg, **kwargs)
+        rep_path, ply = out / "init_report.json", out / "points.ply"
+        if rep_path.exists() and ply.exists():
+            old = json.loads(rep_path.read_text())
+            oc = old.get("values", {}).get("config", {})
+            if oc.get("depth_prior") == icfg.depth_prior and oc.get("depth_model") == icfg.depth_model:
+                import trimesh
+
+                pc = trimesh.load(ply)
+                rep = Report()
+                rep.values.update(old.get("values", {}))
+                rep.decisions.extend(Decision(**d) for d in old.get("decisions", []))
+                hm = HeightMap.load(out / "height_map.npz") if (out / "height_map.npz").exists() else None
+                cols = np.asarray(pc.colors)[:, :3] if len(getattr(pc, "colors", [])) else np.zeros((len(pc.vertices), 3))
+                log.info("reusing the geometry initialisation in %s", out)
+                return InitResult(np.asarray(pc.vertices, np.float64), cols.astype(np.uint8), hm, rep)
+        return initialise(scene, out, icfg)
 
     def _setup_dibrgs(self, scene: Any, ckpt: dict | None) -> None:
         from .neural_gaussians import build_model
@@ -472,7 +481,11 @@ class Trainer:
         cfg = self.cfg
         rep = self.report
         res = self._init_geometry(scene)
-        up_frame = getattr(res.height_map, "up_frame", None) if res.height_map is not None else None
+        scale = res.report.values.get("scale")
+        if not scale:
+            from .init import InitConfig, scene_geometry
+
+            scale = scene_geometry(scene, InitConfig()).scale
         if cfg.dense_init:
             points = np.asarray(res.points)
             rep.decide("train", "dense_init", True, f"anchors from the dense initial cloud ({len(points)} points)")
@@ -503,7 +516,7 @@ class Trainer:
         if ckpt is not None:
             model = _neural_from_state(ckpt["method"]["model"], ckpt["model_meta"], cfg)
         else:
-            model, why = build_model(points, centers, cfg.model, use_ibr=ibr is not None, up_frame=up_frame)
+            model, why = build_model(points, centers, cfg.model, use_ibr=ibr is not None, scale=float(scale))
             rep.values["anchor_voxel"] = why
         self.model_meta = {"voxel_size": model.voxel_size, "dist_scale": model.dist_scale,
                            "use_ibr": model.use_ibr}

@@ -1,0 +1,99 @@
+"""``dibrgs train SCENE --out WORK``: train DIBR-GS (or the 3DGS baseline) on a scene.
+
+Runs the geometry initialisation first when ``WORK/init`` does not hold one made
+with the same options. Progress is shown with tqdm; ``--progress-json`` also
+prints one JSON object per line on stdout (``iteration``, ``total``, ``loss``,
+``eta_s``, ``elapsed_s``; finally ``{"done": true, "work": ...}``). SIGINT / SIGTERM
+write a checkpoint and stop; ``--resume`` continues a stopped run to the same result.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger("dibrgs.train")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train DIBR-GS or the 3DGS baseline", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS or COLMAP layout)")
+    p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
+    p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "test"],
+                   help="numbers to use: the paper's (30k its), cpu (256x256 in < 20 min on 2 cores), test")
+    p.add_argument("--method", default="dibrgs", choices=["dibrgs", "3dgs"])
+    p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
+    p.add_argument("--resolution-scale", type=float, default=None, help="resize the images by this factor")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--resume", action="store_true", help="continue from WORK/checkpoint.pt if present")
+    p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
+    p.add_argument("--pseudo-path", default=None,
+                   help="cameras for pseudo views instead of orbit samples (LEVIR Cams file/folder or JSON list)")
+    g = p.add_argument_group("ablations")
+    g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
+    g.add_argument("--ibr", default="auto", choices=["auto", "dino", "pyramid", "none"], help="IBR encoder")
+    g.add_argument("--no-height", action="store_true", help="no height-constrained growth")
+    g.add_argument("--no-pseudo", action="store_true", help="no pseudo-view supervision")
+    g.add_argument("--pseudo", default=None, choices=["auto", "on", "off"],
+                   help="pseudo views: auto (skip with >= 10 training views), on, off")
+    g.add_argument("--depth-prior", default="auto", choices=["auto", "mvs", "depth-anything-v2", "gt"],
+                   help="depth prior of the geometry initialisation (gt = oracle)")
+    w = p.add_argument_group("local weights (nothing is downloaded)")
+    w.add_argument("--dino-resnet", default=None, help="dino_resnet50_pretrain.pth")
+    w.add_argument("--dino-vit", default=None, help="dino_vitbase8_pretrain.pth")
+    w.add_argument("--depth-model", default=None, help="local Depth Anything V2 transformers folder")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1: on a shared machine more threads stall on each other)")
+    p.set_defaults(func=run)
+
+
+def config_from_args(args: argparse.Namespace):
+    """The TrainConfig the arguments ask for."""
+    from ..config import preset
+
+    cfg = preset(args.preset)
+    cfg.method = args.method
+    if args.iterations is not None:
+        if args.iterations < 1:
+            from ..errors import InputError
+
+            raise InputError(None, f"--iterations must be positive, got {args.iterations}")
+        cfg.iterations = args.iterations
+    if args.resolution_scale is not None:
+        cfg.resolution_scale = args.resolution_scale
+    if args.seed is not None:
+        cfg.seed = args.seed
+    cfg.dense_init = not args.no_dense_init
+    cfg.ibr = args.ibr
+    cfg.height = "off" if args.no_height else "auto"
+    cfg.pseudo.mode = "off" if args.no_pseudo else (args.pseudo or "auto")
+    cfg.depth_prior = args.depth_prior
+    cfg.dino_resnet = args.dino_resnet
+    cfg.dino_vit = args.dino_vit
+    cfg.pseudo_path = args.pseudo_path
+    return cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..train import Trainer, TrainingFailed
+
+    torch.set_num_threads(max(1, args.threads))
+    cfg = config_from_args(args)
+    tr = Trainer(args.scene, args.out, cfg, resume=args.resume, progress_json=args.progress_json,
+                 depth_model=args.depth_model)
+    try:
+        res = tr.run()
+    except TrainingFailed as e:
+        log.error("training failed: %s", e)
+        print(f"dibrgs train: training failed: {e}", file=__import__("sys").stderr)
+        return 3
+    if res.status != "done":
+        print(f"dibrgs train: stopped at iteration {res.iteration}; continue with --resume",
+              file=__import__("sys").stderr)
+        return 130
+    log.info("trained %s: %d iterations in %.0f s (%s); run folder %s", cfg.method, res.iteration, res.seconds,
+             ", ".join(f"{k} {v}" for k, v in res.sizes.items()), res.work)
+    return 0
