@@ -28,8 +28,10 @@ TILE = 16
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1.0e-4
-# Elements of a (tiles, 256, K) chunk tensor; bounds the reference's memory.
+# Elements of a (tiles, 256, K) chunk tensor, and the longest segment of a
+# tile's list composited at once; together they bound the reference's memory.
 _CHUNK_ELEMS = 1 << 22
+_SEGMENT = 2048
 
 
 def tile_rects(
@@ -106,16 +108,23 @@ def bin_gaussians(
     return offsets, gid
 
 
-def _composite_chunk(
+def _composite_segment(
     ids: Tensor,
     valid: Tensor,
     pix: Tensor,
+    t_in: Tensor,
+    done_in: Tensor,
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
     feats: Tensor,
-) -> Tensor:
-    """Composite a chunk of tiles. ids/valid: (T, K); pix: (T, P, 2) -> (T, P, C)."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite one depth-ordered segment of Gaussians over a chunk of tiles.
+
+    ids/valid: (T, K) Gaussians of each tile; pix: (T, P, 2) pixel centres;
+    t_in: (T, P) transmittance and done_in: (T, P) early-stop flags carried
+    from the previous segments. Returns (features (T, P, C), t_out, done_out).
+    """
     m = means2d[ids]  # (T, K, 2)
     con = conics[ids]
     dx = m[:, None, :, 0] - pix[:, :, None, 0]  # (T, P, K)
@@ -124,11 +133,17 @@ def _composite_chunk(
     alpha = torch.clamp(opacities[ids][:, None, :] * torch.exp(power), max=ALPHA_MAX)
     ok = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
     alpha = torch.where(ok, alpha, torch.zeros_like(alpha))
-    t_incl = torch.cumprod(1.0 - alpha, dim=-1)
-    keep = t_incl >= T_MIN
-    t_excl = torch.cat([torch.ones_like(t_incl[..., :1]), t_incl[..., :-1]], dim=-1)
+    cp = torch.cumprod(1.0 - alpha, dim=-1)
+    t_incl = t_in[..., None] * cp
+    # The Gaussians kept are a prefix: T only decreases, and the first one that
+    # would take it under T_MIN stops the pixel for good.
+    keep = (t_incl >= T_MIN) & ~done_in[..., None]
+    t_excl = t_in[..., None] * torch.cat([torch.ones_like(cp[..., :1]), cp[..., :-1]], dim=-1)
     wgt = torch.where(keep, alpha * t_excl, torch.zeros_like(alpha))
-    return torch.einsum("tpk,tkc->tpc", wgt, feats[ids])
+    out = torch.einsum("tpk,tkc->tpc", wgt, feats[ids])
+    t_out = torch.where(keep, t_incl, t_in[..., None]).amin(-1)
+    done_out = done_in | (t_incl[..., -1] < T_MIN)
+    return out, t_out, done_out
 
 
 def composite_reference(
@@ -145,6 +160,9 @@ def composite_reference(
 
     No background is added; the caller composites one through an all-ones
     feature channel (whose output is the accumulated alpha ``1 - T``).
+    Tiles are processed in chunks and each tile's list in segments of at most
+    ``_SEGMENT`` Gaussians (stopping once every pixel of the chunk is done),
+    each segment under activation checkpointing, so memory stays bounded.
     """
     dev, dt = feats.device, feats.dtype
     C = feats.shape[1]
@@ -158,16 +176,14 @@ def composite_reference(
     nonempty = torch.nonzero(counts > 0).squeeze(1).tolist()
     cnt_list = counts.tolist()
     off_list = offsets.tolist()
-    need_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means2d, conics, opacities, feats)
-    )
+    need_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means2d, conics, opacities, feats))
     i = 0
     chunks = []
     while i < len(nonempty):
         j, kmax = i, 0
         while j < len(nonempty):
             k2 = max(kmax, cnt_list[nonempty[j]])
-            if j > i and (j - i + 1) * P * k2 > _CHUNK_ELEMS:
+            if j > i and (j - i + 1) * P * min(k2, _SEGMENT) > _CHUNK_ELEMS:
                 break
             kmax = k2
             j += 1
@@ -181,13 +197,22 @@ def composite_reference(
         tt = torch.tensor(tiles, device=dev)
         org = torch.stack([(tt % tx).to(dt), (tt // tx).to(dt)], dim=-1) * TILE  # (T, 2)
         pix = org[:, None, :] + loc[None]
-        if need_grad:
-            res = checkpoint(
-                _composite_chunk, ids, valid, pix, means2d, conics, opacities, feats, use_reentrant=False
-            )
-        else:
-            res = _composite_chunk(ids, valid, pix, means2d, conics, opacities, feats)
-        chunks.append((tt, res))
+        t_cur = torch.ones(len(tiles), P, device=dev, dtype=dt)
+        # Pixels of partial tiles outside the image start done.
+        done = (pix[..., 0] > width) | (pix[..., 1] > height)
+        acc = torch.zeros(len(tiles), P, C, device=dev, dtype=dt)
+        for k0 in range(0, kmax, _SEGMENT):
+            if bool(done.all()):
+                break
+            seg = (ids[:, k0 : k0 + _SEGMENT], valid[:, k0 : k0 + _SEGMENT], pix, t_cur, done)
+            if need_grad:
+                res, t_cur, done = checkpoint(
+                    _composite_segment, *seg, means2d, conics, opacities, feats, use_reentrant=False
+                )
+            else:
+                res, t_cur, done = _composite_segment(*seg, means2d, conics, opacities, feats)
+            acc = acc + res
+        chunks.append((tt, acc))
         i = j
     if chunks:
         tt = torch.cat([c[0] for c in chunks])
