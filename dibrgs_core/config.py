@@ -62,6 +62,9 @@ class GrowthConfig:
     densify_from: float = 0.05
     densify_until: float = 0.5
     densify_every: float = 100 / 30000
+    # Floor on the growth interval of short runs, so that the averaged gradients
+    # and per-visit opacities still average over several views.
+    min_every: int = 10
 
 
 @dataclass
@@ -107,6 +110,7 @@ class GS3DConfig:
     densify_from: float = 500 / 30000
     densify_until: float = 0.5
     densify_every: float = 100 / 30000
+    min_every: int = 10                 # floor on the densification interval of short runs
     opacity_reset_every: float = 3000 / 30000
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01

@@ -126,7 +126,7 @@ class DensifyStrategy:
         self.extent = float(extent)
         self.start = max(1, round(cfg.densify_from * iterations))
         self.until = max(1, round(cfg.densify_until * iterations))
-        self.every = max(1, round(cfg.densify_every * iterations))
+        self.every = max(cfg.min_every, round(cfg.densify_every * iterations))
         self.reset_every = max(1, round(cfg.opacity_reset_every * iterations))
         self.sh_every = max(1, round(cfg.sh_every * iterations))
         self._reset_stats(model.num_gaussians)

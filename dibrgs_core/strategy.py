@@ -123,7 +123,7 @@ class AnchorStrategy:
         self.stat_start = max(1, round(cfg.stat_start * iterations))
         self.start = max(1, round(cfg.densify_from * iterations))
         self.until = max(1, round(cfg.densify_until * iterations))
-        self.every = max(1, round(cfg.densify_every * iterations))
+        self.every = max(cfg.min_every, round(cfg.densify_every * iterations))
 
     # -- schedule ----------------------------------------------------------
     def collects(self, it: int) -> bool:

@@ -1,0 +1,236 @@
+"""Training runs: resume to identical parameters, extreme settings, and the CLI end to end on the tiny scene."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dibrgs_core.config import preset
+from dibrgs_core.train import MODEL, Trainer, TrainingFailed, train
+
+sys.path.insert(0, str(Path(__file__).parent))
+from train_synth import make_synth_scene  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> Path:
+    return make_synth_scene(tmp_path_factory.mktemp("synth") / "s32", resolution=32)
+
+
+@pytest.fixture(scope="module")
+def synth_init(synth, tmp_path_factory) -> Path:
+    """A finished short run on the synthetic scene; later runs reuse its init/ and pseudo/ caches."""
+    work = tmp_path_factory.mktemp("runs") / "base"
+    cfg = _cfg(40)
+    train(synth, work, cfg)
+    return work
+
+
+def _cfg(iterations: int, method: str = "dibrgs"):
+    cfg = preset("test")
+    cfg.iterations = iterations
+    cfg.method = method
+    cfg.curve_every_s = 1e9  # curve points at start and end only
+    cfg.curve_max_views = 2
+    cfg.model.max_init_anchors = 300
+    return cfg
+
+
+def _with_caches(base: Path, work: Path) -> Path:
+    work.mkdir(parents=True)
+    for sub in ("init", "pseudo"):
+        if (base / sub).exists():
+            shutil.copytree(base / sub, work / sub)
+    return work
+
+
+def _params(work: Path) -> dict[str, torch.Tensor]:
+    st = torch.load(work / MODEL, map_location="cpu", weights_only=False)
+    out = dict(st["model"])
+    if st.get("ibr_feats") is not None:
+        out["ibr_feats"] = st["ibr_feats"]
+    return out
+
+
+def _assert_finite(work: Path) -> None:
+    for k, v in _params(work).items():
+        assert torch.isfinite(v).all(), f"{k} has non-finite values"
+
+
+def test_resume_continues_to_identical_parameters(synth, synth_init, tmp_path):
+    """A run stopped half-way (as by SIGTERM) and resumed ends with exactly the parameters of an
+    uninterrupted run: RNG states, optimiser moments, growth statistics and view orders are restored."""
+    a = _with_caches(synth_init, tmp_path / "a")
+    ra = train(synth, a, _cfg(60))
+    b = _with_caches(synth_init, tmp_path / "b")
+    rb1 = train(synth, b, _cfg(60), stop_after=27)
+    assert rb1.status == "interrupted" and rb1.iteration == 27
+    assert (b / "checkpoint.pt").exists() and not (b / MODEL).exists()
+    rb2 = train(synth, b, _cfg(60), resume=True)
+    assert rb2.status == "done" and rb2.iteration == ra.iteration == 60
+    pa, pb = _params(a), _params(b)
+    assert pa.keys() == pb.keys()
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
+    # The curve continues across the interruption.
+    rows = (b / "curve.csv").read_text().strip().splitlines()
+    assert rows[0] == "seconds,iteration,psnr,ssim" and rows[1].split(",")[1] == "0" and rows[-1].split(",")[1] == "60"
+
+
+def test_progress_json_lines_and_report(synth, synth_init, tmp_path):
+    import io
+
+    work = _with_caches(synth_init, tmp_path / "p")
+    buf = io.StringIO()
+    Trainer(synth, work, _cfg(30), progress_json=True, stream=buf).run()
+    lines = [json.loads(x) for x in buf.getvalue().splitlines()]
+    prog = [x for x in lines if "iteration" in x and "done" not in x]
+    assert prog and all({"iteration", "total", "loss", "eta_s", "elapsed_s"} <= x.keys() for x in prog)
+    assert prog[-1]["iteration"] == 30 and prog[-1]["eta_s"] == pytest.approx(0.0, abs=1e-6)
+    assert lines[-1]["done"] is True and lines[-1]["work"] == str(work)
+    rep = json.loads((work / "report.json").read_text())
+    steps = {d["step"]: d for d in rep["decisions"]}
+    assert steps["pseudo_views"]["applied"] and steps["ibr_features"]["details"]["encoder"] == "pyramid"
+    assert "dense_init" in steps and "height_constraint" in steps
+
+
+def test_ablation_flags_switch_components_off(synth, synth_init, tmp_path):
+    work = _with_caches(synth_init, tmp_path / "abl")
+    cfg = _cfg(12)
+    cfg.pseudo.mode = "off"
+    cfg.ibr = "none"
+    cfg.height = "off"
+    train(synth, work, cfg)
+    steps = {d["step"]: d["applied"] for d in json.loads((work / "report.json").read_text())["decisions"]}
+    assert steps["pseudo_views"] is False and steps["ibr_features"] is False
+    assert steps["height_constraint"] is False
+    st = torch.load(work / MODEL, weights_only=False)
+    assert st["ibr_feats"] is None and not any(k.startswith("e_mod") for k in st["model"])
+
+
+# -- extremes -------------------------------------------------------------------------
+@pytest.mark.stability
+@pytest.mark.parametrize("factor", [1e4, 1e-8])
+def test_extreme_learning_rates_stay_finite(synth, synth_init, tmp_path, factor):
+    """Every learning rate multiplied by 1e4 or 1e-8: the run ends with finite parameters and IBR
+    features (non-finite steps are skipped), or stops with a clear message."""
+    work = _with_caches(synth_init, tmp_path / f"lr{factor:g}")
+    cfg = _cfg(30)
+    lr = cfg.lr
+    for name in ("offset", "mlp_opacity", "mlp_cov", "mlp_color", "ibr_fusion"):
+        a, b = getattr(lr, name)
+        setattr(lr, name, (a * factor, b * factor))
+    lr.anchor_feat *= factor
+    lr.scaling *= factor
+    lr.projection *= factor
+    try:
+        res = train(synth, work, cfg)
+    except TrainingFailed as e:
+        assert "anchor" in str(e)
+        return
+    assert res.status == "done"
+    _assert_finite(work)
+    curve = (work / "curve.csv").read_text().strip().splitlines()[1:]
+    assert all(np.isfinite(float(r.split(",")[2])) for r in curve)
+
+
+@pytest.mark.stability
+def test_all_black_images_train_to_a_finite_model(tmp_path):
+    """A scene whose images are all black (no SfM points, no texture): the geometry falls back, training
+    ends with finite parameters and renders black."""
+    from dibrgs_core.io_levir import View, read_scene, write_scene
+
+    src = make_synth_scene(tmp_path / "src", resolution=24)
+    sc = read_scene(src)
+    views = {k: View(v.camera, np.zeros_like(v.image), v.depth) for k, v in sc.views.items()}
+    black = write_scene(tmp_path / "black", views, sc.track)
+    work = tmp_path / "w"
+    res = train(black, work, _cfg(20))
+    assert res.status == "done"
+    _assert_finite(work)
+    from dibrgs_core.evaluate import load_trained
+
+    img, depth = load_trained(work).render(sc.test_views()[0].camera)
+    assert np.isfinite(img).all() and np.isfinite(depth).all() and img.mean() < 0.2
+
+
+@pytest.mark.stability
+def test_pseudo_view_without_valid_pixels_is_left_out(synth, synth_init, tmp_path):
+    """A pseudo-view camera that looks away from the scene gets no warped pixel: it is left out with a
+    reason in the report, and training still ends finite."""
+    from dibrgs_core.cameras import camera_to_dict, look_at
+    from dibrgs_core.io_levir import read_scene
+
+    cam = read_scene(synth).train_views()[0].camera
+    away = type(cam)(K=cam.K, w2c=look_at(cam.center, cam.center + (cam.center - np.zeros(3)), [0, 0, 1.0]),
+                     width=cam.width, height=cam.height, name="away")
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps([camera_to_dict(away)]))
+    work = _with_caches(synth_init, tmp_path / "pv")
+    cfg = _cfg(20)
+    cfg.pseudo_path = str(path)
+    train(synth, work, cfg)
+    d = {x["step"]: x for x in json.loads((work / "report.json").read_text())["decisions"]}
+    assert d["pseudo_views"]["applied"] is False and "without any filled pixel" in d["pseudo_views"]["reason"]
+    _assert_finite(work)
+
+
+@pytest.mark.stability
+def test_all_anchors_pruned_stops_with_a_clear_message(synth, synth_init, tmp_path):
+    """An impossible opacity floor prunes every anchor: training stops with a message saying so
+    instead of writing a model without Gaussians."""
+    work = _with_caches(synth_init, tmp_path / "prune")
+    cfg = _cfg(100)
+    cfg.growth.min_opacity = 1e9
+    with pytest.raises(TrainingFailed, match="every anchor was pruned"):
+        train(synth, work, cfg)
+    assert not (work / MODEL).exists()
+
+
+# -- CLI end to end on the Blender-rendered tiny scene -------------------------------
+def _dibrgs(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dibrgs_core", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.mark.slow
+def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
+    """`dibrgs train --preset test` on the 64x64 city raises the held-out PSNR above the initial render's;
+    eval writes metrics (LPIPS unavailable without weights), render and export write readable files."""
+    import trimesh
+
+    work = tmp_path / "work"
+    r = _dibrgs("train", str(tiny_scene), "--out", str(work), "--preset", "test", "--progress-json")
+    assert r.returncode == 0, r.stderr[-3000:]
+    last = json.loads(r.stdout.strip().splitlines()[-1])
+    assert last["done"] is True
+    rows = [x.split(",") for x in (work / "curve.csv").read_text().strip().splitlines()[1:]]
+    first, final = float(rows[0][2]), float(rows[-1][2])
+    assert final > first + 1.0, (first, final)
+    assert (work / "curve.png").stat().st_size > 0
+    r = _dibrgs("eval", str(work))
+    assert r.returncode == 0, r.stderr[-3000:]
+    m = json.loads((work / "metrics.json").read_text())
+    assert m["lpips"] is None and m["avge"] is None and "lpips_unavailable" in m
+    assert m["views"] == 17 and m["psnr"] > first and m["fps"] > 0
+    assert len(list((work / "renders").glob("*.png"))) == 17
+    out = tmp_path / "track"
+    r = _dibrgs("render", str(work), "--cameras", str(tiny_scene / "Cams" / "002.txt"), "--out", str(out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (out / "002.png").exists() and (out / "002_depth.exr").exists()
+    ply = tmp_path / "g.ply"
+    r = _dibrgs("export", str(work), "--ply", str(ply))
+    assert r.returncode == 0, r.stderr[-3000:]
+    v = trimesh.load(ply).metadata["_ply_raw"]["vertex"]["data"]
+    assert len(v) > 0 and {"f_dc_0", "opacity", "scale_2", "rot_3"} <= set(v.dtype.names)
+    # Bad input: a missing run folder is a clear error, exit code 2.
+    r = _dibrgs("eval", str(tmp_path / "nope"))
+    assert r.returncode == 2 and "no trained model" in r.stderr
