@@ -7,7 +7,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
+
+# OpenMP threads that spin while waiting make torch 3-4x slower on a shared
+# 2-core machine; must be set before torch is first imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .errors import InputError
 

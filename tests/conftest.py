@@ -4,6 +4,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported (see dibrgs_core.cli)
+
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
