@@ -40,10 +40,10 @@ def _cpu_flags() -> str:
     return platform.processor() or platform.machine()
 
 
-def _build_dir(tag: str) -> Path:
+def _build_dir(tag: str, flags: list[str]) -> Path:
     root = Path(os.environ.get("DIBRGS_EXT_DIR", Path.home() / ".cache" / "dibrgs" / "ext"))
     h = hashlib.sha256()
-    for part in (_SRC.read_bytes(), torch.__version__.encode(), _cpu_flags().encode(), tag.encode()):
+    for part in (_SRC.read_bytes(), torch.__version__.encode(), _cpu_flags().encode(), " ".join(flags).encode()):
         h.update(part)
     d = root / f"rasterize_{tag}_{h.hexdigest()[:16]}"
     d.mkdir(parents=True, exist_ok=True)
@@ -54,13 +54,18 @@ def _load() -> ModuleType:
     from torch.utils.cpp_extension import load
 
     errors = []
-    for tag, flags in (("native", ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp-simd"]), ("portable", ["-O3", "-fopenmp-simd"])):
+    # -fopenmp is needed for at::parallel_for (an inline header template) to
+    # run in parallel at all; torch's own OpenMP runtime is the one linked.
+    # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.
+    common = ["-O3", "-fopenmp", "-fno-math-errno"]
+    for tag, flags in (("native", common + ["-march=native", "-mprefer-vector-width=512"]), ("portable", common)):
         try:
             return load(
                 name=f"dibrgs_rasterize_{tag}",
                 sources=[str(_SRC)],
                 extra_cflags=flags,
-                build_directory=str(_build_dir(tag)),
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(_build_dir(tag, flags)),
                 verbose=False,
             )
         except Exception as exc:  # compiler missing or rejecting the flags

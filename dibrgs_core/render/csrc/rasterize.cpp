@@ -1,7 +1,10 @@
 // CPU tile rasterizer for 3D Gaussian Splatting: binning, forward compositing
 // and the hand-written backward. Same rules as reference.py (see there).
-// Tiles are spread dynamically over torch's intra-op threads; each tile's
-// 256 pixels are processed row by row in fixed-width loops that vectorise.
+// Tiles are spread dynamically over torch's intra-op threads (the extension is
+// built with -fopenmp: at::parallel_for is a header template and would run
+// serially otherwise). One tile row of 16 pixels is one SIMD vector (GCC/Clang
+// vector extensions: a single AVX-512 register in float), and each tile's
+// Gaussians are first gathered into contiguous per-tile arrays.
 #include <torch/extension.h>
 
 #include <algorithm>
@@ -15,6 +18,10 @@
 
 #include <atomic>
 
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
+
 namespace {
 
 constexpr int TILE = 16;
@@ -23,35 +30,82 @@ constexpr double ALPHA_MIN = 1.0 / 255.0;
 constexpr double ALPHA_MAX = 0.99;
 constexpr double T_MIN = 1e-4;
 
-// exp for power <= 0 in float: Cephes-style range reduction and polynomial
-// (relative error ~1e-7), written with plain arithmetic so loops vectorise
-// without -ffast-math. Arguments under -87 give ~0 (alpha is skipped there).
-inline float exp_approx(float x) {
-  x = std::min(std::max(x, -87.0f), 88.0f);
-  const float t = x * 1.44269504088896341f;
-  const int n = static_cast<int>(t - 0.5f);  // rounds to nearest for t <= 0.5
-  const float nf = static_cast<float>(n);
-  float r = x - nf * 0.693359375f;
+// 16 lanes = one tile row, with the matching integer (mask) vector type.
+template <typename T>
+struct Vec;
+template <>
+struct Vec<float> {
+  typedef float V __attribute__((vector_size(64)));
+  typedef int32_t I __attribute__((vector_size(64)));
+};
+template <>
+struct Vec<double> {
+  typedef double V __attribute__((vector_size(128)));
+  typedef int64_t I __attribute__((vector_size(128)));
+};
+
+template <typename V, typename S>
+inline V splat(S x) {
+  V v;
+  for (int i = 0; i < TILE; ++i) v[i] = x;
+  return v;
+}
+
+// Whether any lane of a 0 / -1 mask is set.
+inline bool any(Vec<float>::I m) {
+#ifdef __AVX512F__
+  __m512i x;
+  std::memcpy(&x, &m, sizeof(x));
+  return _mm512_test_epi32_mask(x, x) != 0;
+#else
+  int32_t r = 0;
+  for (int i = 0; i < TILE; ++i) r |= m[i];
+  return r != 0;
+#endif
+}
+inline bool any(Vec<double>::I m) {
+  int64_t r = 0;
+  for (int i = 0; i < TILE; ++i) r |= m[i];
+  return r != 0;
+}
+
+template <typename V>
+inline auto hsum(V v) {
+  auto s = v[0];
+  for (int i = 1; i < TILE; ++i) s += v[i];
+  return s;
+}
+
+// exp in float: Cephes-style range reduction and polynomial (relative error
+// ~1e-7), on whole vectors with plain arithmetic (no -ffast-math needed).
+// Arguments under -87 give ~0 (alpha is skipped there).
+inline Vec<float>::V vexp(Vec<float>::V x) {
+  typedef Vec<float>::V V;
+  typedef Vec<float>::I I;
+  x = x < -87.0f ? splat<V>(-87.0f) : x;
+  x = x > 88.0f ? splat<V>(88.0f) : x;
+  const V t = x * 1.44269504088896341f;
+  const I n = __builtin_convertvector(t - 0.5f, I);  // rounds to nearest for t <= 0.5
+  const V nf = __builtin_convertvector(n, V);
+  V r = x - nf * 0.693359375f;
   r = r - nf * -2.12194440e-4f;
-  const float z = r * r;
-  float y = 1.9875691500E-4f;
+  const V z = r * r;
+  V y = splat<V>(1.9875691500E-4f);
   y = y * r + 1.3981999507E-3f;
   y = y * r + 8.3334519073E-3f;
   y = y * r + 4.1665795894E-2f;
   y = y * r + 1.6666665459E-1f;
   y = y * r + 5.0000001201E-1f;
   y = y * z + r + 1.0f;
-  int32_t bits = (n + 127) << 23;
-  float scale;
-  std::memcpy(&scale, &bits, sizeof(float));
+  const I bits = (n + 127) << 23;
+  V scale;
+  std::memcpy(&scale, &bits, sizeof(V));
   return y * scale;
 }
-inline double exp_approx(double x) { return std::exp(x); }
-
-template <typename T>
-struct Gauss {
-  T mx, my, a, b, c, o;
-};
+inline Vec<double>::V vexp(Vec<double>::V x) {
+  for (int i = 0; i < TILE; ++i) x[i] = std::exp(x[i]);
+  return x;
+}
 
 // Rows [r0, r1] (inclusive, tile-local) where the Gaussian may reach
 // alpha >= 1/255, given its half-extent ey (already widened).
@@ -72,18 +126,33 @@ inline double cull_level(double o) {
   return 2.0 * std::log(o * 255.0) * 1.01 + 0.01;
 }
 
-// Whether tile row r (pixel centres at y = ty0 + r + 0.5) has a pixel centre
-// of the tile's columns inside the ellipse q <= lvl (widened by a pixel).
-inline bool row_hits(double mx, double my, double a, double b, double c, double lvl, int tx0, int ty0, int r) {
-  const double dy = my - (ty0 + r + 0.5);
-  const double disc = b * b * dy * dy - a * (c * dy * dy - lvl);
-  if (disc < 0) return false;
-  const double sq = std::sqrt(disc);
-  // dx = mx - px lies in [(-b dy - sq) / a, (-b dy + sq) / a].
-  const double pxlo = mx - (-b * dy + sq) / a - 1.0;
-  const double pxhi = mx - (-b * dy - sq) / a + 1.0;
-  return pxhi >= tx0 + 0.5 && pxlo <= tx0 + TILE - 0.5;
-}
+// A tile's Gaussians in list order, copied contiguously (structure of arrays).
+template <typename T>
+struct TileData {
+  std::vector<T> mx, my, a, b, c, o, f;
+  std::vector<int32_t> r0, r1;
+  void load(const T* pm, const T* pc, const T* po, const T* pf, const double* pe, const int32_t* ids, int64_t n,
+            int64_t C, int ty0, int H) {
+    for (auto* v : {&mx, &my, &a, &b, &c, &o}) v->resize(n);
+    f.resize(n * C);
+    r0.resize(n);
+    r1.resize(n);
+    for (int64_t k = 0; k < n; ++k) {
+      const int32_t g = ids[k];
+      mx[k] = pm[2 * g];
+      my[k] = pm[2 * g + 1];
+      a[k] = pc[3 * g];
+      b[k] = pc[3 * g + 1];
+      c[k] = pc[3 * g + 2];
+      o[k] = po[g];
+      std::memcpy(&f[k * C], pf + g * C, C * sizeof(T));
+      int lo, hi;
+      row_range(static_cast<double>(my[k]), pe[3 * g + 1], ty0, H, lo, hi);
+      r0[k] = lo;
+      r1[k] = hi;
+    }
+  }
+};
 
 // Runs worker(next) on every torch intra-op thread; workers pull tile indices
 // from the shared counter (dynamic scheduling: tile costs vary a lot).
@@ -164,77 +233,72 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
 template <typename T>
 static void forward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
                          const double* pe, int64_t C, int64_t W, int64_t H, T* out, T* tfin, int32_t* ncon) {
+  typedef typename Vec<T>::V V;
+  typedef typename Vec<T>::I I;
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
   run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<T> acc(C * TP);
-    alignas(64) T Tp[TP];
-    alignas(64) int32_t done[TP];
-    alignas(64) int32_t nc[TP];
-    alignas(64) T w[TILE];
-    int rowdone[TILE];
+    std::vector<V> acc(C * TILE);
+    V Tv[TILE];
+    I done[TILE], last[TILE];
+    bool alive[TILE];
+    TileData<T> td;
+    V lane;
+    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
     for (int64_t tile = next++; tile < tx * ty; tile = next++) {
       const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
-      std::fill(acc.begin(), acc.end(), T(0));
-      std::fill(rowdone, rowdone + TILE, 0);
-      int ndone = 0;
-      for (int p = 0; p < TP; ++p) {
-        Tp[p] = T(1);
-        nc[p] = 0;
-        const bool out_img = (tx0 + p % TILE >= W) || (ty0 + p / TILE >= H);
-        done[p] = out_img ? 1 : 0;
-        ndone += done[p];
-        rowdone[p / TILE] += done[p];
+      const V xs = lane + (T(tx0) + T(0.5));  // pixel centres of a row
+      const I outx = __builtin_convertvector(lane, I) >= static_cast<int>(W - tx0);
+      int nalive = 0;
+      for (int r = 0; r < TILE; ++r) {
+        Tv[r] = splat<V>(T(1));
+        last[r] = splat<I>(0);
+        done[r] = ty0 + r >= H ? splat<I>(-1) : outx;
+        alive[r] = ty0 + r < H;
+        nalive += alive[r];
       }
-      const int64_t s = off[tile], e = off[tile + 1];
-      for (int64_t k = s; k < e && ndone < TP; ++k) {
-        const int32_t g = pg[k];
-        const T mx = pm[2 * g], my = pm[2 * g + 1];
-        const T a = pc[3 * g], b = pc[3 * g + 1], c = pc[3 * g + 2], o = po[g];
-        const double* eg = pe + 3 * g;
-        int r0, r1;
-        row_range(static_cast<double>(my), eg[1], ty0, static_cast<int>(H), r0, r1);
-        const int32_t kk = static_cast<int32_t>(k - s + 1);
-        for (int r = r0; r <= r1; ++r) {
-          if (rowdone[r] == TILE || !row_hits(mx, my, a, b, c, eg[2], tx0, ty0, r)) continue;
+      std::fill(acc.begin(), acc.end(), splat<V>(T(0)));
+      const int64_t s = off[tile], n = off[tile + 1] - s;
+      td.load(pm, pc, po, pf, pe, pg + s, n, C, ty0, static_cast<int>(H));
+      for (int64_t k = 0; k < n && nalive > 0; ++k) {
+        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
+        const T* fk = td.f.data() + k * C;
+        const V dx = mx - xs;
+        const V adx2 = a * dx * dx;
+        const V bdx = b * dx;
+        const I kk = splat<I>(static_cast<int32_t>(k + 1));
+        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
+          if (!alive[r]) continue;
           const T dy = my - (T(ty0 + r) + T(0.5));
-          T* Tr = Tp + r * TILE;
-          int32_t* dr = done + r * TILE;
-          int32_t* nr = nc + r * TILE;
-          int nstop = 0, nvalid = 0;
-#pragma omp simd reduction(+ : nstop, nvalid)
-          for (int x = 0; x < TILE; ++x) {
-            const T dx = mx - (T(tx0 + x) + T(0.5));
-            const T power = T(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
-            const T al = std::min(T(ALPHA_MAX), o * exp_approx(power));
-            const bool cand = (dr[x] == 0) & (power <= T(0)) & (al >= T(ALPHA_MIN));
-            const T testT = Tr[x] * (T(1) - al);
-            const bool stop = cand & (testT < T(T_MIN));
-            const bool valid = cand & !stop;
-            w[x] = valid ? al * Tr[x] : T(0);
-            Tr[x] = valid ? testT : Tr[x];
-            nr[x] = valid ? kk : nr[x];
-            dr[x] = stop ? 1 : dr[x];
-            nstop += stop ? 1 : 0;
-            nvalid += valid ? 1 : 0;
+          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
+          const V oG = o * vexp(power);
+          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
+          const I cand = ~done[r] & (power <= T(0)) & (al >= T(ALPHA_MIN));
+          if (!any(cand)) continue;
+          const V testT = Tv[r] * (T(1) - al);
+          const I stop = cand & (testT < T(T_MIN));
+          const I valid = cand & ~stop;
+          const V w = valid ? al * Tv[r] : splat<V>(T(0));
+          Tv[r] = valid ? testT : Tv[r];
+          last[r] = valid ? kk : last[r];
+          if (any(stop)) {
+            done[r] |= stop;
+            if (!any(~done[r])) {
+              alive[r] = false;
+              --nalive;
+            }
           }
-          ndone += nstop;
-          rowdone[r] += nstop;
-          if (nvalid == 0) continue;
-          for (int64_t ch = 0; ch < C; ++ch) {
-            const T f = pf[g * C + ch];
-            T* ar = acc.data() + ch * TP + r * TILE;
-#pragma omp simd
-            for (int x = 0; x < TILE; ++x) ar[x] += w[x] * f;
-          }
+          for (int64_t ch = 0; ch < C; ++ch) acc[ch * TILE + r] += w * fk[ch];
         }
       }
-      for (int p = 0; p < TP; ++p) {
-        const int64_t X = tx0 + p % TILE, Y = ty0 + p / TILE;
-        if (X >= W || Y >= H) continue;
-        const int64_t pix = Y * W + X;
-        for (int64_t ch = 0; ch < C; ++ch) out[pix * C + ch] = acc[ch * TP + p];
-        tfin[pix] = Tp[p];
-        ncon[pix] = nc[p];
+      for (int r = 0; r < TILE; ++r) {
+        const int64_t Y = ty0 + r;
+        if (Y >= H) break;
+        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
+          const int64_t pix = Y * W + tx0 + x;
+          for (int64_t ch = 0; ch < C; ++ch) out[pix * C + ch] = acc[ch * TILE + r][x];
+          tfin[pix] = Tv[r][x];
+          ncon[pix] = static_cast<int32_t>(last[r][x]);
+        }
       }
     }
   });
@@ -262,104 +326,97 @@ template <typename T>
 static void backward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
                           const double* pe, const T* gout, const T* tfin, const int32_t* ncon, int64_t C, int64_t W,
                           int64_t H, T* gm, T* gc, T* go, T* gf) {
+  typedef typename Vec<T>::V V;
+  typedef typename Vec<T>::I I;
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
   const int64_t G = 6 + C;  // per intersection: mx, my, a, b, c, o, feats
   const int64_t M = off[tx * ty];
   std::vector<T> buf(M * G);
   run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<T> S(C * TP), D(C * TP), gfeat(C);
-    alignas(64) T Tp[TP];
-    alignas(64) int32_t nc[TP];
-    alignas(64) T va[TILE], vT[TILE], dla[TILE], ok[TILE], Gs[TILE];
+    std::vector<V> S(C * TILE), D(C * TILE), gfv(C);
+    V Tv[TILE];
+    I last[TILE];
     int rowmax[TILE];
+    TileData<T> td;
+    V lane;
+    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
+    const V zero = splat<V>(T(0));
     for (int64_t tile = next++; tile < tx * ty; tile = next++) {
       const int64_t s = off[tile], e = off[tile + 1];
       if (e == s) continue;
       const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
+      const V xs = lane + (T(tx0) + T(0.5));
       int maxnc = 0;
-      std::fill(rowmax, rowmax + TILE, 0);
-      for (int p = 0; p < TP; ++p) {
-        const int64_t X = tx0 + p % TILE, Y = ty0 + p / TILE;
-        const bool in = X < W && Y < H;
-        const int64_t pix = Y * W + X;
-        Tp[p] = in ? tfin[pix] : T(1);
-        nc[p] = in ? ncon[pix] : 0;
-        maxnc = std::max(maxnc, nc[p]);
-        rowmax[p / TILE] = std::max(rowmax[p / TILE], nc[p]);
-        for (int64_t ch = 0; ch < C; ++ch) {
-          S[ch * TP + p] = T(0);
-          D[ch * TP + p] = in ? gout[pix * C + ch] : T(0);
+      for (int r = 0; r < TILE; ++r) {
+        Tv[r] = splat<V>(T(1));
+        last[r] = splat<I>(0);
+        rowmax[r] = 0;
+        for (int64_t ch = 0; ch < C; ++ch) S[ch * TILE + r] = D[ch * TILE + r] = zero;
+        const int64_t Y = ty0 + r;
+        if (Y >= H) continue;
+        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
+          const int64_t pix = Y * W + tx0 + x;
+          Tv[r][x] = tfin[pix];
+          last[r][x] = ncon[pix];
+          rowmax[r] = std::max(rowmax[r], ncon[pix]);
+          for (int64_t ch = 0; ch < C; ++ch) D[ch * TILE + r][x] = gout[pix * C + ch];
         }
+        maxnc = std::max(maxnc, rowmax[r]);
       }
-      for (int64_t k = s + maxnc - 1; k >= s; --k) {
-        const int32_t g = pg[k];
-        const T mx = pm[2 * g], my = pm[2 * g + 1];
-        const T a = pc[3 * g], b = pc[3 * g + 1], c = pc[3 * g + 2], o = po[g];
-        const int32_t kk = static_cast<int32_t>(k - s);
-        const double* eg = pe + 3 * g;
-        int r0, r1;
-        row_range(static_cast<double>(my), eg[1], ty0, static_cast<int>(H), r0, r1);
-        T gmx = 0, gmy = 0, ga = 0, gb = 0, gcc = 0, gop = 0;
-        std::fill(gfeat.begin(), gfeat.end(), T(0));
-        for (int r = r0; r <= r1; ++r) {
-          if (kk >= rowmax[r] || !row_hits(mx, my, a, b, c, eg[2], tx0, ty0, r)) continue;
+      td.load(pm, pc, po, pf, pe, pg + s, maxnc, C, ty0, static_cast<int>(H));
+      for (int64_t k = maxnc - 1; k >= 0; --k) {
+        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
+        const T* fk = td.f.data() + k * C;
+        const V dx = mx - xs;
+        const V adx2 = a * dx * dx;
+        const V bdx = b * dx;
+        const I kk = splat<I>(static_cast<int32_t>(k));
+        V gmx = zero, gmy = zero, ga = zero, gb = zero, gcc = zero, gop = zero;
+        bool any_row = false;
+        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
+          if (k >= rowmax[r]) continue;
           const T dy = my - (T(ty0 + r) + T(0.5));
-          T* Tr = Tp + r * TILE;
-          const int32_t* nr = nc + r * TILE;
-          int nvalid = 0;
-#pragma omp simd reduction(+ : nvalid)
-          for (int x = 0; x < TILE; ++x) {
-            const T dx = mx - (T(tx0 + x) + T(0.5));
-            const T power = T(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
-            const T Gv = exp_approx(power);
-            const T al = std::min(T(ALPHA_MAX), o * Gv);
-            Gs[x] = Gv;
-            const bool valid = (kk < nr[x]) & (power <= T(0)) & (al >= T(ALPHA_MIN));
-            Tr[x] = valid ? Tr[x] / (T(1) - al) : Tr[x];
-            va[x] = valid ? al : T(0);
-            ok[x] = valid ? T(1) : T(0);
-            vT[x] = Tr[x];
-            dla[x] = T(0);
-            nvalid += valid ? 1 : 0;
+          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
+          const V Gv = vexp(power);
+          const V oG = o * Gv;
+          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
+          const I valid = (kk < last[r]) & (power <= T(0)) & (al >= T(ALPHA_MIN));
+          if (!any(valid)) continue;
+          if (!any_row) {
+            std::fill(gfv.begin(), gfv.end(), zero);
+            any_row = true;
           }
-          if (nvalid == 0) continue;
+          // T before this Gaussian, from the one after it.
+          Tv[r] = valid ? Tv[r] / (T(1) - al) : Tv[r];
+          const V va = valid ? al : zero;
+          const V vT = Tv[r];
+          V dla = zero;
           for (int64_t ch = 0; ch < C; ++ch) {
-            const T f = pf[g * C + ch];
-            T* Sr = S.data() + ch * TP + r * TILE;
-            const T* Dr = D.data() + ch * TP + r * TILE;
-            T gfc = 0;
-#pragma omp simd reduction(+ : gfc)
-            for (int x = 0; x < TILE; ++x) {
-              dla[x] += ok[x] * Dr[x] * (f - Sr[x]) * vT[x];
-              gfc += va[x] * vT[x] * Dr[x];
-              Sr[x] = va[x] * f + (T(1) - va[x]) * Sr[x];
-            }
-            gfeat[ch] += gfc;
+            const T f = fk[ch];
+            V& Sr = S[ch * TILE + r];
+            const V Dr = D[ch * TILE + r];
+            dla += (valid ? Dr * (f - Sr) : zero) * vT;
+            gfv[ch] += va * vT * Dr;
+            Sr = va * f + (T(1) - va) * Sr;
           }
-#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gcc, gop)
-          for (int x = 0; x < TILE; ++x) {
-            const T dx = mx - (T(tx0 + x) + T(0.5));
-            const T Gv = Gs[x];
-            // No gradient through the 0.99 clamp (as torch.clamp).
-            const bool unclamped = (ok[x] > T(0)) & (o * Gv <= T(ALPHA_MAX));
-            const T dal = unclamped ? dla[x] : T(0);
-            gop += Gv * dal;
-            const T dp = o * Gv * dal;
-            gmx -= dp * (a * dx + b * dy);
-            gmy -= dp * (c * dy + b * dx);
-            ga -= T(0.5) * dp * dx * dx;
-            gb -= dp * dx * dy;
-            gcc -= T(0.5) * dp * dy * dy;
-          }
+          // No gradient through the 0.99 clamp (as torch.clamp).
+          const V dp = (valid & (oG <= T(ALPHA_MAX))) ? oG * dla : zero;
+          gop += Gv * ((valid & (oG <= T(ALPHA_MAX))) ? dla : zero);
+          gmx -= dp * (a * dx + b * dy);
+          gmy -= dp * (c * dy + bdx);
+          ga -= T(0.5) * dp * dx * dx;
+          gb -= dp * dx * dy;
+          gcc -= T(0.5) * dp * dy * dy;
         }
-        T* bk = buf.data() + k * G;
-        bk[0] = gmx;
-        bk[1] = gmy;
-        bk[2] = ga;
-        bk[3] = gb;
-        bk[4] = gcc;
-        bk[5] = gop;
-        for (int64_t ch = 0; ch < C; ++ch) bk[6 + ch] = gfeat[ch];
+        T* bk = buf.data() + (s + k) * G;
+        if (!any_row) continue;  // buf is zero-initialised
+        bk[0] = hsum(gmx);
+        bk[1] = hsum(gmy);
+        bk[2] = hsum(ga);
+        bk[3] = hsum(gb);
+        bk[4] = hsum(gcc);
+        bk[5] = hsum(gop);
+        for (int64_t ch = 0; ch < C; ++ch) bk[6 + ch] = hsum(gfv[ch]);
       }
     }
   });
