@@ -204,7 +204,8 @@ def test_train_operator_completes_and_fills_the_compositor(tiny_scene, fresh):
 
     bpy.ops.dibrgs.import_scene(directory=str(tiny_scene))
     props = fresh.dibrgs
-    props.preset, props.pseudo_count = "test", 4
+    # The test preset with few iterations: this checks the plumbing, not the quality.
+    props.preset, props.iterations, props.pseudo_count = "test", 20, 4
     sb, comp = _mod("scene_build"), _mod("compositor")
     expected_pseudo = sb.path_cameras(bpy.context, 4, "pseudo")
     assert bpy.ops.dibrgs.train(blocking=True) == {"FINISHED"}, props.error
@@ -285,7 +286,7 @@ def test_failing_training_is_reported_with_its_log(tiny_scene, fresh, tmp_path):
 def test_batch_mode_writes_the_blend_and_the_renders(tiny_scene, fresh, tmp_path):
     out = tmp_path / "batch"
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "run.py"), "--scene", str(tiny_scene), "--out",
-                        str(out), "--preset", "test", "--pseudo-views", "3"],
+                        str(out), "--preset", "test", "--iterations", "20", "--pseudo-views", "3"],
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     blend = out / "dibrgs.blend"
@@ -312,3 +313,23 @@ def test_batch_mode_rejects_bad_arguments(tmp_path):
         r = subprocess.run(run + args, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "usage:" in r.stderr, (args, r.stderr)
     assert not (tmp_path / "o").exists()
+
+
+def test_cancel_stops_real_training_and_keeps_a_checkpoint(tiny_scene, tmp_path):
+    """What the panel's Cancel does (JobRunner.cancel), on the real `dibrgs train` subprocess."""
+    from dibrgs_core.bridge import jobs
+
+    work = tmp_path / "work"
+    cmd = jobs.train_command(sys.executable, tiny_scene, work, jobs.TrainOptions(preset="test", iterations=100000))
+    r = jobs.JobRunner([jobs.Step("Training", cmd, tmp_path / "train.log", progress=True)]).start()
+    import time
+
+    t0 = time.monotonic()
+    while r.progress.iteration == 0 and not r.finished and time.monotonic() - t0 < 300:
+        r.poll()
+        time.sleep(0.2)
+    assert r.progress.iteration > 0 and r.progress.total == 100000, (tmp_path / "train.log").read_text()[-2000:]
+    r.cancel(grace_s=120)
+    assert r.wait(interval_s=0.2, timeout_s=300) == "cancelled"
+    assert (work / "checkpoint.pt").is_file()  # stopped cleanly, not killed
+    assert r.progress.iteration < 100000
