@@ -134,6 +134,53 @@ def test_projection_matches_gsplat():
         assert torch.equal(ours.radii[both], torch.ceil(3 * torch.sqrt(lam)).to(torch.int32))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fast_projection_matches_torch(dtype):
+    """The C++ projection (float64 inside) gives the torch projection's outputs, radii
+    and input gradients, including culled, clamped, degenerate and extreme Gaussians."""
+    from dibrgs_core.render import fast
+
+    fast.available(required=True)
+    means, quats, scales, _, _ = random_scene(6, 400, dtype=torch.float64)
+    means[:40, :2] *= 6.0  # far outside the view: Jacobian clamp
+    means[40:50, 2] = torch.linspace(-1.0, 0.2, 10, dtype=torch.float64)  # behind / near the near plane
+    quats[50:55] = 0.0  # zero quaternion -> identity
+    quats[55:60] = 1e-40
+    scales[60:70] *= 1e4
+    scales[70:80] *= 1e-8
+    scales[80:90, 0] = 0.0  # flat discs
+    means[90:95, 2] = 1e4
+    W, H = 61, 47
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64))[0]
+    vm[:3, :3] *= torch.sign(torch.det(vm[:3, :3]))
+    vm[:3, 3] = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    means = means @ vm[:3, :3]  # same camera-space points as with the identity camera, minus t
+    K = torch.tensor([[40.0, 0, 33.3], [0, 44.0, 21.1], [0, 0, 1]], dtype=torch.float64)
+    g = torch.Generator().manual_seed(7)
+    w_m2, w_con, w_dep = (torch.randn(400, k, generator=g, dtype=torch.float64) for k in (2, 3, 1))
+    outs = []
+    for proj_fn in (project_gaussians, fast.project_fast):
+        ps = [t.to(dtype).clone().requires_grad_() for t in (means, quats, scales)]
+        pr = proj_fn(*ps, vm.to(dtype), K.to(dtype), W, H, near=0.1, far=1e6)
+        loss = (pr.means2d * w_m2.to(dtype)).sum() + (pr.conics * w_con.to(dtype) * pr.visible[:, None]).sum()
+        (loss + (pr.depths * w_dep[:, 0].to(dtype)).sum()).backward()
+        outs.append((pr, [p.grad for p in ps]))
+    (pa, ga), (pb, gb) = outs
+    assert 100 < int(pa.visible.sum()) < 400
+    assert torch.equal(pa.radii, pb.radii) and torch.equal(pa.visible, pb.visible)
+    tol = dict(rtol=1e-10, atol=1e-12) if dtype == torch.float64 else dict(rtol=2e-6, atol=1e-6)
+    v = pa.visible
+    torch.testing.assert_close(pb.means2d[v], pa.means2d[v], **tol)
+    torch.testing.assert_close(pb.conics[v], pa.conics[v], **tol)
+    torch.testing.assert_close(pb.depths, pa.depths, **tol)
+    gtol = dict(rtol=1e-8, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-4, atol=1e-4)
+    for x, y in zip(gb, ga):
+        assert torch.isfinite(x).all()
+        torch.testing.assert_close(x, y, **gtol)
+    assert pb.means2d.grad is not None  # retain_grad for densification
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_gradients_match_finite_differences(backend):
     """Analytic gradients of every input equal float64 central differences."""

@@ -1,10 +1,10 @@
 """Differentiable 3D Gaussian rasterizer (3DGS maths, gsplat-style API).
 
-``rasterize`` projects Gaussians with :func:`projection.project_gaussians`
-(plain torch, autograd) and alpha-composites them in 16x16 tiles either with
-the plain-torch reference path (:mod:`reference`, any device) or with the C++
-CPU path (:mod:`fast`, compiled on first use). Both implement the same rules
-and agree to 1e-5.
+``rasterize`` projects Gaussians and alpha-composites them in 16x16 tiles,
+either with the plain-torch reference path (:func:`projection.project_gaussians`
+and :mod:`reference`, autograd, any device) or with the C++ CPU path
+(:mod:`fast`, compiled on first use, hand-written backward). Both implement
+the same rules and agree to 1e-5.
 
 Conventions: ``viewmat`` is world-to-camera with OpenCV axes (x right, y down,
 z forward); ``K`` is in pixels with pixel centres at +0.5 (``cx = W / 2`` is a
@@ -43,20 +43,26 @@ def composite(
     ``backend`` is ``"auto"`` (C++ on CPU tensors when it compiles, else the
     reference), ``"fast"`` (C++, CPU only) or ``"reference"``.
     """
-    if backend not in ("auto", "fast", "reference"):
-        raise ValueError(f"unknown backend {backend!r}")
-    use_fast = False
-    if backend != "reference" and feats.device.type == "cpu":
-        from . import fast
-
-        use_fast = fast.available(required=backend == "fast")
-    elif backend == "fast":
-        raise ValueError("the fast backend runs on CPU tensors only")
-    if use_fast:
+    if _use_fast(backend, feats):
         from . import fast
 
         return fast.composite_fast(means2d, conics, opacities, feats, depths, radii, width, height)
     return composite_reference(means2d, conics, opacities, feats, depths, radii, width, height)
+
+
+def _use_fast(backend: str, like: Tensor) -> bool:
+    """Whether ``backend`` resolves to the C++ path for tensors like ``like``."""
+    if backend not in ("auto", "fast", "reference"):
+        raise ValueError(f"unknown backend {backend!r}")
+    if backend == "reference":
+        return False
+    if like.device.type != "cpu":
+        if backend == "fast":
+            raise ValueError("the fast backend runs on CPU tensors only")
+        return False
+    from . import fast
+
+    return fast.available(required=backend == "fast")
 
 
 def rasterize(
@@ -89,7 +95,9 @@ def rasterize(
         background: optional (C,) colour blended as ``image + T * background``
             where ``T = 1 - alpha`` is the final transmittance.
         near, far: camera-z clipping planes (world units), ``near > 0``.
-        backend: ``"auto"``, ``"fast"`` or ``"reference"``.
+        backend: ``"auto"``, ``"fast"`` or ``"reference"``. The fast path
+            projects in C++ too, unless ``viewmat`` or ``K`` requires grad
+            (then the torch projection carries their gradients).
 
     Returns:
         ``(image (H, W, C), alpha (H, W, 1), depth (H, W, 1), meta)``.
@@ -110,11 +118,18 @@ def rasterize(
     if width < 1 or height < 1:
         raise ValueError(f"image size must be positive, got {width}x{height}")
     C = colors.shape[1]
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
+    use_fast = _use_fast(backend, colors)
+    if use_fast and not (viewmat.requires_grad or K.requires_grad):
+        from . import fast
+
+        proj = fast.project_fast(means, quats, scales, viewmat, K, width, height, near, far)
+    else:
+        proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
     ones = torch.ones_like(proj.depths)
     feats = torch.cat([colors, proj.depths[:, None], ones[:, None]], dim=1)
     out = composite(
-        proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height, backend
+        proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height,
+        "fast" if use_fast else "reference",
     )
     image = out[..., :C]
     depth_acc = out[..., C : C + 1]

@@ -1,4 +1,4 @@
-"""Fast CPU compositing: a C++ torch extension compiled on first use.
+"""Fast CPU path: projection and compositing in a C++ torch extension compiled on first use.
 
 The extension (``csrc/rasterize.cpp``) is built with
 ``torch.utils.cpp_extension.load`` (ninja) into ``$DIBRGS_EXT_DIR`` or
@@ -21,6 +21,8 @@ from types import ModuleType
 
 import torch
 from torch import Tensor
+
+from .projection import Projected
 
 log = logging.getLogger("dibrgs.render")
 
@@ -144,3 +146,55 @@ def composite_fast(
     fe = feats.contiguous()
     offsets, gids, ext = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
     return _Composite.apply(m2, con, op, fe, offsets, gids, ext, width, height)
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, cam, width, height, near, far):  # type: ignore[override]
+        m2, con, dep, rad = extension().project_forward(means, quats, scales, cam, width, height, near, far)
+        ctx.save_for_backward(means, quats, scales, cam)
+        ctx.args = (width, height, near, far)
+        ctx.mark_non_differentiable(rad)
+        return m2, con, dep, rad
+
+    @staticmethod
+    def backward(ctx, g_m2, g_con, g_dep, _g_rad):  # type: ignore[override]
+        means, quats, scales, cam = ctx.saved_tensors
+        grads = [
+            torch.zeros_like(ref) if g is None else g.contiguous()
+            for g, ref in ((g_m2, means[:, :2]), (g_con, means), (g_dep, means[:, 0]))
+        ]
+        gm, gq, gs = extension().project_backward(means, quats, scales, cam, *ctx.args, *grads)
+        return gm, gq, gs, None, None, None, None, None
+
+
+def project_fast(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+) -> Projected:
+    """C++ version of :func:`projection.project_gaussians` (CPU tensors, same maths and outputs).
+
+    Every per-Gaussian quantity is computed in float64 inside, whatever the
+    dtype of ``means``; outputs are in that dtype. Gradients flow to means,
+    quats and scales (not to ``viewmat`` or ``K``).
+    """
+    if not near > 0:
+        raise ValueError(f"near plane must be positive, got {near}")
+    dt = means.dtype
+    vm = viewmat.detach().to(device="cpu", dtype=torch.float64)
+    Kd = K.detach().to(device="cpu", dtype=torch.float64)
+    cam = torch.cat([vm[:3, :3].reshape(-1), vm[:3, 3], torch.stack([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]])])
+    m2, con, dep, rad = _Project.apply(
+        means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), cam.contiguous(),
+        width, height, float(near), float(far),
+    )
+    if m2.requires_grad:
+        m2.retain_grad()
+    return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=rad > 0)
