@@ -26,6 +26,9 @@ where the coarsest level is vetoed.
 Height constraint (paper Sec. "Height-constrained Anchor Growth"): at the coarsest
 level only, candidate Gaussians above the height map's relaxed bound are dropped.
 
+A configured ``max_anchors`` ceiling keeps a random subset of the new cells when
+growth would exceed it (CPU presets only; the paper has none).
+
 Pruning: anchors visited more than ``success_threshold`` x interval times whose
 accumulated opacity is under ``min_opacity`` per visit are removed (Scaffold-GS
 prunes in the same call). Scaffold-GS also clamps log scales to 0.05 there, a
@@ -124,6 +127,7 @@ class AnchorStrategy:
         self.start = max(1, round(cfg.densify_from * iterations))
         self.until = max(1, round(cfg.densify_until * iterations))
         self.every = max(cfg.min_every, round(cfg.densify_every * iterations))
+        self.capped = 0  # candidate anchors left out by ``max_anchors``
 
     # -- schedule ----------------------------------------------------------
     def collects(self, it: int) -> bool:
@@ -219,12 +223,20 @@ class AnchorStrategy:
                 continue
             pooled = torch.full((len(cells), sel_feat.shape[1]), -math.inf)
             pooled.scatter_reduce_(0, inv[:, None].expand_as(sel_feat), sel_feat, reduce="amax")
-            pos = cells[new].float() * size
+            new_idx = torch.nonzero(new).squeeze(1)
+            if cfg.max_anchors is not None:
+                room = max(cfg.max_anchors - model.num_anchors, 0)
+                if len(new_idx) > room:
+                    self.capped += len(new_idx) - room
+                    new_idx = new_idx[torch.randperm(len(new_idx))[:room]].sort().values
+            if len(new_idx) == 0:
+                continue
+            pos = cells[new_idx].float() * size
             m = len(pos)
             cat_rows(optimizer, model, {
                 "anchor": pos,
                 "offset": torch.zeros(m, k, 3),
-                "anchor_feat": pooled[new],
+                "anchor_feat": pooled[new_idx],
                 "scaling": torch.full((m, 6), math.log(size)),
             })
             added += m
@@ -233,8 +245,9 @@ class AnchorStrategy:
     # -- persistence -------------------------------------------------------------
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {"offset_grad": self.offset_grad, "offset_denom": self.offset_denom,
-                "opacity_accum": self.opacity_accum, "anchor_denom": self.anchor_denom}
+                "opacity_accum": self.opacity_accum, "anchor_denom": self.anchor_denom,
+                "capped": torch.tensor(self.capped)}
 
     def load_state_dict(self, d: dict[str, torch.Tensor]) -> None:
         for key, val in d.items():
-            setattr(self, key, val.clone())
+            setattr(self, key, int(val) if key == "capped" else val.clone())

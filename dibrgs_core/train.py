@@ -216,6 +216,7 @@ class DibrgsMethod:
             report.values.setdefault("growth", {"added": 0, "vetoed": 0, "pruned": 0})
             for k in ("added", "vetoed", "pruned"):
                 report.values["growth"][k] += getattr(r, k)
+            report.values["growth"]["left_out_by_max_anchors"] = self.strategy.capped
             if self.model.num_anchors == 0:
                 raise TrainingFailed(
                     f"every anchor was pruned at iteration {it} (opacity stayed below "
@@ -487,10 +488,13 @@ class Trainer:
 
             scale = scene_geometry(scene, InitConfig()).scale
         if cfg.dense_init:
-            points = np.asarray(res.points)
+            # float32-rounded, so a fresh cloud and one re-read from points.ply are the same
+            # numbers (the pseudo-view cache is keyed on them).
+            points = np.asarray(res.points, np.float32).astype(np.float64)
             rep.decide("train", "dense_init", True, f"anchors from the dense initial cloud ({len(points)} points)")
         else:
             points, _ = self._sfm_points(scene)
+            points = np.asarray(points, np.float32).astype(np.float64).reshape(-1, 3)
             rep.decide("train", "dense_init", False, f"ablation --no-dense-init: anchors from {len(points)} SfM points")
         # Height constraint
         hm = res.height_map
@@ -730,7 +734,7 @@ class Trainer:
         if ckpt is not None:
             start_it = self._restore(ckpt)
         p_start, p_until = cfg.it(cfg.pseudo.start), cfg.it(cfg.pseudo.until)
-        p_every = max(1, cfg.it(cfg.pseudo.every))
+        p_every = max(cfg.pseudo.min_every, cfg.it(cfg.pseudo.every))
         use_pseudo = bool(getattr(self, "pseudo_frames", []))
         self.report.values["schedule"] = {
             "iterations": T, "pseudo": [p_start, p_until, p_every] if use_pseudo else None,

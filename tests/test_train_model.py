@@ -352,3 +352,18 @@ def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
         load_lpips(tmp_path / "missing.pth")
     # AVGE is the geometric mean of MSE, sqrt(1-SSIM) and LPIPS.
     assert avge(20.0, 0.75, 0.1) == pytest.approx((0.01 * 0.5 * 0.1) ** (1 / 3))
+
+
+def test_growth_respects_the_anchor_ceiling():
+    m = _model(50)
+    cfg = preset("test").growth
+    cfg.max_anchors = 55
+    s = AnchorStrategy(m, cfg, 30000)
+    opt = _optimizer(m)
+    with torch.no_grad():
+        m.offset[:, :, :2] = torch.randn(50, 10, 2) * 30.0
+    s.offset_grad[:] = 1.0
+    s.offset_denom[:] = 1000
+    r = s.adjust(m, opt)
+    assert r.added == 5 and m.num_anchors == 55 and s.capped > 0
+    _check_state(m, opt)
