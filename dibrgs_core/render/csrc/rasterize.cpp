@@ -166,6 +166,26 @@ void run_workers(F&& worker) {
 
 }  // namespace
 
+// Whether the ellipse q(d) <= lvl around (mx, my), q = a dx^2 + 2 b dx dy +
+// c dy^2 (a, c > 0), reaches the box of tile (x, y)'s pixel centres widened by
+// a pixel: the convex q is minimised over the box, on its edges when the centre
+// is outside. Like the other culls it only skips tiles without any pixel of
+// alpha >= 1/255.
+inline bool ellipse_meets_tile(double mx, double my, const double* con, double lvl, int32_t x, int32_t y) {
+  const double x0 = x * TILE + 0.5 - 1.0 - mx, x1 = x * TILE + TILE - 0.5 + 1.0 - mx;
+  const double y0 = y * TILE + 0.5 - 1.0 - my, y1 = y * TILE + TILE - 0.5 + 1.0 - my;
+  if (x0 <= 0 && x1 >= 0 && y0 <= 0 && y1 >= 0) return true;
+  const double a = con[0], b = con[1], c = con[2];
+  // min over t in [lo, hi] of p s^2 + 2 b s t + r t^2 with s fixed.
+  auto edge = [b](double s, double lo, double hi, double p, double r) {
+    const double t = std::min(std::max(-b * s / r, lo), hi);
+    return p * s * s + 2.0 * b * s * t + r * t * t;
+  };
+  const double q = std::min(std::min(edge(x0, y0, y1, a, c), edge(x1, y0, y1, a, c)),
+                            std::min(edge(y0, x0, x1, c, a), edge(y1, x0, x1, c, a)));
+  return !(q > lvl);  // NaN (degenerate conic) keeps the tile
+}
+
 // Tile lists. Returns (offsets int64 (tiles+1), gauss_ids int32 (isects),
 // extents float64 (N, 3)): Gaussians of a tile in increasing depth (ties by
 // index); extents are the half-sizes (+1 px) of the culling ellipse and its level.
@@ -215,18 +235,29 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     live.push_back(i);
   }
   std::stable_sort(live.begin(), live.end(), [pd](int64_t a, int64_t b) { return pd[a] < pd[b]; });
+  // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in
+  // depth order (the rectangle's corner tiles are often missed).
+  std::vector<int32_t> hits, hit_ids;
+  hits.reserve(4 * live.size());
+  hit_ids.reserve(4 * live.size());
   auto offsets = torch::zeros({tx * ty + 1}, torch::kInt64);
   int64_t* off = offsets.data_ptr<int64_t>();
-  for (int64_t i : live)
+  for (int64_t i : live) {
+    // A one-tile-wide (or tall) rectangle already spans the ellipse's extent.
+    const bool test = rect[4 * i + 1] - rect[4 * i] > 1 && rect[4 * i + 3] - rect[4 * i + 2] > 1;
     for (int32_t y = rect[4 * i + 2]; y < rect[4 * i + 3]; ++y)
-      for (int32_t x = rect[4 * i]; x < rect[4 * i + 1]; ++x) off[y * tx + x + 1] += 1;
+      for (int32_t x = rect[4 * i]; x < rect[4 * i + 1]; ++x)
+        if (!test || ellipse_meets_tile(pm[2 * i], pm[2 * i + 1], pc + 3 * i, pe[3 * i + 2], x, y)) {
+          hits.push_back(static_cast<int32_t>(y * tx + x));
+          hit_ids.push_back(static_cast<int32_t>(i));
+          off[y * tx + x + 1] += 1;
+        }
+  }
   for (int64_t t = 0; t < tx * ty; ++t) off[t + 1] += off[t];
   auto gids = torch::empty({off[tx * ty]}, torch::kInt32);
   int32_t* pg = gids.data_ptr<int32_t>();
   std::vector<int64_t> pos(off, off + tx * ty);
-  for (int64_t i : live)
-    for (int32_t y = rect[4 * i + 2]; y < rect[4 * i + 3]; ++y)
-      for (int32_t x = rect[4 * i]; x < rect[4 * i + 1]; ++x) pg[pos[y * tx + x]++] = static_cast<int32_t>(i);
+  for (size_t h = 0; h < hits.size(); ++h) pg[pos[hits[h]]++] = hit_ids[h];
   return {offsets, gids, ext};
 }
 
@@ -389,19 +420,21 @@ static void backward_impl(const T* pm, const T* pc, const T* po, const T* pf, co
           // T before this Gaussian, from the one after it.
           Tv[r] = valid ? Tv[r] / (T(1) - al) : Tv[r];
           const V va = valid ? al : zero;
-          const V vT = Tv[r];
-          V dla = zero;
+          const V wgt = va * Tv[r];  // this Gaussian's weight at each pixel
+          // dL/dalpha = T * sum_ch D (f - S), S = what lies behind it (masked below).
+          V dsum = zero;
           for (int64_t ch = 0; ch < C; ++ch) {
-            const T f = fk[ch];
             V& Sr = S[ch * TILE + r];
             const V Dr = D[ch * TILE + r];
-            dla += (valid ? Dr * (f - Sr) : zero) * vT;
-            gfv[ch] += va * vT * Dr;
-            Sr = va * f + (T(1) - va) * Sr;
+            const V diff = fk[ch] - Sr;
+            dsum += Dr * diff;
+            gfv[ch] += wgt * Dr;
+            Sr += va * diff;
           }
           // No gradient through the 0.99 clamp (as torch.clamp).
-          const V dp = (valid & (oG <= T(ALPHA_MAX))) ? oG * dla : zero;
-          gop += Gv * ((valid & (oG <= T(ALPHA_MAX))) ? dla : zero);
+          const V dla = (valid & (oG <= T(ALPHA_MAX))) ? dsum * Tv[r] : zero;
+          const V dp = oG * dla;
+          gop += Gv * dla;
           gmx -= dp * (a * dx + b * dy);
           gmy -= dp * (c * dy + bdx);
           ga -= T(0.5) * dp * dx * dx;
