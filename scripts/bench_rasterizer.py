@@ -6,7 +6,11 @@ runs in its own subprocess so that its peak memory (``ru_maxrss``, whole
 process: python + torch + the scene) is its own. Quaternions, scales (from the
 mean distance to the 3 nearest neighbours, times a log-normal factor) and
 opacities are drawn with a fixed seed. Times are medians over repeats, after
-one warm-up call (which also compiles the C++ path on first use).
+one warm-up call (which also compiles the C++ path on first use); the process
+CPU time of the same calls (all threads) is printed too, since wall times on a
+shared machine depend on the other jobs. Workers wait passively at OpenMP
+barriers (``OMP_WAIT_POLICY=PASSIVE`` unless set): spinning threads slow a
+contended machine down several times.
 
     python scripts/bench_rasterizer.py                 # 256 and 512, 1 and 2 threads
     python scripts/bench_rasterizer.py --sizes 512 --threads 2 --repeats 5
@@ -71,13 +75,15 @@ def worker(backend: str, size: int, threads: int, repeats: int) -> dict:
 
     meta = fwd_bwd()  # warm-up (and compile)
     out = {"backend": backend, "size": size, "threads": threads, "visible": int(meta["visible"].sum())}
-    for name, fn in (("fwd_s", fwd), ("fwd_bwd_s", fwd_bwd)):
-        times = []
+    for name, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
+        times, cpu = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
             times.append(time.perf_counter() - t0)
-        out[name] = statistics.median(times)
+            cpu.append(time.process_time() - c0)
+        out[f"{name}_s"] = statistics.median(times)
+        out[f"{name}_cpu_s"] = statistics.median(cpu)
     out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
 
@@ -96,12 +102,14 @@ def main() -> int:
         return 0
 
     rows = []
-    print(f"{'backend':>9} {'size':>5} {'thr':>3} {'fwd s':>8} {'fwd+bwd s':>10} {'peak MiB':>9}", flush=True)
+    print(f"{'backend':>9} {'size':>5} {'thr':>3} {'fwd s':>8} {'fwd+bwd s':>10} {'fwd cpu s':>10} "
+          f"{'f+b cpu s':>10} {'peak MiB':>9}", flush=True)
     for size in args.sizes:
         for threads in args.threads:
             for backend in args.backends:
                 reps = args.repeats if backend == "fast" else 1
                 env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+                env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
                 res = subprocess.run(
                     [sys.executable, __file__, "--worker", backend, str(size), str(threads), str(reps)],
                     capture_output=True, text=True, env=env, cwd=REPO,
@@ -112,7 +120,7 @@ def main() -> int:
                 r = json.loads(res.stdout.strip().splitlines()[-1])
                 rows.append(r)
                 print(f"{backend:>9} {size:>5} {threads:>3} {r['fwd_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} "
-                      f"{r['peak_rss_mib']:>9.0f}", flush=True)
+                      f"{r['fwd_cpu_s']:>10.3f} {r['fwd_bwd_cpu_s']:>10.3f} {r['peak_rss_mib']:>9.0f}", flush=True)
     by = {(r["backend"], r["size"], r["threads"]): r for r in rows}
     for size in args.sizes:
         for threads in args.threads:
