@@ -9,6 +9,8 @@ import torch
 
 from dibrgs_core.render import rasterize
 
+pytestmark = pytest.mark.stability
+
 BACKENDS = ["reference", "fast"]
 W, H = 40, 30
 
@@ -55,8 +57,7 @@ def centre(alpha):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_tiny_and_huge_scales(backend):
-    # A 1e-8 Gaussian is the 0.3 px^2 dilation kernel: centred on a pixel centre it gives alpha = opacity there.
-    # (mean at pixel (20, 15)'s centre: x/z = 0.5/30, y/z = 0.5/30)
+    """A 1e-8 Gaussian is the 0.3 px^2 dilation kernel: centred on a pixel centre it gives alpha = opacity there. (mean at pixel (20, 15)'s centre: x/z = 0.5/30, y/z = 0.5/30)"""
     z = 5.0
     p = gaussians([[0.5 / 30 * z, 0.5 / 30 * z, z]], 1e-8, opac=[0.7])
     _, alpha, depth, meta, _ = render(p, backend)
@@ -71,6 +72,7 @@ def test_tiny_and_huge_scales(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_near_plane(backend):
+    """Gaussians exactly on, just in front of and behind the near plane: those on or behind are culled with zero gradients; the one just in front renders with the expected alpha and depth."""
     near = 0.5
     on = gaussians([[0.0, 0.0, near]], 0.1)
     behind = gaussians([[0.0, 0.0, near - 1e-4], [0.0, 0.0, -2.0]], 0.1)
@@ -90,7 +92,7 @@ def test_near_plane(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_far_away_aerial_depths(backend):
-    # Depth 1e4 with a ground-sized Gaussian, seen by a long-focal camera.
+    """Depth 1e4 with a ground-sized Gaussian, seen by a long-focal camera."""
     z = 1e4
     K = torch.tensor([[5000.0, 0, W / 2], [0, 5000.0, H / 2], [0, 0, 1]])
     _, alpha, depth, _, grads = render(gaussians([[0.0, 0.0, z]], 20.0, opac=[0.9]), backend, K=K)
@@ -106,8 +108,7 @@ def test_far_away_aerial_depths(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_grazing_angle(backend):
-    # A flat disc (normal along x) seen edge-on: its projected covariance is rank one
-    # before the dilation, so across the line the profile is the 0.3 px^2 kernel alone.
+    """A flat disc (normal along x) seen edge-on: its projected covariance is rank one before the dilation, so across the line the profile is the 0.3 px^2 kernel alone."""
     for thin in (1e-7, 0.0):
         p = gaussians([[0.0, 0.0, 4.0]], torch.tensor([[thin, 1.0, 1.0]]))
         _, alpha, _, meta, _ = render(p, backend)
@@ -122,6 +123,7 @@ def test_grazing_angle(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_zero_and_denormal_quaternions_are_identity(backend):
+    """Zero and denormal quaternions: read as the identity rotation, same image as the identity quaternion, finite gradients."""
     base = gaussians([[0.1, -0.2, 4.0]], torch.tensor([[0.3, 0.05, 0.1]]))
     ref_img = render(base, backend)[0]
     for q in ([0.0, 0.0, 0.0, 0.0], [1e-40, 0.0, 0.0, 0.0], [1e-41, 1e-42, 0.0, 0.0]):
@@ -133,6 +135,7 @@ def test_zero_and_denormal_quaternions_are_identity(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_opacity_zero_and_one(backend):
+    """Opacity 0 renders exactly the background with zero alpha and depth; opacity 1 is clamped to alpha 0.99; gradients finite."""
     bg = torch.tensor([0.25, 0.5, 0.75])
     p = gaussians([[0.5 / 30 * 4, 0.5 / 30 * 4, 4.0]], 0.2, opac=[0.0])
     img, alpha, depth, _, _ = render(p, backend, bg=bg)
@@ -146,6 +149,7 @@ def test_opacity_zero_and_one(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_million_tiny_gaussians(backend):
+    """One million tiny Gaussians (~1300 per pixel): all visible, the image saturates (alpha > 0.99), finite gradients."""
     n = 1_000_000
     g = torch.Generator().manual_seed(0)
     # Spread over the view of a 32x24 camera with f = 30: ~1300 per pixel.
@@ -161,6 +165,7 @@ def test_million_tiny_gaussians(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_empty_scene_and_one_pixel(backend):
+    """An empty scene (background only, zero alpha) and a 1x1 image: finite outputs and gradients."""
     bg = torch.tensor([0.1, 0.2, 0.3])
     empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
     img, alpha, depth, meta, _ = render(empty, backend, bg=bg)
@@ -178,6 +183,7 @@ def test_empty_scene_and_one_pixel(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_non_square_off_centre_camera(backend):
+    """Non-square 53x21 image with an off-centre principal point: screen-space means equal K applied to the camera-frame means."""
     Wn, Hn = 53, 21
     K = torch.tensor([[25.0, 0, 40.2], [0, 31.0, 3.7], [0, 0, 1]])
     g = torch.Generator().manual_seed(3)
@@ -192,7 +198,7 @@ def test_non_square_off_centre_camera(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_camera_inside_a_gaussian(backend):
-    # Centre just in front of the camera, 100 m wide: the camera sits inside it.
+    """Centre just in front of the camera, 100 m wide: the camera sits inside it."""
     p = gaussians([[0.0, 0.0, 0.2], [0.0, 0.0, 3.0]], torch.tensor([[100.0, 100.0, 100.0], [0.5, 0.5, 0.5]]), opac=[0.5, 0.9])
     _, alpha, depth, meta, grads = render(p, backend)
     assert meta["visible"].all()
@@ -202,6 +208,7 @@ def test_camera_inside_a_gaussian(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_deterministic(backend):
+    """The same inputs give bit-identical images twice."""
     g = torch.Generator().manual_seed(4)
     n = 1000
     means = torch.randn(n, 3, generator=g) + torch.tensor([0.0, 0.0, 6.0])
