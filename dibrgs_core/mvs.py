@@ -40,10 +40,23 @@ class MvsConfig:
             view estimated at its reprojection.
         min_consistent_views: how many other views must agree (0 disables
             the check).
+        max_reproj_px: forward-backward reprojection error (pixels of the
+            swept resolution) allowed by the consistency check.
         max_size: views whose longer side exceeds this are swept at a
             reduced resolution (speed on CPU) and the depth is upsampled
             (nearest) to the full size; 0 = always full size.
         plane_chunk: planes evaluated per batch (memory / speed trade-off).
+        planes: ``height`` (horizontal planes in the up frame the cameras give),
+            ``fronto`` (fronto-parallel) or ``auto`` (height planes for
+            near-nadir cameras, see :func:`sweep_up`).
+        prefilter: 3x3 box blur of the images before matching (anti-aliasing;
+            wide baselines see fine ground texture at very different scales).
+        height_below, height_above: height planes span from ``height_below``
+            below to ``height_above`` above the ground (the cameras' look-at
+            point), in units of the flying height above it (0 = the range the
+            cameras' depth ranges allow).
+        max_nadir_deg: ``auto`` uses height planes when the mean view
+            direction is within this angle of straight down.
     """
 
     num_depths: int = 96
@@ -54,7 +67,13 @@ class MvsConfig:
     plane_chunk: int = 8
     consistency_tol: float = 0.02
     min_consistent_views: int = 1
+    max_reproj_px: float = 1.0
     max_size: int = 256
+    planes: str = "auto"
+    height_below: float = 0.1
+    height_above: float = 0.6
+    prefilter: bool = True
+    max_nadir_deg: float = 60.0
 
 
 @dataclass
@@ -75,6 +94,13 @@ def _gray(img: np.ndarray):
     return torch.from_numpy(np.nan_to_num(g, nan=0.0).copy())[None, None]
 
 
+def _blur(x):
+    """3x3 box prefilter: suppresses texture finer than a pixel that aliases differently in each view."""
+    import torch.nn.functional as F
+
+    return F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+
+
 def _box(x, w: int):
     import torch.nn.functional as F
 
@@ -82,8 +108,16 @@ def _box(x, w: int):
 
 
 def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera, np.ndarray]], near: float, far: float,
-                config: MvsConfig | None = None) -> MvsResult:
-    """Depth of ``ref`` by plane sweeping against ``sources`` between ``near`` and ``far`` (world units)."""
+                config: MvsConfig | None = None, up: np.ndarray | None = None,
+                height_range: tuple[float, float] | None = None) -> MvsResult:
+    """Depth of ``ref`` by plane sweeping against ``sources`` between ``near`` and ``far`` (world units).
+
+    With ``up`` (a world unit vector) the planes are horizontal, ``up . X = h``
+    for heights ``h`` spaced uniformly over ``height_range`` (default: every
+    height a pixel ray reaches between ``near`` and ``far``); a pixel whose
+    plane intersection falls outside ``[near, far]`` gets no cost there.
+    Without ``up`` the planes are fronto-parallel, uniform in inverse depth.
+    """
     import torch
     import torch.nn.functional as F
 
@@ -96,7 +130,9 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         nan = np.full((H, W), np.nan, np.float32)
         return MvsResult(nan, np.zeros((H, W), np.float32), np.zeros((H, W), np.float32))
     with torch.no_grad():
-        r = _gray(ref_img).double().float()
+        r = _gray(ref_img)
+        if cfg.prefilter:
+            r = _blur(r)
         mu_r = _box(r, w)
         var_r = (_box(r * r, w) - mu_r ** 2).clamp_min(0)
         sd_r = var_r.sqrt()
@@ -105,28 +141,47 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
                               indexing="ij")
         pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(-1, 3)
         rays = pix @ torch.from_numpy(np.linalg.inv(ref.K)).T
-        inv = torch.linspace(1.0 / near, 1.0 / far, cfg.num_depths, dtype=torch.float64)
-        depths = 1.0 / inv
+        if up is None:
+            params = torch.linspace(1.0 / near, 1.0 / far, cfg.num_depths, dtype=torch.float64)
+
+            def depth_of(p: "torch.Tensor") -> "torch.Tensor":  # (n,) inverse depths -> (n, HW) depths
+                return (1.0 / p)[:, None].expand(-1, H * W)
+        else:
+            n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
+            slope = rays @ torch.from_numpy(ref.R @ n_up)  # d(height)/d(z) along each ray
+            h0 = float(n_up @ ref.center)
+            if height_range is None:
+                hs = torch.cat([h0 + near * slope, h0 + far * slope])
+                height_range = (float(hs.min()), float(hs.max()))
+            params = torch.linspace(height_range[1], height_range[0], cfg.num_depths, dtype=torch.float64)
+            safe = torch.where(slope.abs() > 1e-9, slope, torch.full_like(slope, 1e-9))
+
+            def depth_of(p: "torch.Tensor") -> "torch.Tensor":  # (n,) heights -> (n, HW) depths
+                z = (p[:, None] - h0) / safe[None]
+                return torch.where((z >= near) & (z <= far), z, torch.full_like(z, float("nan")))
         src_data = []
         for cam, img in sources:
             R_rel = cam.R @ ref.R.T
             t_rel = cam.t - R_rel @ ref.t
             A = (rays @ torch.from_numpy(cam.K @ R_rel).T).float()  # (HW,3): direction part
             B = torch.from_numpy(cam.K @ t_rel).float()  # (3,)
-            src_data.append((A, B, _gray(img), cam.width, cam.height))
+            g = _gray(img)
+            src_data.append((A, B, _blur(g) if cfg.prefilter else g, cam.width, cam.height))
         n_keep = max(1, math.ceil(len(sources) / 2))
         cost = torch.empty(cfg.num_depths, H, W)
         for k0 in range(0, cfg.num_depths, cfg.plane_chunk):
-            ds = depths[k0:k0 + cfg.plane_chunk].float()
+            ds = depth_of(params[k0:k0 + cfg.plane_chunk]).float()  # (n, HW), NaN = plane out of range
             n = len(ds)
+            in_range = torch.isfinite(ds)
+            ds = torch.nan_to_num(ds, nan=1.0)
             per_src = []
             for A, B, s, sw, sh in src_data:
-                p = ds[:, None, None] * A[None] + B[None, None]  # (n, HW, 3)
+                p = ds[:, :, None] * A[None] + B[None, None]  # (n, HW, 3)
                 z = p[..., 2]
                 zs = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
                 gx = (p[..., 0] / zs) / sw * 2 - 1
                 gy = (p[..., 1] / zs) / sh * 2 - 1
-                inside = (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1)
+                inside = in_range & (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1)
                 grid = torch.stack([gx, gy], -1).reshape(n, H, W, 2)
                 grid = torch.nan_to_num(grid, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2)
                 warped = F.grid_sample(s.expand(n, 1, -1, -1), grid, mode="bilinear", padding_mode="border",
@@ -145,17 +200,21 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
             agg = torch.where(finite, best, torch.zeros_like(best)).sum(0) / cnt.clamp_min(1)
             cost[k0:k0 + n] = torch.where(cnt > 0, agg, torch.full_like(agg, 2.0))
         c1, k1 = cost.min(0)
-        # Sub-plane refinement: parabola through the neighbouring costs in inverse depth.
+        # Sub-plane refinement: parabola through the neighbouring costs in the plane parameter.
         km = (k1 - 1).clamp(0, cfg.num_depths - 1)
         kp = (k1 + 1).clamp(0, cfg.num_depths - 1)
         cm = cost.gather(0, km[None])[0]
         cp = cost.gather(0, kp[None])[0]
         denom = cm - 2 * c1 + cp
         off = torch.where(denom > 1e-6, 0.5 * (cm - cp) / denom.clamp_min(1e-6), torch.zeros_like(denom))
-        off = torch.where((k1 > 0) & (k1 < cfg.num_depths - 1), off.clamp(-0.5, 0.5), torch.zeros_like(off))
-        step = (inv[1] - inv[0]).item() if cfg.num_depths > 1 else 0.0
-        inv_best = inv[k1].float() + off * step
-        depth = 1.0 / inv_best.clamp_min(1.0 / (far * 4))
+        off = torch.where((k1 > 0) & (k1 < cfg.num_depths - 1) & (cm < 2) & (cp < 2), off.clamp(-0.5, 0.5),
+                          torch.zeros_like(off))
+        step = (params[1] - params[0]).item() if cfg.num_depths > 1 else 0.0
+        best_param = params[k1.reshape(-1)] + off.reshape(-1).double() * step
+        if up is None:
+            depth = (1.0 / best_param.clamp_min(1.0 / (far * 4))).reshape(H, W).float()
+        else:
+            depth = ((best_param - h0) / safe).reshape(H, W).float()
         # Confidence: the best minimum against the lowest cost two planes or more away.
         idx = torch.arange(cfg.num_depths)[:, None, None]
         away = (idx - k1[None]).abs() >= 2
@@ -163,7 +222,7 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         conf = ((c2 - c1) / c2.clamp_min(1e-6)).clamp(0, 1)
         ncc_best = 1 - c1
         valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture)
-        valid &= torch.isfinite(depth) & (c1 < 2)
+        valid &= torch.isfinite(depth) & (c1 < 2) & (depth >= near * 0.99) & (depth <= far * 1.01)
         depth = torch.where(valid, depth, torch.full_like(depth, float("nan")))
         conf = torch.where(valid, conf, torch.zeros_like(conf))
     return MvsResult(depth.numpy().astype(np.float32), conf.numpy().astype(np.float32),
@@ -212,19 +271,69 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     pts = None
     if sparse_points is not None and len(sparse_points):
         pts = np.asarray(sparse_points, np.float64) - np.mean([c.center for c in cameras], axis=0)
+    up = sweep_up(cams, cfg)
+    ranges = [depth_range_for(c, pts, fallback_distance) for c in cams]
+    heights = None
+    if up is not None and cfg.height_above > 0:
+        heights = _scene_heights(cams, up, cfg)
     out = []
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
-        near, far = depth_range_for(cams[i], pts, fallback_distance)
+        near, far = ranges[i]
         srcs = [(cams[j], images[j]) for j in range(len(cams)) if j != i]
-        res = plane_sweep(cams[i], images[i], srcs, near, far, cfg)
-        log.info("MVS view %s: range [%.3g, %.3g], %.1f%% valid", cams[i].name, near, far,
-                 100.0 * np.isfinite(res.depth).mean())
+        res = plane_sweep(cams[i], images[i], srcs, near, far, cfg, up=up, height_range=heights)
+        log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid", cams[i].name, near, far,
+                 "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean())
         out.append(res)
     if cfg.min_consistent_views > 0 and len(cams) > 1:
-        out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views)
+        out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px)
     if f < 1.0:
         out = [MvsResult(*(_upsample(a, c) for a in (r.depth, r.confidence, r.ncc))) for r, c in zip(out, full)]
     return out
+
+
+def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig) -> tuple[float, float] | None:
+    """Heights to sweep: from ``height_below`` to ``height_above`` times the flying height above the
+    point the cameras look at (taken as ground level).
+
+    The cameras' depth ranges allow every height from far below the ground up
+    to the cameras; sweeping all of it spreads the planes thin and, on
+    repetitive texture (street grids), finds spurious matches far from the
+    scene. None (full range) when the look-at point is undefined or not below the cameras.
+    """
+    from .cameras import look_at_target
+
+    n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    target = look_at_target(cams)
+    if not np.all(np.isfinite(target)):
+        return None
+    ground = float(n_up @ target)
+    alt = float(np.median([n_up @ c.center for c in cams])) - ground
+    if not alt > 0:
+        return None
+    return ground - cfg.height_below * alt, ground + cfg.height_above * alt
+
+
+def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:
+    """The up axis for horizontal (height) planes, or None for fronto-parallel planes.
+
+    ``planes="auto"`` sweeps heights when the cameras look down (mean view
+    direction within ``max_nadir_deg`` of the up axis estimated from them, with
+    an unambiguous up): ground and roofs are then planes of the sweep, so the
+    NCC windows match exactly even across wide baselines, where a fronto-parallel
+    plane cuts the tilted ground at one depth only.
+    """
+    from .cameras import estimate_up, nadir_angle_deg
+
+    if config.planes == "fronto":
+        return None
+    up, conf = estimate_up(cams)
+    if config.planes == "height":
+        return up
+    if config.planes != "auto":
+        raise ValueError(f"unknown MVS plane family {config.planes!r} (auto, height, fronto)")
+    if conf < 0.5 or nadir_angle_deg(cams, up) > config.max_nadir_deg:
+        return None
+    return up
 
 
 def _resize(img: np.ndarray, cam: Camera) -> np.ndarray:
@@ -244,14 +353,29 @@ def _upsample(a: np.ndarray, cam: Camera) -> np.ndarray:
     return a[rows][:, cols]
 
 
-def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int) -> list[MvsResult]:
-    """Keep depths that at least ``min_views`` other views confirm (relative error < ``tol``)."""
+def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int,
+                        max_reproj_px: float = 1.0) -> list[MvsResult]:
+    """Keep depths that at least ``min_views`` other views confirm (forward-backward check).
+
+    A pixel's 3D point is projected into view j, lifted again with j's own
+    depth there and projected back: j confirms it when that round trip lands
+    within ``max_reproj_px`` pixels of where it started and the two depths
+    agree within the relative tolerance ``tol``. Comparing depths alone lets
+    chance agreements between two wrong depth maps through (depth differences
+    along j's ray are insensitive to sideways errors). A point that lies in
+    front of the surface some other view sees along the same line of sight
+    (a free-space violation) is dropped as well: two views matching each other
+    on repetitive texture agree with each other, but such a floating point
+    contradicts the third.
+    """
     filtered = []
     for i, (ci, ri) in enumerate(zip(cams, results)):
         d = ri.depth.reshape(-1)
         ok = np.isfinite(d)
         X = ci.backproject(np.where(ok, d, 1.0).reshape(ci.height, ci.width))
+        uv0, _ = ci.project(X)
         votes = np.zeros(d.size, np.int32)
+        blocks = np.zeros(d.size, bool)
         for j, (cj, rj) in enumerate(zip(cams, results)):
             if j == i:
                 continue
@@ -259,11 +383,22 @@ def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: f
             u = np.floor(uv[:, 0]).astype(np.int64)
             v = np.floor(uv[:, 1]).astype(np.int64)
             inside = ok & (z > 0) & (u >= 0) & (u < cj.width) & (v >= 0) & (v < cj.height)
-            dj = np.full(d.size, np.nan)
-            dj[inside] = rj.depth[v[inside], u[inside]]
-            with np.errstate(invalid="ignore"):
-                votes += (np.abs(dj - z) <= tol * np.abs(z)).astype(np.int32)
-        keep = (ok & (votes >= min_views)).reshape(ci.height, ci.width)
+            idx = np.flatnonzero(inside)
+            dj = rj.depth[v[idx], u[idx]].astype(np.float64)
+            good = np.isfinite(dj)
+            idx, dj = idx[good], dj[good]
+            # Free-space violation: the point would float in front of the surface j sees there.
+            blocks[idx[z[idx] < dj * (1.0 - 2.0 * tol)]] = True
+            if not len(idx):
+                continue
+            # Lift j's depth at the pixel (sub-pixel position kept) and project it back into i.
+            rays = np.stack([uv[idx, 0], uv[idx, 1], np.ones(len(idx))], 1) @ np.linalg.inv(cj.K).T
+            Xj = (rays * dj[:, None] - cj.t) @ cj.R  # camera j -> world
+            uvb, zb = ci.project(Xj)
+            err = np.linalg.norm(uvb - uv0[idx], axis=1)
+            agree = (err <= max_reproj_px) & (np.abs(zb - d[idx]) <= tol * np.abs(d[idx]))
+            votes[idx[agree]] += 1
+        keep = (ok & (votes >= min_views) & ~blocks).reshape(ci.height, ci.width)
         filtered.append(MvsResult(np.where(keep, ri.depth, np.nan).astype(np.float32),
                                   np.where(keep, ri.confidence, 0).astype(np.float32), ri.ncc))
         log.info("MVS view %s: %.1f%% pass the %d-view consistency check", ci.name, 100.0 * keep.mean(), min_views)
