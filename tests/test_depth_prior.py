@@ -146,3 +146,32 @@ def test_mvs_reduced_resolution_path(scene128):
         ok = np.isfinite(r.depth)
         assert ok.mean() > 0.3
         assert np.median(np.abs(r.depth[ok] - v.depth[ok]) / v.depth[ok]) < 0.01
+
+
+def test_consistency_drops_floating_and_keeps_confirmed_depths(scene128):
+    """The cross-view check keeps ground-truth depths that another view confirms and drops a depth
+    map that floats 10% in front of the surfaces (each pair of such maps agrees with nothing)."""
+    from dibrgs_core.mvs import MvsResult, _consistency_filter
+
+    vs = scene128.train_views()
+    cams = [v.camera for v in vs]
+    z = np.zeros_like(vs[0].depth)
+    true = [MvsResult(v.depth.astype(np.float32), z + 1, z + 1) for v in vs]
+    out = _consistency_filter(cams, true, 0.02, 1)
+    assert all(np.isfinite(r.depth).mean() > 0.3 for r in out)
+    floating = [MvsResult((0.9 * vs[0].depth).astype(np.float32), z + 1, z + 1)] + true[1:]
+    out = _consistency_filter(cams, floating, 0.02, 1)
+    assert np.isfinite(out[0].depth).mean() < 0.01
+    assert np.isfinite(out[1].depth).mean() > 0.2
+
+
+def test_height_planes_chosen_for_nadir_views(scene128):
+    """``planes="auto"`` sweeps horizontal planes for these downward-looking cameras, ``fronto`` does not."""
+    from dibrgs_core.mvs import sweep_up
+
+    cams = [v.camera for v in scene128.train_views()]
+    up = sweep_up(cams, MvsConfig())
+    assert up is not None and abs(np.linalg.norm(up) - 1) < 1e-9
+    assert sweep_up(cams, MvsConfig(planes="fronto")) is None
+    with pytest.raises(ValueError):
+        sweep_up(cams, MvsConfig(planes="diagonal"))
