@@ -62,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         pargs += ["-k", args.k]
     t0 = time.perf_counter()
     rc = pytest.main(pargs, plugins=[col])
-    rows = sorted(col.rows.values(), key=lambda r: (r["area"], r["case"]))
+    # Items deselected by -m/-k were collected but never reported: leave them out.
+    rows = sorted((r for r in col.rows.values() if r["result"] != "not run"),
+                  key=lambda r: (r["area"], r["case"]))
     failed = [r for r in rows if r["result"] == "FAILED"]
     if rc not in (0,) or failed or not rows:
         print(f"stability report: {len(failed)} failing case(s), pytest exit {rc}; {args.out} not updated",

@@ -10,15 +10,6 @@ import pytest
 from dibrgs_core import benchmark as bm
 
 
-def _flaky_job(spec, work_root, lpips=None):
-    """run_one, but the first attempt of each run kills its own worker process."""
-    marker = Path(work_root) / f"attempted_{spec.key}"
-    if not marker.exists():
-        marker.write_text("1")
-        os._exit(1)  # a dying worker, not an exception
-    return bm.run_one(spec, work_root, lpips)
-
-
 def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene):
     ray = pytest.importorskip("ray", reason="ray is an optional extra: pip install -e '.[ray]'")
     work = tmp_path / "bench"
@@ -26,10 +17,21 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     scene_dir = work / "scenes" / "city64_s0"
     scene_dir.parent.mkdir(parents=True)
     os.symlink(tiny_scene, scene_dir)
+
+    def flaky_job(spec, work_root, lpips=None):
+        """run_one, but the first attempt of each run kills its own worker process.
+
+        Defined here so Ray pickles it by value: workers cannot import test modules."""
+        marker = Path(work_root) / f"attempted_{spec.key}"
+        if not marker.exists():
+            marker.write_text("1")
+            os._exit(1)  # a dying worker, not an exception
+        return bm.run_one(spec, work_root, lpips)
+
     suite = bm.make_suite("tiny", preset="test", iterations=60)
     results = work / "results"
     try:
-        bm.run_ray(bm.pending(suite, results), work, results, "local", num_cpus=1, job=_flaky_job)
+        bm.run_ray(bm.pending(suite, results), work, results, "local", num_cpus=1, job=flaky_job)
     finally:
         ray.shutdown()
     assert bm.pending(suite, results) == []  # both runs finished despite the killed workers
