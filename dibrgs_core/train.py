@@ -99,7 +99,7 @@ class CamT:
 
 @dataclass
 class Frame:
-    """A supervised view: camera, target image (H,W,3) and optional valid mask (H,W)."""
+    """A supervised view: camera, target image (H,W,3) and optional per-pixel loss weight (H,W) in [0,1]."""
 
     cam: CamT
     image: torch.Tensor
@@ -564,15 +564,15 @@ class Trainer:
                                  self.work / "pseudo", path=path)
         empty = 0
         for pv in pvs:
-            valid = np.asarray(pv.valid, bool)
+            weight = np.asarray(pv.valid, np.float32)
             if getattr(pv, "padded", None) is not None:
-                valid = valid | np.asarray(pv.padded, bool)
-            if not valid.any():
+                weight = np.maximum(weight, cfg.pseudo.padded_weight * np.asarray(pv.padded, np.float32))
+            if not (weight > 0).any():
                 empty += 1
                 continue
             self.pseudo_frames.append(Frame(CamT.of(pv.camera), torch.from_numpy(
                 np.ascontiguousarray(np.clip(pv.image[..., :3], 0, 1), dtype=np.float32)),
-                torch.from_numpy(valid)))
+                torch.from_numpy(weight)))
         self.report.decide("train", "pseudo_views", bool(self.pseudo_frames),
                            f"{len(self.pseudo_frames)} progressive-DIBR pseudo views"
                            + (f" ({empty} without any filled pixel left out)" if empty else "")

@@ -183,6 +183,23 @@ def test_pseudo_view_without_valid_pixels_is_left_out(synth, synth_init, tmp_pat
     _assert_finite(work)
 
 
+def test_padded_pseudo_pixels_get_their_loss_weight(synth, synth_init, tmp_path):
+    """Pseudo-view pixels filled by padding are weighted by ``pseudo.padded_weight`` in the loss
+    mask, warped pixels by 1, holes by 0 (0 masks padding out entirely)."""
+    masks = {}
+    for w in (1.0, 0.25, 0.0):
+        cfg = _cfg(20)
+        cfg.pseudo.padded_weight = w
+        tr = Trainer(synth, _with_caches(synth_init, tmp_path / f"w{w}"), cfg)
+        tr._setup()
+        masks[w] = torch.stack([f.mask for f in tr.pseudo_frames])
+    padded = (masks[1.0] == 1) & (masks[0.0] == 0)
+    assert padded.any() and (masks[0.0] == 1).any()
+    assert torch.equal(masks[0.25][padded], torch.full((int(padded.sum()),), 0.25))
+    assert torch.equal(masks[0.25][~padded], masks[1.0][~padded])
+    assert set(masks[0.25].unique().tolist()) <= {0.0, 0.25, 1.0}
+
+
 @pytest.mark.stability
 def test_all_anchors_pruned_stops_with_a_clear_message(synth, synth_init, tmp_path):
     """An impossible opacity floor prunes every anchor: training stops with a message saying so
