@@ -245,6 +245,7 @@ def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     scenes = sorted({r["row"]["scene"] for r in res})
     n = max(1, len(scenes))
@@ -255,6 +256,7 @@ def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
             if c:
                 ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], marker=".", label=r["row"]["method"])
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
         ax.set_title(scene)
         ax.set_xlabel("training wall-clock (s)")
         ax.set_ylabel("held-out PSNR (dB)")
@@ -328,7 +330,8 @@ def machine_description() -> str:
     import torch
 
     return (f"{os.cpu_count()} CPU cores ({model}), {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+            f"Python {platform.python_version()}, torch {torch.__version__}; each run is a `dibrgs train` "
+            f"child process with its default of 1 torch thread")
 
 
 def update_benchmarks_md(md_path: Path, suite: str, command: str, body: str, figure_rel: str) -> None:
