@@ -25,6 +25,7 @@ import numpy as np
 
 from .cameras import Camera
 from .errors import InputError
+from .io_levir import to_uint8
 
 log = logging.getLogger("dibrgs.depth_prior")
 
@@ -65,7 +66,7 @@ def predict_disparity(model: Any, processor: Any, image: np.ndarray) -> np.ndarr
     import torch.nn.functional as F
 
     H, W = image.shape[:2]
-    img8 = (np.clip(np.nan_to_num(image[..., :3]), 0, 1) * 255).round().astype(np.uint8)
+    img8 = to_uint8(image[..., :3])
     inputs = processor(images=img8, return_tensors="pt")
     with torch.no_grad():
         out = model(**inputs).predicted_depth  # (1, h, w)

@@ -26,6 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from .cameras import Camera
+from .io_levir import to_uint8
 
 log = logging.getLogger("dibrgs.fusion")
 
@@ -50,7 +51,7 @@ def backproject_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray], i
         if not ok.any():
             continue
         X = cam.backproject(np.where(ok, d, 0).reshape(cam.height, cam.width))[ok]
-        col = (np.clip(np.nan_to_num(np.asarray(im, np.float64)[..., :3]), 0, 1) * 255).round().astype(np.uint8)
+        col = to_uint8(np.asarray(im)[..., :3])
         P.append(X)
         C.append(col.reshape(-1, 3)[ok])
         V.append(np.full(ok.sum(), i, np.int32))

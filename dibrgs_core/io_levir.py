@@ -312,13 +312,18 @@ def read_image(path: str | Path) -> np.ndarray:
         raise InputError(path, f"unreadable or truncated image ({e})") from None
 
 
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Float image in [0, 1] -> uint8, rounded; NaN becomes 0 and values outside [0, 1] are clipped."""
+    return np.round(np.clip(np.nan_to_num(np.asarray(image, dtype=np.float64)), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """Write an 8-bit PNG from uint8 (H,W,3) or float in [0, 1] (rounded)."""
     from PIL import Image
 
     a = np.asarray(image)
     if a.dtype != np.uint8:
-        a = np.round(np.clip(np.nan_to_num(a.astype(np.float64)), 0.0, 1.0) * 255.0).astype(np.uint8)
+        a = to_uint8(a)
     with atomic_path(path) as tmp:
         Image.fromarray(a).save(tmp, format="PNG")
 

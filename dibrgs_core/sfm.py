@@ -18,6 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from .cameras import Camera
+from .io_levir import to_uint8
 
 log = logging.getLogger("dibrgs.sfm")
 
@@ -66,10 +67,6 @@ class SfmConfig:
     num_threads: int = 2
 
 
-def _to_uint8(img: np.ndarray) -> np.ndarray:
-    return (np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0) * 255.0).round().astype(np.uint8)
-
-
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
                             config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
     """Sparse points from images with known cameras.
@@ -111,7 +108,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         for i, (cam, img) in enumerate(zip(cams, images)):
             name = f"{i:04d}.png"
             names.append(name)
-            Image.fromarray(_to_uint8(img)).save(img_dir / name)
+            Image.fromarray(to_uint8(img)).save(img_dir / name)
             # One PINHOLE camera per image with the known intrinsics.
             ro = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
                                              camera_params=f"{cam.fx!r},{cam.fy!r},{cam.cx!r},{cam.cy!r}")
