@@ -16,7 +16,6 @@ import json
 import logging
 import os
 import platform
-import resource
 import subprocess
 import sys
 import time
@@ -58,10 +57,11 @@ class RunSpec:
     seed: int = 0
     preset: str = "cpu"
     iterations: int | None = None
+    orbit: str = "levir"  # scenegen.ORBITS key
 
     @property
     def scene(self) -> str:
-        return f"{self.kind}{self.resolution}"
+        return f"{self.kind}{self.resolution}" + ("" if self.orbit == "levir" else f"-{self.orbit}")
 
     @property
     def key(self) -> str:
@@ -112,7 +112,7 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
     shared file system.
     """
     work_root = Path(work_root)
-    scene_dir = work_root / "scenes" / f"{spec.scene}_s{spec.seed}"
+    scene_dir = work_root / "scenes" / f"{spec.kind}{spec.resolution}_{spec.orbit}_s{spec.seed}"
     work = work_root / "runs" / spec.key
     work.mkdir(parents=True, exist_ok=True)
     logf = work / "benchmark.log"
@@ -122,7 +122,7 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
         # Another local worker may render the same scene: build in a private
         # folder and rename, first one wins.
         tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
-        make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp)
+        make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp, orbit=spec.orbit)
         try:
             os.replace(tmp, scene_dir)
         except OSError:
@@ -141,8 +141,6 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
     metrics = json.loads((work / "metrics.json").read_text())
     curve = read_curve(work / "curve.csv")
     peak = metrics.get("peak_memory_mib")
-    if peak is None:  # children's peak RSS, in KiB on Linux
-        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     row = {"scene": spec.scene, "method": spec.method, "psnr": metrics.get("psnr"),
            "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"), "avge": metrics.get("avge"),
            "fps": metrics.get("fps"), "train_seconds": metrics.get("train_seconds",
@@ -177,15 +175,36 @@ def pending(suite: Suite, results: Path) -> list[RunSpec]:
 
 
 def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: str | None = None,
-              progress: Callable[[str], None] = print) -> None:
+              progress: Callable[[str], None] = print, jobs: int = 1,
+              job: Callable[..., dict[str, Any]] = run_one) -> None:
+    """Run the jobs on this machine, ``jobs`` at a time (each is a child process with its own
+    torch threads, so ``jobs`` x threads should not exceed the cores). Results are saved as
+    each run finishes; a failed run is reported after the others have finished. ``job`` is
+    the function each run calls (``run_one``; tests pass a variant)."""
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+
     specs = list(specs)
-    for i, spec in enumerate(specs, 1):
-        progress(f"[{i}/{len(specs)}] {spec.key}")
+
+    def one(spec: RunSpec) -> tuple[RunSpec, dict[str, Any], float]:
+        progress(f"start {spec.key}")
         t0 = time.perf_counter()
-        res = run_one(spec, work_root, lpips)
+        res = job(spec, work_root, lpips)
         write_json(_result_path(results, spec), res)
-        progress(f"[{i}/{len(specs)}] {spec.key}: PSNR {res['row']['psnr']:.2f} dB "
-                 f"({time.perf_counter() - t0:.0f} s)")
+        return spec, res, time.perf_counter() - t0
+
+    errors = []
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        futures = [pool.submit(one, s) for s in specs]
+        for i, fut in enumerate(as_completed(futures), 1):
+            try:
+                spec, res, sec = fut.result()
+            except Exception as e:  # keep the other runs going; report at the end
+                errors.append(e)
+                progress(f"[{i}/{len(specs)}] failed: {e}")
+                continue
+            progress(f"[{i}/{len(specs)}] {spec.key}: PSNR {res['row']['psnr']:.2f} dB ({sec:.0f} s)")
+    if errors:
+        raise RuntimeError(f"{len(errors)} of {len(specs)} runs failed; first: {errors[0]}")
 
 
 def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: str, lpips: str | None = None,

@@ -326,7 +326,10 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
         vals = json.loads(rep_path.read_text()).get("values", {})
         metrics["train_seconds"] = vals.get("train_seconds")
         metrics["iterations"] = vals.get("iteration")
-    metrics["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        metrics["train_peak_memory_mib"] = vals.get("train_peak_memory_mib")
+    metrics["eval_peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    metrics["peak_memory_mib"] = max(v for v in (metrics.get("train_peak_memory_mib"),
+                                                 metrics["eval_peak_memory_mib"]) if v is not None)
     metrics["per_view"] = per_view
     write_json(work / "metrics.json", metrics)
     log.info("held-out PSNR %.2f dB, SSIM %.4f, LPIPS %s, %.1f FPS over %d views", psnr, ssim,

@@ -12,8 +12,10 @@ scenes in the same layout, with exact cameras and ground-truth depth::
 
 World units are metres, the ground is the plane z = 0 and +Z is up *in the
 generated scenes only* (the library estimates up from the cameras). View 000
-looks down near nadir; views 001-020 sit on a horizontal circular orbit about
-36 degrees off nadir looking at the scene centre, like LEVIR-NVS. Pixels whose
+looks down near nadir; views 001-020 sit on a horizontal circular orbit looking
+at the scene centre: 15 degrees off nadir by default (orbit ``levir``), or 35.5
+degrees (orbit ``wide``, a stiffer case with heavy occlusion between views 126
+degrees apart). Pixels whose
 ray hits nothing have depth 0 (the ground plane is large enough that orbit
 views never see the sky).
 
@@ -45,18 +47,34 @@ N_TRACK = 60
 class OrbitSpec:
     """Acquisition geometry of a generated scene (metres, degrees)."""
 
-    radius: float = 150.0       # orbit radius around the scene centre
+    radius: float = 150.0       # orbit radius around the scene centre (these defaults: the "wide" orbit)
     height: float = 210.0       # orbit height above the ground (off-nadir ~35.5 deg)
     nadir_height: float = 300.0  # height of the near-nadir view 000
     nadir_offset_deg: float = 4.0  # view 000's angle off nadir
     lens_mm: float = 35.0       # on a 36 mm sensor: ~54 deg horizontal field of view
     sensor_mm: float = 36.0
 
+    @property
+    def off_nadir_deg(self) -> float:
+        return math.degrees(math.atan2(self.radius, self.height))
+
+
+# LEVIR-NVS is built for "limited view-perspective variations" (its authors' words) and its
+# reference method renders every view from one multiplane image in view 000's frustum, which
+# only holds for views a few tens of degrees around nadir; ``levir`` keeps the orbit 15 degrees
+# off nadir. ``wide`` (35.5 degrees) is the stiff case: views 001/008/015 are 126 degrees apart
+# in heading and see few of the same street-level pixels between tall buildings.
+ORBITS: dict[str, OrbitSpec] = {
+    "levir": OrbitSpec(radius=210.0 * math.tan(math.radians(15.0))),
+    "wide": OrbitSpec(),
+}
+DEFAULT_ORBIT = "levir"
+
 
 # ---------------------------------------------------------------------------
 # Cameras
 # ---------------------------------------------------------------------------
-def scene_cameras(resolution: int, phase: float, spec: OrbitSpec = OrbitSpec()) -> tuple[list[Camera], list[Camera]]:
+def scene_cameras(resolution: int, phase: float, spec: OrbitSpec = ORBITS[DEFAULT_ORBIT]) -> tuple[list[Camera], list[Camera]]:
     """Views 000-020 and the 60 Track cameras of a generated scene.
 
     ``phase`` (radians) rotates the orbit start. Returns (views, track) with
@@ -686,7 +704,8 @@ def default_samples(resolution: int) -> int:
     return 32 if resolution <= 128 else 12
 
 
-def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: int | None = None) -> Path:
+def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: int | None = None,
+               orbit: str = DEFAULT_ORBIT) -> Path:
     """Render a procedural aerial scene into ``out`` in LEVIR-NVS layout (see module docstring).
 
     Args:
@@ -695,6 +714,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         seed: scene seed; the same seed gives the same scene and images.
         out: output folder (created).
         samples: Cycles samples per pixel (default :func:`default_samples`).
+        orbit: acquisition geometry, a key of :data:`ORBITS` (``levir`` or ``wide``).
 
     Returns the output folder. Must run in a background Blender/bpy process: it
     resets the current Blender file.
@@ -707,6 +727,9 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     if resolution < 8:
         raise ValueError(f"resolution must be >= 8, got {resolution}")
+    if orbit not in ORBITS:
+        raise ValueError(f"orbit must be one of {sorted(ORBITS)}, got {orbit!r}")
+    spec = ORBITS[orbit]
     if not bpy.app.background:
         raise RuntimeError("make_scene resets the Blender file; run it in a background process")
     samples = default_samples(resolution) if samples is None else int(samples)
@@ -714,7 +737,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     t0 = time.time()
     rng = np.random.default_rng(seed)
     phase = float(rng.uniform(0, 2 * np.pi))
-    views, track = scene_cameras(resolution, phase)
+    views, track = scene_cameras(resolution, phase, spec)
     _build_scene(bpy, kind, resolution, rng, samples)
     bpy.context.scene.render.threads_mode = "AUTO"
     log.info("built %s scene (seed %d) in %.1fs; rendering %d views at %dx%d, %d spp", kind, seed,
@@ -744,7 +767,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         write_cams_file(out / "Track" / f"{cam.name}.txt", cam)
     write_json(out / "scene.json", {"generator": "dibrgs_core.scenegen", "kind": kind, "seed": seed,
                                     "resolution": resolution, "samples": samples, "orbit_phase_rad": phase,
-                                    "orbit": OrbitSpec().__dict__, "up": [0.0, 0.0, 1.0],
+                                    "orbit_name": orbit, "orbit": spec.__dict__, "up": [0.0, 0.0, 1.0],
                                     "depth": "z-depth along the camera axis, metres; 0 = no surface"})
     log.info("wrote %s in %.1fs", out, time.time() - t0)
     return out

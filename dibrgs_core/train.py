@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import random
+import resource
 import signal
 import threading
 import time
@@ -813,6 +814,8 @@ class Trainer:
         self.report.values["skipped_steps"] = self.skipped
         self.report.values["train_seconds"] = self.elapsed
         self.report.values["iteration"] = it
+        # Peak resident memory of this process (Linux reports KiB); a resumed run reports its last leg.
+        self.report.values["train_peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         self.report.save(self.work / "report.json")
         if status == "done":
             self.save_model()

@@ -2,7 +2,7 @@
 """Benchmark DIBR-GS against 3DGS and its ablations: error against run time.
 
     python scripts/benchmark.py --suite quick            # ~15 min here
-    python scripts/benchmark.py --suite full             # hours; run in the background
+    python scripts/benchmark.py --suite full --jobs 2    # hours; run in the background
     python scripts/benchmark.py --suite full --ray auto  # on an existing Ray cluster
 
 Resumable: finished runs are kept in <work>/results/runs/*.json and skipped;
@@ -36,6 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ray", default=None, metavar="auto|ADDRESS|local",
                    help="dispatch runs as Ray tasks: 'auto' joins the cluster of this machine, "
                         "ray://HOST:10001 a remote one, 'local' starts a private instance")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="runs at a time without Ray (each trains with 1 torch thread; use <= cores)")
     p.add_argument("--ray-cpus", type=float, default=2, help="CPUs per run on the cluster")
     p.add_argument("--ray-gpus", type=float, default=0, help="GPUs per run on the cluster")
     args = p.parse_args(argv)
@@ -49,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         bm.run_ray(todo, args.work, results, args.ray, lpips=args.lpips, num_cpus=args.ray_cpus,
                    num_gpus=args.ray_gpus)
     else:
-        bm.run_local(todo, args.work, results, lpips=args.lpips)
+        bm.run_local(todo, args.work, results, lpips=args.lpips, jobs=args.jobs)
     command = "python scripts/benchmark.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     res = bm.write_pages(results, suite, args.docs, command)
     print(f"wrote {args.docs / 'benchmarks' / 'results.csv'}, {args.docs / 'benchmarks' / 'curves.png'} "

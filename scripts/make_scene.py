@@ -16,7 +16,7 @@ from pathlib import Path
 # Inside Blender the repository is not installed: import dibrgs_core from the checkout.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dibrgs_core.scenegen import KINDS, make_scene  # noqa: E402
+from dibrgs_core.scenegen import DEFAULT_ORBIT, KINDS, ORBITS, make_scene  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,10 +30,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, help="output scene folder")
     p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    p.add_argument("--orbit", choices=sorted(ORBITS), default=DEFAULT_ORBIT,
+                   help="acquisition orbit: levir (15 deg off nadir) or wide (35.5 deg, heavy occlusion)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")
-    out = make_scene(a.kind, a.resolution, a.seed, a.out, samples=a.samples)
+    out = make_scene(a.kind, a.resolution, a.seed, a.out, samples=a.samples, orbit=a.orbit)
     print(out)
     return 0
 

@@ -14,7 +14,7 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     ray = pytest.importorskip("ray", reason="ray is an optional extra: pip install -e '.[ray]'")
     work = tmp_path / "bench"
     # Reuse the session's tiny scene instead of rendering it again.
-    scene_dir = work / "scenes" / "city64_s0"
+    scene_dir = work / "scenes" / "city64_levir_s0"
     scene_dir.parent.mkdir(parents=True)
     os.symlink(tiny_scene, scene_dir)
 
@@ -50,3 +50,33 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     # Rewriting the pages replaces the suite's section instead of appending a second one.
     bm.write_pages(results, suite, docs, "again")
     assert (docs / "benchmarks.md").read_text().count("Benchmark suite `tiny`") == 1
+
+
+def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_path):
+    """run_local with jobs=2: the runs overlap in time, a failing run is reported once the
+    others are done, and the finished ones are saved (so a restart only redoes the failure)."""
+    import threading
+    import time
+
+    suite = bm.make_suite("quick", preset="test", iterations=10)
+    results = tmp_path / "results"
+    spans: dict[str, tuple[float, float]] = {}
+    lock = threading.Lock()
+
+    def job(spec, work_root, lpips=None):
+        t0 = time.perf_counter()
+        time.sleep(0.3)
+        with lock:
+            spans[spec.key] = (t0, time.perf_counter())
+        if spec.method == "no-pseudo":
+            raise RuntimeError("training failed")
+        return {"spec": {"kind": spec.kind, "resolution": spec.resolution, "method": spec.method,
+                         "seed": spec.seed, "preset": spec.preset, "iterations": spec.iterations,
+                         "orbit": spec.orbit},
+                "row": {"scene": spec.scene, "method": spec.method, "psnr": 20.0}, "curve": [], "host": "h"}
+
+    with pytest.raises(RuntimeError, match="1 of 3 runs failed"):
+        bm.run_local(suite.runs, tmp_path, results, jobs=2, job=job, progress=lambda m: None)
+    assert [s.method for s in bm.pending(suite, results)] == ["no-pseudo"]
+    (a0, a1), (b0, b1) = spans["city128__3dgs"], spans["city128__dibrgs"]
+    assert a0 < b1 and b0 < a1  # the first two ran at the same time

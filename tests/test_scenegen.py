@@ -11,6 +11,7 @@ from scipy.ndimage import map_coordinates
 
 from dibrgs_core.cameras import estimate_up, fit_orbit, nadir_angle_deg
 from dibrgs_core.io_levir import read_depth, read_scene
+from dibrgs_core.scenegen import DEFAULT_ORBIT, ORBITS, scene_cameras
 
 pytest.importorskip("bpy")
 
@@ -101,19 +102,21 @@ def test_reprojection_check_detects_wrong_camera(scene):
 
 
 def test_acquisition_geometry(scene):
+    spec = ORBITS[DEFAULT_ORBIT]
     orbit = [scene.views[f"{i:03d}"].camera for i in range(1, 21)]
     up, conf = estimate_up(orbit)
     assert np.allclose(up, [0, 0, 1], atol=1e-9) and conf > 0.8
     o = fit_orbit(orbit, up)
-    assert o.radius == pytest.approx(150.0, abs=1e-6) and o.tilt_deg < 1e-6
+    assert o.radius == pytest.approx(spec.radius, abs=1e-6) and o.tilt_deg < 1e-6
     assert np.allclose(o.target, 0.0, atol=1e-6)
-    assert nadir_angle_deg(orbit, up) == pytest.approx(math.degrees(math.atan2(150, 210)), abs=1e-6)
+    assert nadir_angle_deg(orbit, up) == pytest.approx(15.0, abs=1e-6)
     assert nadir_angle_deg([scene.views["000"].camera], up) < 6.0
     t = fit_orbit(scene.track, up)
-    assert len(scene.track) == 60 and t.radius == pytest.approx(150.0, abs=1e-6)
-    # Image up points to world up on the orbit (upright images).
+    assert len(scene.track) == 60 and t.radius == pytest.approx(spec.radius, abs=1e-6)
+    # Upright images: image up leans towards world up by the off-nadir angle, with no roll.
     c = orbit[0]
-    assert (-c.c2w[:3, 1]) @ up > 0.5
+    assert (-c.c2w[:3, 1]) @ up == pytest.approx(math.sin(math.radians(15.0)), abs=1e-6)
+    assert abs(c.c2w[:3, 0] @ up) < 1e-9
 
 
 def test_every_kind_renders_and_seed_is_deterministic(tmp_path):
@@ -160,4 +163,25 @@ def test_make_scene_script_and_info(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     info = json.loads(r.stdout)
     assert info["views"] == 21 and info["resolution"] == [12, 12]
-    assert info["orbit"]["radius"] == pytest.approx(150.0, abs=1e-3)
+    assert info["orbit"]["radius"] == pytest.approx(ORBITS["levir"].radius, abs=1e-3)
+
+
+@pytest.mark.parametrize("name,off_nadir", [("levir", 15.0), ("wide", math.degrees(math.atan2(150, 210)))])
+def test_orbit_presets(name, off_nadir):
+    """Both named orbits: views 001-020 at the preset's angle off nadir, 18 degrees apart in heading."""
+    views, track = scene_cameras(32, 0.7, ORBITS[name])
+    up = np.array([0.0, 0.0, 1.0])
+    assert ORBITS[name].off_nadir_deg == pytest.approx(off_nadir, abs=1e-9)
+    assert nadir_angle_deg(views[1:], up) == pytest.approx(off_nadir, abs=1e-6)
+    assert nadir_angle_deg(track, up) == pytest.approx(off_nadir, abs=1e-6)
+    a, b = views[1].center[:2], views[2].center[:2]
+    heading = math.degrees(math.acos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
+    assert heading == pytest.approx(18.0, abs=1e-6)
+
+
+def test_unknown_orbit_is_refused(tmp_path):
+    from dibrgs_core.scenegen import make_scene
+
+    with pytest.raises(ValueError, match="orbit must be one of"):
+        make_scene("city", 16, 0, tmp_path / "x", orbit="spiral")
+    assert not (tmp_path / "x").exists()
