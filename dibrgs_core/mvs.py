@@ -82,8 +82,8 @@ class MvsConfig:
     prefilter: bool = True
     max_nadir_deg: float = 60.0
     sgm_paths: int = 4
-    sgm_p1: float = 0.05
-    sgm_p2: float = 0.4
+    sgm_p1: float = 0.1
+    sgm_p2: float = 1.0
 
 
 @dataclass
