@@ -18,6 +18,7 @@ import os
 import platform
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,6 +27,8 @@ from typing import Any, Callable, Iterable
 from .fileio import atomic_path, write_json, write_text
 
 log = logging.getLogger("dibrgs.benchmark")
+
+_SCENE_LOCK = threading.Lock()
 
 RESULT_COLUMNS = ["scene", "method", "psnr", "ssim", "lpips", "avge", "fps", "train_seconds",
                   "gaussians", "anchors", "peak_memory_mib", "iterations", "preset"]
@@ -116,19 +119,21 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
     work = work_root / "runs" / spec.key
     work.mkdir(parents=True, exist_ok=True)
     logf = work / "benchmark.log"
-    if not (scene_dir / "Cams").is_dir():
-        from .scenegen import make_scene
+    # bpy is not thread-safe: local jobs (threads of one process) render one at a time.
+    with _SCENE_LOCK:
+        if not (scene_dir / "Cams").is_dir():
+            from .scenegen import make_scene
 
-        # Another local worker may render the same scene: build in a private
-        # folder and rename, first one wins.
-        tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
-        make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp, orbit=spec.orbit)
-        try:
-            os.replace(tmp, scene_dir)
-        except OSError:
-            import shutil
+            # Another worker process may render the same scene: build in a private
+            # folder and rename, first one wins.
+            tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
+            make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp, orbit=spec.orbit)
+            try:
+                os.replace(tmp, scene_dir)
+            except OSError:
+                import shutil
 
-            shutil.rmtree(tmp, ignore_errors=True)
+                shutil.rmtree(tmp, ignore_errors=True)
     train = ["train", str(scene_dir), "--out", str(work), "--preset", spec.preset, "--resume",
              *METHODS[spec.method]]
     if spec.iterations:
