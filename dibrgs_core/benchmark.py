@@ -107,6 +107,36 @@ def _dibrgs(argv: list[str], log_path: Path) -> None:
         raise RuntimeError(f"`dibrgs {argv[0]}` failed with exit code {proc.returncode}; see {log_path}")
 
 
+def scene_path(spec: RunSpec, work_root: str | Path) -> Path:
+    """Where the generated scene of ``spec`` lives under ``work_root``."""
+    return Path(work_root) / "scenes" / f"{spec.kind}{spec.resolution}_{spec.orbit}_s{spec.seed}"
+
+
+def ensure_scene(spec: RunSpec, scene_dir: Path) -> Path:
+    """Render ``spec``'s scene into ``scene_dir`` unless it is there (safe from several threads)."""
+    with _SCENE_LOCK:  # one render at a time per process; another process may race us (rename below)
+        if not (scene_dir / "Cams").is_dir():
+            # Rendered in a child process: bpy crashes when driven from more than one thread of a
+            # process, and local jobs are threads.
+            tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
+            code = ("import sys; from dibrgs_core.scenegen import make_scene; "
+                    "make_scene(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], orbit=sys.argv[5])")
+            scene_dir.parent.mkdir(parents=True, exist_ok=True)
+            with open(scene_dir.parent / f"{scene_dir.name}.log", "a") as f:
+                proc = subprocess.run([sys.executable, "-c", code, spec.kind, str(spec.resolution), str(spec.seed),
+                                       str(tmp), spec.orbit], stdout=f, stderr=subprocess.STDOUT)
+            if proc.returncode != 0:
+                raise RuntimeError(f"rendering scene {scene_dir.name} failed with exit code {proc.returncode}; "
+                                   f"see {scene_dir.parent / (scene_dir.name + '.log')}")
+            try:
+                os.replace(tmp, scene_dir)
+            except OSError:
+                import shutil
+
+                shutil.rmtree(tmp, ignore_errors=True)
+    return scene_dir
+
+
 def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> dict[str, Any]:
     """Generate the scene if needed, train (resuming), evaluate; return the result row and curve.
 
@@ -115,25 +145,11 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
     shared file system.
     """
     work_root = Path(work_root)
-    scene_dir = work_root / "scenes" / f"{spec.kind}{spec.resolution}_{spec.orbit}_s{spec.seed}"
+    scene_dir = scene_path(spec, work_root)
     work = work_root / "runs" / spec.key
     work.mkdir(parents=True, exist_ok=True)
     logf = work / "benchmark.log"
-    # bpy is not thread-safe: local jobs (threads of one process) render one at a time.
-    with _SCENE_LOCK:
-        if not (scene_dir / "Cams").is_dir():
-            from .scenegen import make_scene
-
-            # Another worker process may render the same scene: build in a private
-            # folder and rename, first one wins.
-            tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
-            make_scene(kind=spec.kind, resolution=spec.resolution, seed=spec.seed, out=tmp, orbit=spec.orbit)
-            try:
-                os.replace(tmp, scene_dir)
-            except OSError:
-                import shutil
-
-                shutil.rmtree(tmp, ignore_errors=True)
+    ensure_scene(spec, scene_dir)
     train = ["train", str(scene_dir), "--out", str(work), "--preset", spec.preset, "--resume",
              *METHODS[spec.method]]
     if spec.iterations:

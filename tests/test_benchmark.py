@@ -80,3 +80,18 @@ def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_
     assert [s.method for s in bm.pending(suite, results)] == ["no-pseudo"]
     (a0, a1), (b0, b1) = spans["city128__3dgs"], spans["city128__dibrgs"]
     assert a0 < b1 and b0 < a1  # the first two ran at the same time
+
+
+def test_scenes_render_from_several_job_threads(tmp_path):
+    """Local jobs are threads and bpy crashes when driven from two threads of one process, so
+    scenes render in child processes: two threads asking for two scenes both get complete ones."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    specs = [bm.RunSpec("village", 12, "dibrgs"), bm.RunSpec("mountain", 12, "dibrgs", orbit="wide")]
+    with ThreadPoolExecutor(2) as pool:
+        dirs = list(pool.map(lambda s: bm.ensure_scene(s, bm.scene_path(s, tmp_path)), specs))
+    for d, s in zip(dirs, specs):
+        assert len(list((d / "Images").glob("*.png"))) == 21
+        info = __import__("json").loads((d / "scene.json").read_text())
+        assert info["kind"] == s.kind and info["orbit_name"] == s.orbit
+    assert not list((tmp_path / "scenes").glob("*.tmp*"))
