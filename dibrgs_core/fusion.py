@@ -60,26 +60,35 @@ def backproject_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray], i
     return np.concatenate(P), np.concatenate(C), np.concatenate(V)
 
 
-def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False) -> np.ndarray:
-    """Depth image of ``points`` seen by ``cam`` (nearest point per pixel, or farthest); NaN where empty."""
-    out = np.full(cam.height * cam.width, np.nan)
-    if len(points) == 0:
-        return out.reshape(cam.height, cam.width)
-    uv, z = cam.project(points)
-    u = np.floor(uv[:, 0]).astype(np.int64)
-    v = np.floor(uv[:, 1]).astype(np.int64)
-    ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height) & np.isfinite(z)
-    idx = v[ok] * cam.width + u[ok]
-    zz = z[ok]
-    if farthest:
-        acc = np.full(out.size, -np.inf)
-        np.maximum.at(acc, idx, zz)
-        out = np.where(np.isfinite(acc), acc, np.nan)
-    else:
-        acc = np.full(out.size, np.inf)
-        np.minimum.at(acc, idx, zz)
-        out = np.where(np.isfinite(acc), acc, np.nan)
-    return out.reshape(cam.height, cam.width)
+def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False, radius: np.ndarray | int = 0,
+            empty: float = np.nan) -> np.ndarray:
+    """Depth image (H,W, float64 z-depth) of ``points`` seen by ``cam``: the nearest point per pixel
+    (or the farthest), ``empty`` where none lands.
+
+    ``radius`` (pixels, one per point or one for all) splats each point as a square of that
+    half-size, so a sparse cloud still covers the image; 0 writes the pixel the point falls in.
+    """
+    H, W = cam.height, cam.width
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    acc = np.full(H * W, -np.inf if farthest else np.inf)
+    if len(pts):
+        uv, z = cam.project(pts)
+        r = np.broadcast_to(np.asarray(radius, np.int64), z.shape)
+        ok = (z > 0) & np.isfinite(z) & np.isfinite(uv).all(1)
+        uv, z, r = uv[ok], z[ok], r[ok]
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        v = np.floor(uv[:, 1]).astype(np.int64)
+        near = (u >= -r) & (u < W + r) & (v >= -r) & (v < H + r)
+        u, v, z, r = u[near], v[near], z[near], r[near]
+        reduce = np.maximum.at if farthest else np.minimum.at
+        R = int(r.max()) if len(r) else 0
+        for dy in range(-R, R + 1):
+            for dx in range(-R, R + 1):
+                m = r >= max(abs(dx), abs(dy))
+                x, y = u[m] + dx, v[m] + dy
+                inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+                reduce(acc, y[inside] * W + x[inside], z[m][inside])
+    return np.where(np.isfinite(acc), acc, empty).reshape(H, W)
 
 
 def reproject_max_depth(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> list[np.ndarray]:

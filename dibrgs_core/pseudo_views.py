@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from .cameras import Camera, fit_orbit
 from .fileio import atomic_path, write_json
+from .fusion import zbuffer
 
 log = logging.getLogger("dibrgs.pseudo_views")
 
@@ -109,31 +110,17 @@ def zbuffer_depth(points: np.ndarray, cam: Camera, spacing: float | None = None,
     pixels (at most ``max_radius``), so a voxel-downsampled cloud still covers
     the image; ``spacing`` defaults to :func:`point_spacing`.
     """
-    H, W = cam.height, cam.width
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    depth = np.full(H * W, np.inf)
     if len(pts) == 0:
-        return np.zeros((H, W), np.float32)
+        return np.zeros((cam.height, cam.width), np.float32)
     if spacing is None:
         spacing = point_spacing(pts)
-    uv, z = cam.project(pts)
-    ok = (z > 1e-9) & np.isfinite(uv).all(1)
-    uv, z = uv[ok], z[ok]
+    _, z = cam.project(pts)
     f = 0.5 * (cam.fx + cam.fy)
-    r = np.clip(np.round(0.5 * spacing * f / np.maximum(z, 1e-12)), 0, max_radius).astype(np.int64)
-    px = np.floor(uv[:, 0]).astype(np.int64)
-    py = np.floor(uv[:, 1]).astype(np.int64)
-    near = (px >= -r) & (px < W + r) & (py >= -r) & (py < H + r)
-    px, py, z, r = px[near], py[near], z[near], r[near]
-    R = int(r.max()) if len(r) else 0
-    for dy in range(-R, R + 1):
-        for dx in range(-R, R + 1):
-            m = r >= max(abs(dx), abs(dy))
-            x, y = px[m] + dx, py[m] + dy
-            inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-            np.minimum.at(depth, y[inside] * W + x[inside], z[m][inside])
-    depth[~np.isfinite(depth)] = 0.0
-    return depth.reshape(H, W).astype(np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.clip(np.round(0.5 * spacing * f / np.maximum(z, 1e-12)), 0, max_radius)
+    r = np.nan_to_num(r, nan=0.0).astype(np.int64)
+    return zbuffer(cam, pts, radius=r, empty=0.0).astype(np.float32)
 
 
 def _neighbours(a: np.ndarray, radius: int, fill: float) -> np.ndarray:

@@ -27,6 +27,24 @@ def test_backproject_then_zbuffer_roundtrip():
     assert np.allclose(zb[np.isfinite(zb)], 100.0)
 
 
+def test_zbuffer_splat_radius_nearest_and_farthest():
+    """One z-buffer serves fusion (1 pixel, nearest or farthest, NaN holes) and pseudo views
+    (per-point splat squares, 0 for holes): two points on one ray, one splatted 2 px wide."""
+    cam = _cam()
+    ray = cam.backproject(np.full((32, 32), 1.0)).reshape(32, 32, 3)[16, 16] - cam.center  # pixel (16,16), z=1
+    pts = cam.center + np.stack([ray * 60.0, ray * 90.0])  # same pixel, depths 60 and 90
+    near = zbuffer(cam, pts)
+    far = zbuffer(cam, pts, farthest=True)
+    assert near[16, 16] == pytest.approx(60.0) and far[16, 16] == pytest.approx(90.0)
+    assert np.isnan(near).sum() == 32 * 32 - 1
+    splat = zbuffer(cam, pts, radius=np.array([0, 2]), empty=0.0)
+    assert splat[16, 16] == pytest.approx(60.0)  # the nearer point keeps its own pixel
+    assert (splat[14:19, 14:19] > 0).all() and (splat > 0).sum() == 25
+    assert splat[14, 14] == pytest.approx(90.0) and splat[13, 16] == 0.0
+    behind = zbuffer(cam, cam.center - (pts - cam.center), radius=3)
+    assert np.isnan(behind).all()
+
+
 def _layered_cloud(rng, n=4000, gap=5.0):
     """A ground layer (h~0) with a spurious copy 'gap' above it over half the area."""
     xy = rng.uniform(0, 20, (n, 2))
