@@ -322,8 +322,8 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
     methods = [m for m in ("3dgs", "dibrgs") if any(r["method"] == m for r in rows)]
     if methods:
         lines += ["### Methods (mean over scenes; as the paper's Table I)", "",
-                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | Gaussians |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | Gaussians | peak MiB |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for m in methods:
             rs = [r for r in rows if r["method"] == m]
 
@@ -333,7 +333,7 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
 
             lines.append(f"| {m} | {_fmt(mean('psnr'))} | {_fmt(mean('ssim'), 3)} | {_fmt(mean('lpips'), 3)} | "
                          f"{_fmt(mean('avge'), 3)} | {_fmt(mean('fps'), 1)} | {_fmt(mean('train_seconds'), 0)} | "
-                         f"{_fmt(mean('gaussians'), 0)} |")
+                         f"{_fmt(mean('gaussians'), 0)} | {_fmt(mean('peak_memory_mib'), 0)} |")
         scenes = sorted({r["scene"] for r in rows})
         lines += ["", "### Per scene PSNR / SSIM (as the paper's Table II)", "",
                   "| Metric | Method | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
@@ -348,13 +348,15 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
     abl_scenes = sorted({r["scene"] for r in rows if r["method"] in ABLATIONS})
     for s in abl_scenes:
         lines += ["", f"### Ablation of components on {s} (as the paper's architecture ablation)", "",
-                  "| Setting | PSNR | SSIM | LPIPS | AVGE | train s |", "|---|---|---|---|---|---|"]
+                  "| Setting | PSNR | SSIM | LPIPS | AVGE | train s | Gaussians | peak MiB |",
+                  "|---|---|---|---|---|---|---|---|"]
         for m in ABLATIONS + ["dibrgs"]:
             hit = [r for r in abl if r["method"] == m and r["scene"] == s]
             if hit:
                 r = hit[0]
                 lines.append(f"| {ABLATION_LABELS[m]} | {_fmt(r['psnr'])} | {_fmt(r['ssim'], 3)} | "
-                             f"{_fmt(r['lpips'], 3)} | {_fmt(r['avge'], 3)} | {_fmt(r['train_seconds'], 0)} |")
+                             f"{_fmt(r['lpips'], 3)} | {_fmt(r['avge'], 3)} | {_fmt(r['train_seconds'], 0)} | "
+                             f"{_fmt(r['gaussians'], 0)} | {_fmt(r['peak_memory_mib'], 0)} |")
     return "\n".join(lines) + "\n"
 
 
