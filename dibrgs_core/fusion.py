@@ -60,22 +60,24 @@ def backproject_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray], i
     return np.concatenate(P), np.concatenate(C), np.concatenate(V)
 
 
-def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False, radius: np.ndarray | int = 0,
-            empty: float = np.nan) -> np.ndarray:
+def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False, footprint: float = 0.0,
+            max_radius: int = 4, empty: float = np.nan) -> np.ndarray:
     """Depth image (H,W, float64 z-depth) of ``points`` seen by ``cam``: the nearest point per pixel
     (or the farthest), ``empty`` where none lands.
 
-    ``radius`` (pixels, one per point or one for all) splats each point as a square of that
-    half-size, so a sparse cloud still covers the image; 0 writes the pixel the point falls in.
+    With ``footprint`` (world units, e.g. the cloud's point spacing) each point is splatted as a
+    square of half-size ``round(footprint * f / z / 2)`` pixels, at most ``max_radius``, so a
+    sparse cloud still covers the image; 0 writes only the pixel the point falls in.
     """
     H, W = cam.height, cam.width
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     acc = np.full(H * W, -np.inf if farthest else np.inf)
     if len(pts):
         uv, z = cam.project(pts)
-        r = np.broadcast_to(np.asarray(radius, np.int64), z.shape)
         ok = (z > 0) & np.isfinite(z) & np.isfinite(uv).all(1)
-        uv, z, r = uv[ok], z[ok], r[ok]
+        uv, z = uv[ok], z[ok]
+        f = 0.5 * (cam.fx + cam.fy)
+        r = np.clip(np.round(0.5 * footprint * f / z), 0, max_radius).astype(np.int64)
         u = np.floor(uv[:, 0]).astype(np.int64)
         v = np.floor(uv[:, 1]).astype(np.int64)
         near = (u >= -r) & (u < W + r) & (v >= -r) & (v < H + r)

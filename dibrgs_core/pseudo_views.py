@@ -111,16 +111,9 @@ def zbuffer_depth(points: np.ndarray, cam: Camera, spacing: float | None = None,
     the image; ``spacing`` defaults to :func:`point_spacing`.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        return np.zeros((cam.height, cam.width), np.float32)
     if spacing is None:
         spacing = point_spacing(pts)
-    _, z = cam.project(pts)
-    f = 0.5 * (cam.fx + cam.fy)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = np.clip(np.round(0.5 * spacing * f / np.maximum(z, 1e-12)), 0, max_radius)
-    r = np.nan_to_num(r, nan=0.0).astype(np.int64)
-    return zbuffer(cam, pts, radius=r, empty=0.0).astype(np.float32)
+    return zbuffer(cam, pts, footprint=spacing, max_radius=max_radius, empty=0.0).astype(np.float32)
 
 
 def _neighbours(a: np.ndarray, radius: int, fill: float) -> np.ndarray:

@@ -27,9 +27,9 @@ def test_backproject_then_zbuffer_roundtrip():
     assert np.allclose(zb[np.isfinite(zb)], 100.0)
 
 
-def test_zbuffer_splat_radius_nearest_and_farthest():
+def test_zbuffer_splat_footprint_nearest_and_farthest():
     """One z-buffer serves fusion (1 pixel, nearest or farthest, NaN holes) and pseudo views
-    (per-point splat squares, 0 for holes): two points on one ray, one splatted 2 px wide."""
+    (footprint splats, 0 for holes): two points on one ray, splatted by their distance."""
     cam = _cam()
     ray = cam.backproject(np.full((32, 32), 1.0)).reshape(32, 32, 3)[16, 16] - cam.center  # pixel (16,16), z=1
     pts = cam.center + np.stack([ray * 60.0, ray * 90.0])  # same pixel, depths 60 and 90
@@ -37,11 +37,14 @@ def test_zbuffer_splat_radius_nearest_and_farthest():
     far = zbuffer(cam, pts, farthest=True)
     assert near[16, 16] == pytest.approx(60.0) and far[16, 16] == pytest.approx(90.0)
     assert np.isnan(near).sum() == 32 * 32 - 1
-    splat = zbuffer(cam, pts, radius=np.array([0, 2]), empty=0.0)
-    assert splat[16, 16] == pytest.approx(60.0)  # the nearer point keeps its own pixel
-    assert (splat[14:19, 14:19] > 0).all() and (splat > 0).sum() == 25
-    assert splat[14, 14] == pytest.approx(90.0) and splat[13, 16] == 0.0
-    behind = zbuffer(cam, cam.center - (pts - cam.center), radius=3)
+    # footprint 6 with f = 40: half-size round(6 * 40 / 60 / 2) = 2 px at z = 60, round(1.33) = 1 px at z = 90
+    splat = zbuffer(cam, pts, footprint=6.0, empty=0.0)
+    assert np.allclose(splat[14:19, 14:19], 60.0) and (splat > 0).sum() == 25
+    assert splat[13, 16] == 0.0
+    back = zbuffer(cam, pts, farthest=True, footprint=6.0, empty=0.0)
+    assert np.allclose(back[15:18, 15:18], 90.0) and back[14, 14] == pytest.approx(60.0)
+    assert zbuffer(cam, pts, footprint=1e9, max_radius=3, empty=0.0).astype(bool).sum() == 49
+    behind = zbuffer(cam, cam.center - (pts - cam.center), footprint=6.0)
     assert np.isnan(behind).all()
 
 
