@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from .fileio import atomic_path, write_json, write_text
+from .scenegen import DEFAULT_ORBIT
 
 log = logging.getLogger("dibrgs.benchmark")
 
@@ -60,11 +61,11 @@ class RunSpec:
     seed: int = 0
     preset: str = "cpu"
     iterations: int | None = None
-    orbit: str = "levir"  # scenegen.ORBITS key
+    orbit: str = DEFAULT_ORBIT  # scenegen.ORBITS key
 
     @property
     def scene(self) -> str:
-        return f"{self.kind}{self.resolution}" + ("" if self.orbit == "levir" else f"-{self.orbit}")
+        return f"{self.kind}{self.resolution}" + ("" if self.orbit == DEFAULT_ORBIT else f"-{self.orbit}")
 
     @property
     def key(self) -> str:
@@ -96,15 +97,19 @@ def make_suite(name: str, preset: str = "cpu", iterations: int | None = None) ->
     return Suite(name, runs)
 
 
-def _dibrgs(argv: list[str], log_path: Path) -> None:
-    """Run a ``dibrgs`` command in a child process (so peak memory is its own)."""
-    cmd = [sys.executable, "-m", "dibrgs_core", *argv]
+def _child(cmd: list[str], log_path: Path, what: str) -> None:
+    """Run ``cmd`` in a child process, appending its output to ``log_path``; raise naming ``what``."""
     with open(log_path, "a") as f:
         f.write(f"$ {' '.join(cmd)}\n")
         f.flush()
         proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
     if proc.returncode != 0:
-        raise RuntimeError(f"`dibrgs {argv[0]}` failed with exit code {proc.returncode}; see {log_path}")
+        raise RuntimeError(f"{what} failed with exit code {proc.returncode}; see {log_path}")
+
+
+def _dibrgs(argv: list[str], log_path: Path) -> None:
+    """Run a ``dibrgs`` command in a child process (so peak memory is its own)."""
+    _child([sys.executable, "-m", "dibrgs_core", *argv], log_path, f"`dibrgs {argv[0]}`")
 
 
 def scene_path(spec: RunSpec, work_root: str | Path) -> Path:
@@ -122,12 +127,8 @@ def ensure_scene(spec: RunSpec, scene_dir: Path) -> Path:
             code = ("import sys; from dibrgs_core.scenegen import make_scene; "
                     "make_scene(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], orbit=sys.argv[5])")
             scene_dir.parent.mkdir(parents=True, exist_ok=True)
-            with open(scene_dir.parent / f"{scene_dir.name}.log", "a") as f:
-                proc = subprocess.run([sys.executable, "-c", code, spec.kind, str(spec.resolution), str(spec.seed),
-                                       str(tmp), spec.orbit], stdout=f, stderr=subprocess.STDOUT)
-            if proc.returncode != 0:
-                raise RuntimeError(f"rendering scene {scene_dir.name} failed with exit code {proc.returncode}; "
-                                   f"see {scene_dir.parent / (scene_dir.name + '.log')}")
+            _child([sys.executable, "-c", code, spec.kind, str(spec.resolution), str(spec.seed), str(tmp), spec.orbit],
+                   scene_dir.parent / f"{scene_dir.name}.log", f"rendering scene {scene_dir.name}")
             try:
                 os.replace(tmp, scene_dir)
             except OSError:

@@ -5,8 +5,8 @@ depth) warp the other training views into the reference; the photometric
 cost is ``1 - NCC`` over a square window, averaged over the best half of the
 source views (robust to occlusion in one of them). Semi-global aggregation
 along image paths (SGM, Hirschmueller 2008) regularises the cost volume,
-winner-take-all picks the best plane, a parabola through its neighbours refines it below one plane,
-and the confidence comes from the cost curve: how much lower the best
+winner-take-all picks the best plane, a parabola through its neighbours
+refines it below one plane, and the confidence comes from the cost curve: how much lower the best
 minimum is than the best one away from it (peak ratio).
 
 Depths are z-depths in world units along the reference camera's +z axis.
@@ -59,7 +59,8 @@ class MvsConfig:
         max_nadir_deg: ``auto`` uses height planes when the mean view
             direction is within this angle of straight down.
         sgm_paths: semi-global aggregation of the cost volume along 4 or 8
-            image directions before the winner-take-all (0 = off); see
+            image directions before the winner-take-all (0 = off; other
+            values are refused); see
             :func:`semi_global`. On the generated 128x128 LEVIR-like city it
             lifts DIBR-GS held-out PSNR by 0.7 dB over the plain sweep.
         sgm_p1, sgm_p2: its penalties (in 1 - NCC units) for moving to a
@@ -254,6 +255,8 @@ def semi_global(cost, p1: float, p2: float, paths: int = 4):
     """
     import torch
 
+    if paths not in (4, 8):
+        raise ValueError(f"semi_global: paths must be 4 or 8, got {paths}")
     D, H, W = cost.shape
     total = torch.zeros_like(cost)
     inf = torch.tensor(float("inf"))
@@ -276,7 +279,7 @@ def semi_global(cost, p1: float, p2: float, paths: int = 4):
     total += run(cost.flip(2)).flip(2)
     total += run(cost.transpose(1, 2)).transpose(1, 2)
     total += run(cost.transpose(1, 2).flip(2)).flip(2).transpose(1, 2)
-    if paths >= 8:
+    if paths == 8:
         # Diagonals: shear the volume so that diagonals become rows, aggregate, shear back.
         for flip in (False, True):
             c = cost.flip(2) if flip else cost

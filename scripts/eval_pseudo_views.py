@@ -8,7 +8,7 @@ training), and PSNR is measured against the held-out image: over the pixels
 the warp fills (``valid``), and over the whole image with padding. This
 isolates the geometry's effect on supervision from the optimisation.
 
-    python scripts/eval_pseudo_views.py SCENE [--priors mvs,gt] [--md docs/benchmarks.md]
+    python scripts/eval_pseudo_views.py SCENE [--priors mvs,gt] [--mvs FIELD=VALUE] [--json FILE]
 """
 from __future__ import annotations
 
@@ -26,20 +26,16 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """PSNR in dB of images in [0, 1] (over ``mask`` pixels when given)."""
-    d = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2
-    mse = float(d[mask].mean()) if mask is not None else float(d.mean())
-    return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
-
-
 def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None) -> dict:
     """Initialise ``scene_dir`` with ``prior`` in ``work`` and score pseudo views at the held-out cameras.
     ``mvs`` overrides :class:`dibrgs_core.mvs.MvsConfig` fields."""
     from dataclasses import replace
 
+    import torch
+
     from dibrgs_core.init import InitConfig, initialise
     from dibrgs_core.io_levir import read_scene
+    from dibrgs_core.losses import psnr
     from dibrgs_core.pseudo_views import build_pseudo_views
 
     scene = read_scene(scene_dir)
@@ -55,10 +51,11 @@ def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None) -
     t_pv = time.perf_counter() - t0
     rows = []
     for v, pv in zip(tests, pvs):
-        gt = np.asarray(v.image, np.float32)[..., :3]
+        img = torch.from_numpy(np.asarray(pv.image, np.float64))
+        gt = torch.from_numpy(np.asarray(v.image, np.float64)[..., :3])
         rows.append({"view": v.name, "valid": float(pv.valid.mean()),
-                     "psnr_valid": psnr(pv.image, gt, pv.valid) if pv.valid.any() else None,
-                     "psnr_all": psnr(pv.image, gt)})
+                     "psnr_valid": float(psnr(img, gt, torch.from_numpy(pv.valid))) if pv.valid.any() else None,
+                     "psnr_all": float(psnr(img, gt))})
     valid_psnr = [r["psnr_valid"] for r in rows if r["psnr_valid"] is not None]
     return {"prior": prior, "points": int(len(res.points)), "init_s": t_init, "pseudo_s": t_pv,
             "valid": float(np.mean([r["valid"] for r in rows])),

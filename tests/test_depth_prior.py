@@ -223,3 +223,10 @@ def test_mvs_with_semi_global_is_at_least_as_complete(scene128):
         rel = np.abs(b.depth[ok] - v.depth[ok]) / v.depth[ok]
         assert np.median(rel) < 0.005 and np.mean(rel < 0.02) > 0.85
         assert ok.mean() >= np.isfinite(a.depth).mean() - 0.01
+
+
+def test_semi_global_refuses_other_path_counts():
+    from dibrgs_core.mvs import semi_global
+
+    with pytest.raises(ValueError, match="4 or 8"):
+        semi_global(torch.zeros(3, 4, 4), 0.1, 1.0, paths=2)
