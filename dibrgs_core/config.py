@@ -102,6 +102,13 @@ class PseudoConfig:
     # Loss weight of padded pixels (filled by padding, no source view saw them)
     # relative to warped ones; 0 masks them out.
     padded_weight: float = 1.0
+    # Large holes in pseudo-view depth: auto = ray-cast a height field of the
+    # cloud when the views are near-nadir (surface.applies), else the nearest
+    # valid pixel; on / off force it.
+    surface: str = "auto"
+    # Leave out of supervision warped pixels that two training views see in
+    # colours further apart than this (mean |RGB| in [0,1]); 0 keeps all.
+    consistency_tol: float = 0.1
 
 
 @dataclass

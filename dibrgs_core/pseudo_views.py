@@ -5,12 +5,17 @@ For each pseudo camera sampled on the acquisition orbit (or taken from a path
 the caller gives):
 
 1. depth: z-buffer projection of the dense point cloud (:func:`zbuffer_depth`),
-   then depth completion (:func:`complete_depth`);
+   then depth completion (:func:`complete_depth`): small gaps from their
+   neighbours; large holes, for near-nadir scenes, by ray casting a height
+   field of the cloud (:class:`surface.HeightField`), else from the nearest
+   valid pixel;
 2. colour: every target pixel is back-projected with that depth and looked up
    in the training images, nearest source camera first; a source fills only
    pixels that are still empty and that it sees (occlusion test against the
    source's own depth map of the same cloud) (:func:`warp_progressive`);
-3. what no source sees is padded and flagged, so the trainer can mask it.
+3. what no source sees is padded and flagged, so the trainer can mask it;
+4. warped pixels that two sources see but colour differently (wrong depth, most
+   likely) are rejected from supervision (:func:`source_disagreement`).
 
 Conventions: OpenCV cameras from :mod:`dibrgs_core.cameras`, pixel centres at
 +0.5, z-depth in world units along the camera axis, 0 marks "no depth".
@@ -37,7 +42,7 @@ log = logging.getLogger("dibrgs.pseudo_views")
 
 EMPTY = -1  #: ``filled_by`` value of pixels nothing could fill
 PADDED = -2  #: ``filled_by`` value of padded pixels
-_CACHE_VERSION = "pseudo-v1"
+_CACHE_VERSION = "pseudo-v2"
 
 
 @dataclass
@@ -51,6 +56,9 @@ class PseudoView:
         padded: bool (H,W), pixels filled by padding (less reliable); never
             also ``valid``. Pixels neither valid nor padded are black holes.
         depth: float32 (H,W) completed z-depth used for warping (0 = none).
+        rejected: bool (H,W), warped pixels left out of supervision because
+            the sources that see them disagree on their colour; neither
+            ``valid`` nor ``padded``.
     """
 
     camera: Camera
@@ -58,6 +66,7 @@ class PseudoView:
     valid: np.ndarray
     padded: np.ndarray
     depth: np.ndarray | None = None
+    rejected: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -145,20 +154,27 @@ def remove_see_through(depth: np.ndarray, rtol: float = 0.03, radius: int = 2,
     return d
 
 
-def complete_depth(depth: np.ndarray, iters: int = 4, min_neighbours: int = 3) -> np.ndarray:
+def complete_depth(depth: np.ndarray, iters: int = 4, min_neighbours: int = 3,
+                   fill: np.ndarray | None = None) -> np.ndarray:
     """Fill the holes (0 or non-finite) of a z-buffer depth map; returns float32 (H,W).
 
     Steps: remove see-through speckles (:func:`remove_see_through`); fill
     small gaps with the median of valid 8-neighbours for a few passes (only
     where at least ``min_neighbours`` are valid, so gaps close from inside
-    rather than smearing edges); give every remaining hole the depth of the
-    nearest valid pixel (Euclidean distance transform); then a 3x3 median
-    filter over the filled pixels to smooth the seams. A map with no valid
-    pixel comes back as all zeros.
+    rather than smearing edges); give the remaining holes the depth in
+    ``fill`` (H,W, e.g. a ray-cast height field; used where finite and > 0)
+    and what is still empty the depth of the nearest valid pixel (Euclidean
+    distance transform); then a 3x3 median filter over the filled pixels to
+    smooth the seams. A map with no valid pixel and no ``fill`` comes back
+    as all zeros.
     """
     d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    if fill is not None:
+        fill = np.where(np.isfinite(fill) & (fill > 0), fill, 0.0).astype(np.float32)
+        if fill.shape != d.shape:
+            raise ValueError(f"fill depth has shape {fill.shape}, the depth map {d.shape}")
     if not (d > 0).any():
-        return np.zeros_like(d)
+        return np.zeros_like(d) if fill is None else complete_depth(fill, iters, min_neighbours)
     d = remove_see_through(d)
     hole0 = d <= 0
     for _ in range(iters):
@@ -172,6 +188,9 @@ def complete_depth(depth: np.ndarray, iters: int = 4, min_neighbours: int = 3) -
             break
         vals = np.where(nb[:, can] > 0, nb[:, can], np.nan)
         d[can] = np.nanmedian(vals, axis=0)
+    if fill is not None:
+        take = (d <= 0) & (fill > 0)
+        d[take] = fill[take]
     hole = d <= 0
     if hole.any():
         idx = ndimage.distance_transform_edt(hole, return_distances=False, return_indices=True)
@@ -279,13 +298,39 @@ def warp_progressive(target: Camera, depth: np.ndarray, sources: Sequence[tuple]
     return img.reshape(H, W, 3), valid.reshape(H, W), filled_by.reshape(H, W)
 
 
+def source_disagreement(target: Camera, depth: np.ndarray, sources: Sequence[tuple]
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """How far apart the sources' colours for each target pixel are.
+
+    Every source is warped into ``target`` on its own (same visibility test
+    as :func:`warp_progressive`). Returns ``(count (H,W) int, spread (H,W)
+    float32)``: how many sources see the pixel, and the largest mean absolute
+    RGB difference between two of them (0 where fewer than two see it). With
+    the right depth, sources agree up to shading; a wrong depth samples
+    different surfaces in different views.
+    """
+    H, W = target.height, target.width
+    count = np.zeros((H, W), np.int32)
+    spread = np.zeros((H, W), np.float32)
+    warps = [warp_progressive(target, depth, [s])[:2] for s in sources]
+    for a in range(len(warps)):
+        count += warps[a][1]
+        for b in range(a + 1, len(warps)):
+            both = warps[a][1] & warps[b][1]
+            diff = np.abs(warps[a][0] - warps[b][0]).mean(-1)
+            spread = np.where(both, np.maximum(spread, diff), spread)
+    return count, spread
+
+
 # ---------------------------------------------------------------------------
 # Building and caching
 # ---------------------------------------------------------------------------
 def _hash_inputs(train_views: Sequence, points: np.ndarray, n: int, seed: int,
-                 path: Sequence[Camera] | None, max_gap_px: float) -> str:
+                 path: Sequence[Camera] | None, max_gap_px: float, surface: bool,
+                 consistency_tol: float) -> str:
     h = hashlib.sha256(_CACHE_VERSION.encode())
     h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    h.update(f"surface={surface};tol={consistency_tol!r}".encode())
 
     def cam(c: Camera) -> None:
         h.update(np.ascontiguousarray(c.K).tobytes() + np.ascontiguousarray(c.w2c).tobytes())
@@ -306,16 +351,17 @@ def _save_view(p: Path, pv: PseudoView) -> None:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, K=c.K, w2c=c.w2c, size=np.array([c.width, c.height]), name=np.array(c.name),
                                 image=pv.image.astype(np.float32), valid=pv.valid, padded=pv.padded,
-                                depth=np.zeros((0,), np.float32) if pv.depth is None else pv.depth)
+                                depth=np.zeros((0,), np.float32) if pv.depth is None else pv.depth,
+                                rejected=np.zeros((0,), bool) if pv.rejected is None else pv.rejected)
 
 
 def _load_view(p: Path) -> PseudoView:
     with np.load(p, allow_pickle=False) as z:
         W, H = (int(v) for v in z["size"])
         cam = Camera(K=z["K"], w2c=z["w2c"], width=W, height=H, name=str(z["name"]))
-        depth = z["depth"]
+        depth, rejected = z["depth"], z["rejected"]
         return PseudoView(cam, z["image"], z["valid"].astype(bool), z["padded"].astype(bool),
-                          depth if depth.size else None)
+                          depth if depth.size else None, rejected.astype(bool) if rejected.size else None)
 
 
 def _load_cache(cache_dir: Path, key: str) -> list[PseudoView] | None:
@@ -333,7 +379,8 @@ def _load_cache(cache_dir: Path, key: str) -> list[PseudoView] | None:
 
 
 def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: int, cache_dir: str | Path,
-                       path: Sequence[Camera] | None = None, max_gap_px: float = 4.0) -> list[PseudoView]:
+                       path: Sequence[Camera] | None = None, max_gap_px: float = 4.0,
+                       surface: bool = False, consistency_tol: float = 0.0) -> list[PseudoView]:
     """Build (or load from ``cache_dir``) the progressive-DIBR pseudo views.
 
     Args:
@@ -349,26 +396,42 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         max_gap_px: warped pixels farther than this (pixels) from any pixel
             the cloud projects to have completed, not measured, depth; they
             are returned as ``padded`` rather than ``valid``.
+        surface: complete large depth holes (target and source views) by ray
+            casting a :class:`surface.HeightField` of ``points`` instead of
+            the nearest valid pixel; for near-nadir scenes
+            (:func:`surface.applies`).
+        consistency_tol: warped pixels that at least two sources see with a
+            mean absolute RGB difference above this (image units in [0,1])
+            are ``rejected``; 0 keeps them all.
     """
     from tqdm import tqdm
 
     cache_dir = Path(cache_dir)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    key = _hash_inputs(train_views, pts, n, seed, path, max_gap_px)
+    key = _hash_inputs(train_views, pts, n, seed, path, max_gap_px, surface, consistency_tol)
     cached = _load_cache(cache_dir, key)
     if cached is not None:
         log.info("loaded %d pseudo views from %s", len(cached), cache_dir)
         return cached
     cams = sample_orbit_poses([v.camera for v in train_views], n, seed, path)
     spacing = point_spacing(pts)
+    field = None
+    if surface and len(pts):
+        from .surface import HeightField
+
+        field = HeightField.build(pts, [v.camera for v in train_views])
+
+    def completed(cam: Camera, raw: np.ndarray) -> np.ndarray:
+        return complete_depth(raw, fill=None if field is None else field.depth(cam))
+
     sources = []
     for v in train_views:
-        sources.append((v.camera, v.image, complete_depth(zbuffer_depth(pts, v.camera, spacing))))
+        sources.append((v.camera, v.image, completed(v.camera, zbuffer_depth(pts, v.camera, spacing))))
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete
     out, files = [], []
     for i, cam in enumerate(tqdm(cams, desc="pseudo views", unit="view", leave=False)):
         raw = zbuffer_depth(pts, cam, spacing)
-        depth = complete_depth(raw)
+        depth = completed(cam, raw)
         image, valid, filled_by = warp_progressive(cam, depth, sources)
         padded = filled_by == PADDED
         # Depth invented far from any projected point (outside the cloud) is a
@@ -379,16 +442,23 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
             guessed = np.ones_like(valid)
         padded |= valid & guessed
         valid &= ~guessed
-        pv = PseudoView(cam, image, valid, padded, depth)
+        rejected = None
+        if consistency_tol > 0 and len(sources) > 1:
+            count, spread = source_disagreement(cam, depth, sources)
+            rejected = (valid | padded) & (count >= 2) & (spread > consistency_tol)
+            valid &= ~rejected
+            padded &= ~rejected
+        pv = PseudoView(cam, image, valid, padded, depth, rejected)
         fname = f"view_{i:03d}.npz"
         _save_view(cache_dir / fname, pv)
         files.append(fname)
         out.append(pv)
-        log.info("pseudo view %s: %.1f%% warped, %.1f%% padded", cam.name, 100 * valid.mean(),
-                 100 * pv.padded.mean())
+        log.info("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", cam.name,
+                 100 * valid.mean(), 100 * pv.padded.mean(), 0.0 if rejected is None else 100 * rejected.mean())
     write_json(cache_dir / "manifest.json", {"hash": key, "files": files, "count": len(files)})
     return out
 
 
 __all__ = ["PseudoView", "EMPTY", "PADDED", "sample_orbit_poses", "point_spacing", "zbuffer_depth",
-           "remove_see_through", "complete_depth", "warp_progressive", "build_pseudo_views"]
+           "remove_see_through", "complete_depth", "warp_progressive", "source_disagreement",
+           "build_pseudo_views"]

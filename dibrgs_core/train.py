@@ -561,8 +561,21 @@ class Trainer:
             path = read_cameras(cfg.pseudo_path)
         frames = [f.cam.cam for f in self.train_frames]
         train_views = [_SimpleView(c, f.image.numpy()) for c, f in zip(frames, self.train_frames)]
+        if cfg.pseudo.surface == "auto":
+            from .surface import applies
+
+            surface, why = applies(frames)
+        else:
+            surface, why = cfg.pseudo.surface == "on", f"pseudo.surface = {cfg.pseudo.surface}"
+        self.report.decide("train", "pseudo_depth_height_field", surface, why)
         pvs = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed,
-                                 self.work / "pseudo", path=path)
+                                 self.work / "pseudo", path=path, surface=surface,
+                                 consistency_tol=cfg.pseudo.consistency_tol)
+        if cfg.pseudo.consistency_tol > 0:
+            rej = float(np.mean([pv.rejected.mean() for pv in pvs if pv.rejected is not None] or [0.0]))
+            self.report.values["pseudo_rejected_fraction"] = rej
+            log.info("pseudo views: %.1f%% of pixels rejected (training views disagree by > %.2f)",
+                     100 * rej, cfg.pseudo.consistency_tol)
         empty = 0
         for pv in pvs:
             weight = np.asarray(pv.valid, np.float32)

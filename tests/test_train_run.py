@@ -100,6 +100,9 @@ def test_progress_json_lines_and_report(synth, synth_init, tmp_path):
     steps = {d["step"]: d for d in rep["decisions"]}
     assert steps["pseudo_views"]["applied"] and steps["ibr_features"]["details"]["encoder"] == "pyramid"
     assert "dense_init" in steps and "height_constraint" in steps
+    hf = steps["pseudo_depth_height_field"]
+    assert isinstance(hf["applied"], bool) and ("deg from straight down" in hf["reason"] or "up axis" in hf["reason"])
+    assert 0.0 <= rep["values"]["pseudo_rejected_fraction"] < 0.9
 
 
 def test_ablation_flags_switch_components_off(synth, synth_init, tmp_path):
@@ -251,3 +254,20 @@ def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
     # Bad input: a missing run folder is a clear error, exit code 2.
     r = _dibrgs("eval", str(tmp_path / "nope"))
     assert r.returncode == 2 and "no trained model" in r.stderr
+
+
+def test_pseudo_view_flags_reach_the_config():
+    from dibrgs_core.cli import build_parser
+    from dibrgs_core.commands.train import config_from_args
+    from dibrgs_core.errors import InputError
+
+    p = build_parser()
+    cfg = config_from_args(p.parse_args(["train", "S", "--out", "W", "--preset", "cpu"]))
+    assert cfg.pseudo.surface == "auto" and cfg.pseudo.consistency_tol == pytest.approx(0.1)
+    cfg = config_from_args(p.parse_args(["train", "S", "--out", "W", "--pseudo-surface", "off",
+                                         "--pseudo-consistency", "0"]))
+    assert cfg.pseudo.surface == "off" and cfg.pseudo.consistency_tol == 0.0
+    with pytest.raises(InputError, match="pseudo-consistency"):
+        config_from_args(p.parse_args(["train", "S", "--out", "W", "--pseudo-consistency", "-1"]))
+    with pytest.raises(InputError, match="pseudo-consistency"):
+        config_from_args(p.parse_args(["train", "S", "--out", "W", "--pseudo-consistency", "nan"]))

@@ -37,6 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--no-pseudo", action="store_true", help="no pseudo-view supervision")
     g.add_argument("--pseudo", default=None, choices=["auto", "on", "off"],
                    help="pseudo views: auto (skip with >= 10 training views), on, off")
+    g.add_argument("--pseudo-surface", default="auto", choices=["auto", "on", "off"],
+                   help="fill pseudo-view depth holes from a height field of the cloud (auto: near-nadir views)")
+    g.add_argument("--pseudo-consistency", type=float, default=None, metavar="TOL",
+                   help="leave out pseudo-view pixels two training views colour more than TOL apart "
+                        "(mean |RGB| in [0,1]; 0 keeps all; default 0.1)")
     g.add_argument("--depth-prior", default="auto", choices=["auto", "mvs", "depth-anything-v2", "gt"],
                    help="depth prior of the geometry initialisation (gt = oracle)")
     w = p.add_argument_group("local weights (nothing is downloaded)")
@@ -68,6 +73,13 @@ def config_from_args(args: argparse.Namespace):
     cfg.ibr = args.ibr
     cfg.height = "off" if args.no_height else "auto"
     cfg.pseudo.mode = "off" if args.no_pseudo else (args.pseudo or "auto")
+    cfg.pseudo.surface = args.pseudo_surface
+    if args.pseudo_consistency is not None:
+        if not (args.pseudo_consistency >= 0.0):
+            from ..errors import InputError
+
+            raise InputError(None, f"--pseudo-consistency must be >= 0, got {args.pseudo_consistency}")
+        cfg.pseudo.consistency_tol = args.pseudo_consistency
     cfg.depth_prior = args.depth_prior
     cfg.dino_resnet = args.dino_resnet
     cfg.dino_vit = args.dino_vit

@@ -1,0 +1,180 @@
+"""Tests for dibrgs_core.surface (height field of the cloud, ray-cast depth) and its use in pseudo views."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dibrgs_core.cameras import Camera, look_at
+from dibrgs_core.surface import HeightField, applies
+
+BOX_H = 10.0  # a 20 x 20 building on flat ground at height 0
+
+
+def cam(angle_deg: float = 0.0, tilt_deg: float = 15.0, size: int = 64, dist: float = 100.0,
+        offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Camera:
+    a, t = np.radians(angle_deg), np.radians(tilt_deg)
+    o = np.asarray(offset, float)
+    eye = o + dist * np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+    K = np.array([[size * 1.2, 0, size / 2], [0, size * 1.2, size / 2], [0, 0, 1]])
+    return Camera(K=K, w2c=look_at(eye, o, [0, 0, 1] if tilt_deg < 89 else [0, 1, 0]), width=size, height=size)
+
+
+def box_depth(c: Camera, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Exact z-depth of the box-on-ground scene: nearest hit of roof, four walls and ground."""
+    o, d = c.pixel_rays()
+    o = o - np.asarray(offset)
+    best = np.full(len(o), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis, val, lim in ((2, 0.0, None), (2, BOX_H, 10.0), (0, 10.0, 10.0), (0, -10.0, 10.0),
+                               (1, 10.0, 10.0), (1, -10.0, 10.0)):
+            t = (val - o[:, axis]) / d[:, axis]
+            p = o + t[:, None] * d
+            ok = np.isfinite(t) & (t > 0)
+            if lim is not None:
+                others = [i for i in range(3) if i != axis]
+                for i in others:
+                    hi = BOX_H if i == 2 else lim
+                    lo = 0.0 if i == 2 else -lim
+                    ok &= (p[:, i] >= lo - 1e-9) & (p[:, i] <= hi + 1e-9)
+            best = np.where(ok & (t < best), t, best)
+    return np.where(np.isfinite(best), best, 0.0).reshape(c.height, c.width)
+
+
+def box_points(step: float = 0.5, street_hole: bool = False, roof_hole: bool = False,
+               offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    g = np.arange(-40, 40 + 1e-9, step)
+    x, y = np.meshgrid(g, g)
+    x, y = x.ravel(), y.ravel()
+    inside = (np.abs(x) <= 10) & (np.abs(y) <= 10)
+    z = np.where(inside, BOX_H, 0.0)
+    keep = np.ones_like(x, bool)
+    if street_hole:   # ground next to the building has no points (hidden, untextured)
+        keep &= ~((x > 10) & (x < 20) & (np.abs(y) < 15))
+    if roof_hole:     # untextured middle of the roof
+        keep &= ~((np.abs(x) < 5) & (np.abs(y) < 5))
+    return np.stack([x[keep], y[keep], z[keep]], 1) + np.asarray(offset)
+
+
+CAMS = [cam(a) for a in (0, 120, 240)]
+
+
+def test_raycast_matches_the_exact_box_scene_walls_included():
+    field = HeightField.build(box_points(), CAMS, cell=0.5)
+    for c in (cam(60, 15), cam(200, 30)):
+        d, ref = field.depth(c), box_depth(c)
+        rel = np.abs(d - ref) / ref
+        assert (d > 0).all() and np.isfinite(d).all()
+        # cell quantisation (0.5) at ~100 depth: errors only along edges
+        assert np.mean(rel < 0.01) > 0.93, np.mean(rel < 0.01)
+
+
+def test_holes_take_the_low_rim_streets_become_ground_roofs_stay_roofs():
+    field = HeightField.build(box_points(street_hole=True, roof_hole=True), CAMS, cell=0.5)
+    assert not field.measured.all()
+    def h(xy):  # world height of the field under world (x, y); up is +z here
+        X = np.array([[xy[0], xy[1], 0.0]])
+        loc = (X - field.origin) @ field.frame.T
+        return float(field.height(loc[:, :2])[0] + field.origin @ field.frame[2])
+    assert abs(h((15.0, 0.0)) - 0.0) < 0.5, "street hole filled with ground"
+    assert abs(h((0.0, 0.0)) - BOX_H) < 0.5, "roof hole filled with roof"
+
+
+def test_height_field_depth_completes_pseudo_view_holes_better_than_nearest_pixel():
+    from dibrgs_core.pseudo_views import complete_depth, zbuffer_depth
+
+    pts = box_points(street_hole=True)
+    field = HeightField.build(pts, CAMS, cell=0.5)
+    c = cam(30, 15)
+    raw = zbuffer_depth(pts, c, spacing=0.5)
+    ref = box_depth(c)
+    plain = complete_depth(raw)
+    filled = complete_depth(raw, fill=field.depth(c))
+    hole = raw <= 0
+    assert hole.mean() > 0.02
+    err_plain = np.abs(plain - ref)[hole].mean()
+    err_field = np.abs(filled - ref)[hole].mean()
+    assert err_field < 0.5 * err_plain, (err_field, err_plain)
+    with pytest.raises(ValueError, match="shape"):
+        complete_depth(raw, fill=np.ones((3, 3)))
+    # no measured depth at all: the fill is used as it is
+    assert np.allclose(complete_depth(np.zeros_like(raw), fill=ref), ref, rtol=1e-5)
+
+
+def test_applies_only_to_near_nadir_views():
+    ok, why = applies(CAMS)
+    assert ok and "near-nadir" in why
+    # Up comes from the cameras, so a tilted orbit reads as a weak up axis (cos 75 deg = 0.26).
+    oblique = [cam(a, tilt_deg=75) for a in (0, 120, 240)]
+    ok, why = applies(oblique)
+    assert not ok
+    around = [cam(a, tilt_deg=90) for a in (0, 90, 180, 270)]
+    ok, why = applies(around)
+    assert not ok and "up axis" in why
+
+
+@pytest.mark.parametrize("case", ["one point", "flat", "far offset", "tiny scale", "duplicates"])
+def test_extremes_stay_finite(case):
+    c = cam(0, 15)
+    if case == "one point":
+        pts = np.array([[0.0, 0.0, 0.0]])
+    elif case == "flat":
+        pts = box_points()[:, :2]
+        pts = np.c_[pts, np.zeros(len(pts))]
+    elif case == "far offset":
+        off = (1e6, -2e6, 3e3)
+        pts, c = box_points(offset=off), cam(0, 15, offset=off)
+    elif case == "tiny scale":
+        pts = box_points() * 1e-6
+        c = cam(0, 15, dist=1e-4)
+    else:
+        pts = np.repeat(box_points(step=2.0), 5, axis=0)
+    field = HeightField.build(pts, CAMS if case != "far offset" else [c], cell=None)
+    d = field.depth(c)
+    assert np.isfinite(d).all() and (d >= 0).all()
+    assert (d > 0).mean() > 0.99  # every descending ray meets the (filled) field
+    assert field.heights.size <= 4096 * 4096
+    with pytest.raises(ValueError, match="finite point"):
+        HeightField.build(np.full((3, 3), np.nan), CAMS)
+
+
+def test_rays_that_do_not_descend_get_no_depth():
+    field = HeightField.build(box_points(step=2.0), CAMS)
+    side = Camera(K=np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]),
+                  w2c=look_at([0, -200, 5], [0, 0, 5], [0, 0, 1]), width=64, height=64)
+    d = field.depth(side)
+    top_rows = d[:20]
+    assert (top_rows == 0).all() and np.isfinite(d).all()
+    assert (d[-10:] > 0).any()
+
+
+def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
+    from dibrgs_core.io_levir import View
+    from dibrgs_core.pseudo_views import build_pseudo_views, source_disagreement
+
+    def img(c: Camera, shift: float = 0.0) -> np.ndarray:
+        o, d = c.pixel_rays()
+        t = box_depth(c).ravel()
+        p = o + t[:, None] * d
+        rgb = np.stack([0.5 + 0.4 * np.sin(p[:, 0] / 3), 0.5 + 0.4 * np.cos(p[:, 1] / 4), 0.3 + p[:, 2] / 30], 1)
+        return np.clip(rgb + shift, 0, 1).reshape(c.height, c.width, 3).astype(np.float32)
+
+    srcs = [(c, img(c), box_depth(c)) for c in CAMS]
+    tgt = cam(60, 15)
+    count, spread = source_disagreement(tgt, box_depth(tgt), srcs)
+    assert count.max() == 3 and (count >= 2).mean() > 0.5
+    assert np.median(spread[count >= 2]) < 0.05  # true depth: the views agree
+    count2, spread2 = source_disagreement(tgt, box_depth(tgt) * 0.9, srcs)  # wrong depth
+    assert np.median(spread2[count2 >= 2]) > 2 * np.median(spread[count >= 2])
+
+    pts = box_points(step=1.0)
+    views = [View(camera=c, image=img(c)) for c in CAMS]
+    keep = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "a", surface=True)
+    views[1] = View(camera=CAMS[1], image=img(CAMS[1], shift=0.4))  # one view's colours are off
+    rej = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "b", surface=True,
+                             consistency_tol=0.1)
+    for a, b in zip(keep, rej):
+        assert a.rejected is None and b.rejected is not None and b.rejected.mean() > 0.05
+        assert not (b.rejected & (b.valid | b.padded)).any()
+    again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "b", surface=True,
+                               consistency_tol=0.1)
+    assert all(np.array_equal(x.rejected, y.rejected) for x, y in zip(rej, again))
