@@ -112,8 +112,11 @@ def test_applies_only_to_near_nadir_views():
     assert not ok and "up axis" in why
 
 
+@pytest.mark.stability
 @pytest.mark.parametrize("case", ["one point", "flat", "far offset", "tiny scale", "duplicates"])
 def test_extremes_stay_finite(case):
+    """Height field of one point, a flat cloud, georeferenced (1e6) and micro (1e-6) coordinates, duplicated
+    points: every descending ray gets a finite positive depth; an all-NaN cloud is refused."""
     c = cam(0, 15)
     if case == "one point":
         pts = np.array([[0.0, 0.0, 0.0]])
@@ -137,7 +140,9 @@ def test_extremes_stay_finite(case):
         HeightField.build(np.full((3, 3), np.nan), CAMS)
 
 
+@pytest.mark.stability
 def test_rays_that_do_not_descend_get_no_depth():
+    """Height-field ray cast from a camera looking horizontally: rays at and above the horizon get depth 0, no Inf."""
     field = HeightField.build(box_points(step=2.0), CAMS)
     side = Camera(K=np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]),
                   w2c=look_at([0, -200, 5], [0, 0, 5], [0, 0, 1]), width=64, height=64)
