@@ -75,6 +75,8 @@ class HeightField:
         camera to the cloud's centre over its focal length) and the cloud's
         median point spacing. The grid reaches ``margin`` times the cloud's
         extent past it on each side (ground the cameras see beyond the cloud).
+        Points far outside the cloud's 1st-99th percentile box (by more than
+        half its size) are ignored.
         """
         from .pseudo_views import point_spacing
 
@@ -84,8 +86,16 @@ class HeightField:
             raise ValueError("a height field needs at least one finite point")
         up, _ = estimate_up(cams)
         F = up_frame(up)
+        loc = pts @ F.T
+        # Stray points (a few MVS outliers kilometres off) would stretch the grid and the
+        # ray march; the field covers the bulk of the cloud: 1st-99th percentile, widened.
+        if len(loc) >= 20:
+            q1, q99 = np.percentile(loc, [1.0, 99.0], axis=0)
+            wide = 0.5 * (q99 - q1) + 1e-9 * (1.0 + np.abs(q1))
+            keep = ((loc >= q1 - wide) & (loc <= q99 + wide)).all(1)
+            pts, loc = pts[keep], loc[keep]
         o = pts.mean(0)
-        loc = (pts - o) @ F.T
+        loc = loc - o @ F.T
         if cell is None:
             c0 = cams[0]
             gsd = float(np.linalg.norm(c0.center - o)) / max(c0.fx, 1e-12)
@@ -145,7 +155,8 @@ class HeightField:
         z1 = np.maximum((bottom - 1e-6 - cl[2]) / dz, z0)
         hor = np.linalg.norm(dl[:, :2], axis=1)
         span = ((z1 - z0) * hor)[down]
-        steps = int(min(np.ceil(span.max() / (0.5 * self.cell)), 4096)) + 2
+        # Half a cell per step; the cap bounds the cost of a field far taller than wide.
+        steps = int(min(np.ceil(span.max() / (0.5 * self.cell)), 1024)) + 2
         ts = np.linspace(0.0, 1.0, steps)
         for s in range(0, H * W, chunk):
             idx = np.arange(s, min(s + chunk, H * W))

@@ -141,6 +141,19 @@ def test_extremes_stay_finite(case):
 
 
 @pytest.mark.stability
+def test_stray_points_kilometres_away_do_not_blow_up_the_field():
+    """A few MVS outliers 2.5 km below and 1 km beside a 80 m scene: they are ignored, so the grid
+    and the ray march keep the scene's size and the depth matches the clean cloud's."""
+    pts = box_points(step=1.0)
+    stray = np.array([[-990.0, -1200.0, -2500.0], [50.0, 900.0, -2000.0], [0.0, 0.0, 3000.0]])
+    clean = HeightField.build(pts, CAMS)
+    dirty = HeightField.build(np.concatenate([pts, stray]), CAMS)
+    assert dirty.heights.shape == clean.heights.shape
+    c = cam(30, 15)
+    assert np.allclose(dirty.depth(c), clean.depth(c), rtol=1e-3)
+
+
+@pytest.mark.stability
 def test_rays_that_do_not_descend_get_no_depth():
     """Height-field ray cast from a camera looking horizontally: rays at and above the horizon get depth 0, no Inf."""
     field = HeightField.build(box_points(step=2.0), CAMS)
