@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from .cameras import Camera, estimate_up, nadir_angle_deg, up_frame
 
+
 def applies(cams: Sequence[Camera]) -> tuple[bool, str]:
     """Whether a height field describes the scene these cameras see, and why.
 
