@@ -198,13 +198,19 @@ def prior_depths(geo: SceneGeometry, config: InitConfig, sparse_points: np.ndarr
     return out
 
 
+def near_nadir(up_confidence: float, nadir_deg: float, config: InitConfig) -> tuple[bool, str]:
+    """Whether cameras with this up-axis agreement (:func:`cameras.estimate_up`) and mean angle from
+    straight down (degrees) are near-nadir with a clear up axis, and why."""
+    if up_confidence < config.min_up_confidence:
+        return False, f"the up axis is ambiguous (camera agreement {up_confidence:.2f} < {config.min_up_confidence})"
+    if nadir_deg > config.max_nadir_deg:
+        return False, f"cameras are not near-nadir (mean {nadir_deg:.1f} deg from straight down > {config.max_nadir_deg})"
+    return True, f"near-nadir cameras ({nadir_deg:.1f} deg from straight down, up agreement {up_confidence:.2f})"
+
+
 def overlap_applicable(geo: SceneGeometry, config: InitConfig) -> tuple[bool, str]:
     """Overlap removal and the height map need near-nadir cameras and a clear up axis."""
-    if geo.up_confidence < config.min_up_confidence:
-        return False, f"the up axis is ambiguous (camera agreement {geo.up_confidence:.2f} < {config.min_up_confidence})"
-    if geo.nadir_deg > config.max_nadir_deg:
-        return False, f"cameras are not near-nadir (mean {geo.nadir_deg:.1f} deg from straight down > {config.max_nadir_deg})"
-    return True, f"near-nadir cameras ({geo.nadir_deg:.1f} deg from straight down, up agreement {geo.up_confidence:.2f})"
+    return near_nadir(geo.up_confidence, geo.nadir_deg, config)
 
 
 def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report

@@ -24,21 +24,21 @@ from .cameras import Camera, estimate_up, nadir_angle_deg, up_frame
 
 
 def applies(cams: Sequence[Camera]) -> tuple[bool, str]:
-    """Whether a height field describes the scene these cameras see, and why.
+    """Whether a height field describes the scene these cameras see, and why: the geometry
+    stage's near-nadir test (:func:`init.near_nadir` with :class:`init.InitConfig`'s thresholds)."""
+    from .init import InitConfig, near_nadir
 
-    Same test as the geometry stage's near-nadir decision (thresholds from
-    :class:`init.InitConfig`): a clear up axis and views near straight down.
-    """
-    from .init import InitConfig
-
-    cfg = InitConfig()
     up, conf = estimate_up(cams)
-    if conf < cfg.min_up_confidence:
-        return False, f"no clear up axis (view directions agree to {conf:.2f} < {cfg.min_up_confidence})"
-    nadir = nadir_angle_deg(cams, up)
-    if nadir > cfg.max_nadir_deg:
-        return False, f"views are {nadir:.1f} deg from straight down (> {cfg.max_nadir_deg}): not a height field"
-    return True, f"near-nadir views ({nadir:.1f} deg from straight down): depth holes filled in a height field"
+    return near_nadir(conf, nadir_angle_deg(cams, up), InitConfig())
+
+
+def decide(mode: str, cams: Sequence[Camera]) -> tuple[bool, str]:
+    """Use a height field for pseudo-view depth? ``mode`` auto (:func:`applies`), on or off."""
+    if mode == "auto":
+        return applies(cams)
+    if mode not in ("on", "off"):
+        raise ValueError(f"height-field mode must be auto, on or off, got {mode!r}")
+    return mode == "on", f"switched {mode}"
 
 
 @dataclass
@@ -144,7 +144,8 @@ class HeightField:
         Rays that do not descend (horizon and above) get 0.
         """
         H, W = cam.height, cam.width
-        dl = (cam.backproject(np.ones((H, W))).reshape(-1, 3) - cam.center) @ self.frame.T
+        _, rays = cam.pixel_rays()  # camera-z 1: the ray parameter is the z-depth
+        dl = rays @ self.frame.T
         cl = (cam.center - self.origin) @ self.frame.T
         out = np.zeros(H * W)
         top, bottom = float(self.heights.max()), float(self.heights.min())
@@ -182,4 +183,4 @@ class HeightField:
         return out.reshape(H, W).astype(np.float32)
 
 
-__all__ = ["HeightField", "applies"]
+__all__ = ["HeightField", "applies", "decide"]

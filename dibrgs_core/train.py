@@ -561,12 +561,9 @@ class Trainer:
             path = read_cameras(cfg.pseudo_path)
         frames = [f.cam.cam for f in self.train_frames]
         train_views = [_SimpleView(c, f.image.numpy()) for c, f in zip(frames, self.train_frames)]
-        if cfg.pseudo.surface == "auto":
-            from .surface import applies
+        from .surface import decide
 
-            surface, why = applies(frames)
-        else:
-            surface, why = cfg.pseudo.surface == "on", f"pseudo.surface = {cfg.pseudo.surface}"
+        surface, why = decide(cfg.pseudo.surface, frames)
         self.report.decide("train", "pseudo_depth_height_field", surface, why)
         pvs = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed,
                                  self.work / "pseudo", path=path, surface=surface,

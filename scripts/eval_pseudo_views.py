@@ -40,7 +40,7 @@ def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None, s
     from dibrgs_core.io_levir import read_scene
     from dibrgs_core.losses import psnr
     from dibrgs_core.pseudo_views import build_pseudo_views
-    from dibrgs_core.surface import applies
+    from dibrgs_core.surface import decide
 
     scene = read_scene(scene_dir)
     t0 = time.perf_counter()
@@ -50,7 +50,7 @@ def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None, s
     t_init = time.perf_counter() - t0
     tests = scene.test_views()
     t0 = time.perf_counter()
-    use_surface = applies([v.camera for v in scene.train_views()])[0] if surface == "auto" else surface == "on"
+    use_surface = decide(surface, [v.camera for v in scene.train_views()])[0]
     pvs = build_pseudo_views(scene.train_views(), res.points, len(tests), 0, work / "pseudo",
                              path=[v.camera for v in tests], surface=use_surface, consistency_tol=consistency_tol)
     t_pv = time.perf_counter() - t0
