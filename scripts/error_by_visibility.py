@@ -1,0 +1,125 @@
+#!/usr/bin/env python
+"""Held-out error split by how many training views see each pixel.
+
+For a scene with true depth (a generated one), every held-out pixel is counted
+as seen by 0, 1 or >= 2 training views (occlusion-tested against the training
+views' true depth, :mod:`dibrgs_core.visibility`). Each trained run given is
+rendered at the held-out cameras and its PSNR reported per group, pooled over
+the pixels of all held-out views (so "all" is the PSNR of the pooled squared
+error, not the benchmark's mean of per-view PSNRs).
+
+    python scripts/error_by_visibility.py SCENE WORK [WORK ...] [--tol 0.01]
+        [--json FILE] [--png FILE]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
+    """Visibility fractions of the held-out pixels and each run's PSNR per group."""
+    from dibrgs_core.errors import InputError
+    from dibrgs_core.evaluate import load_trained
+    from dibrgs_core.io_levir import read_scene
+    from dibrgs_core.visibility import SplitError, visibility_count
+
+    scene = read_scene(scene_dir)
+    views = scene.train_views() + scene.test_views()
+    missing = [v.name for v in views if v.depth is None or not (v.depth > 0).any()]
+    if missing:
+        raise InputError(scene_dir, f"views {', '.join(missing)} have no depth; the split needs true depth "
+                                    "(a scene from scripts/make_scene.py has it)")
+    sources = [(v.camera, v.depth) for v in scene.train_views()]
+    counts = {v.name: visibility_count(v.camera, v.depth, sources, tol) for v in scene.test_views()}
+    pixels = SplitError.empty()
+    for v in scene.test_views():
+        pixels.add(v.image[..., :3], v.image[..., :3], counts[v.name])
+    runs = []
+    for w in works:
+        t = load_trained(w)
+        acc = SplitError.empty()
+        for v in scene.test_views():
+            img, _ = t.render(v.camera)
+            acc.add(img, v.image, counts[v.name])
+        runs.append({"work": str(w), "method": t.method, "psnr": acc.psnr()})
+    return {"scene": str(scene_dir), "tol": tol, "views": len(counts), "fractions": pixels.fractions(),
+            "runs": runs}
+
+
+def table(res: dict) -> str:
+    f = res["fractions"]
+    lines = [f"Held-out PSNR (dB) of `{Path(res['scene']).name}` by how many training views see the pixel "
+             f"({res['views']} views; pixels: {f['unseen']:.1%} seen by none, {f['one']:.1%} by one, "
+             f"{f['two_plus']:.1%} by two or more):", "",
+             "| run | all | seen by none | by one | by two or more |", "|---|---:|---:|---:|---:|"]
+
+    def fmt(x):
+        return "-" if x is None else f"{x:.2f}"
+
+    for r in res["runs"]:
+        p = r["psnr"]
+        lines.append(f"| {r['work']} | {fmt(p['all'])} | {fmt(p['unseen'])} | {fmt(p['one'])} | "
+                     f"{fmt(p['two_plus'])} |")
+    return "\n".join(lines)
+
+
+def plot(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from dibrgs_core.fileio import atomic_path
+
+    groups = [("all", "all"), ("unseen", "seen by none"), ("one", "by one"), ("two_plus", "by two+")]
+    n = len(res["runs"])
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    width = 0.8 / max(n, 1)
+    for i, r in enumerate(res["runs"]):
+        vals = [r["psnr"][g] or 0.0 for g, _ in groups]
+        ax.bar(np.arange(len(groups)) + (i - (n - 1) / 2) * width, vals, width, label=Path(r["work"]).name)
+    ax.set_xticks(range(len(groups)), [lab for _, lab in groups])
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title(f"{Path(res['scene']).name}: error by training-view visibility")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from dibrgs_core.errors import InputError
+    from dibrgs_core.fileio import write_json
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("works", type=Path, nargs="+", help="trained run folders (dibrgs train --out)")
+    ap.add_argument("--tol", type=float, default=0.01, help="relative depth tolerance of the occlusion test")
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--png", type=Path, help="bar chart of the groups")
+    a = ap.parse_args(argv)
+    if not a.tol >= 0:
+        print(f"error: --tol must be >= 0, got {a.tol}", file=sys.stderr)
+        return 2
+    try:
+        res = split_errors(a.scene, a.works, a.tol)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(table(res))
+    if a.json:
+        write_json(a.json, res)
+    if a.png:
+        plot(res, a.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
