@@ -42,7 +42,7 @@ log = logging.getLogger("dibrgs.pseudo_views")
 
 EMPTY = -1  #: ``filled_by`` value of pixels nothing could fill
 PADDED = -2  #: ``filled_by`` value of padded pixels
-_CACHE_VERSION = "pseudo-v2"
+_CACHE_VERSION = "pseudo-v3"
 
 
 @dataclass
@@ -402,7 +402,10 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
             (:func:`surface.applies`).
         consistency_tol: warped pixels that at least two sources see with a
             mean absolute RGB difference above this (image units in [0,1])
-            are ``rejected``; 0 keeps them all.
+            are ``rejected``; 0 keeps them all. With ``surface`` too, a pixel
+            whose completed-cloud depth and height-field depth are both seen by
+            two sources takes the one they agree on better (floating MVS points
+            over a street hidden from one view otherwise win the z-buffer).
     """
     from tqdm import tqdm
 
@@ -421,17 +424,27 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
 
         field = HeightField.build(pts, [v.camera for v in train_views])
 
-    def completed(cam: Camera, raw: np.ndarray) -> np.ndarray:
-        return complete_depth(raw, fill=None if field is None else field.depth(cam))
-
     sources = []
     for v in train_views:
-        sources.append((v.camera, v.image, completed(v.camera, zbuffer_depth(pts, v.camera, spacing))))
+        fill = None if field is None else field.depth(v.camera)
+        sources.append((v.camera, v.image, complete_depth(zbuffer_depth(pts, v.camera, spacing), fill=fill)))
+    check = consistency_tol > 0 and len(sources) > 1
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete
     out, files = [], []
     for i, cam in enumerate(tqdm(cams, desc="pseudo views", unit="view", leave=False)):
         raw = zbuffer_depth(pts, cam, spacing)
-        depth = completed(cam, raw)
+        surf = None if field is None else field.depth(cam)
+        depth = complete_depth(raw, fill=surf)
+        if check:
+            count, spread = source_disagreement(cam, depth, sources)
+            if surf is not None:
+                # Two depth hypotheses, the completed cloud and the height field: where
+                # both are seen by two sources, keep the one whose colours agree more.
+                # Floating MVS points in front of occluded streets lose to the ground.
+                c2, s2 = source_disagreement(cam, surf, sources)
+                take = (count >= 2) & (c2 >= 2) & (s2 < spread) & (surf > 0)
+                depth = np.where(take, surf, depth).astype(np.float32)
+                count, spread = np.where(take, c2, count), np.where(take, s2, spread)
         image, valid, filled_by = warp_progressive(cam, depth, sources)
         padded = filled_by == PADDED
         # Depth invented far from any projected point (outside the cloud) is a
@@ -443,8 +456,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         padded |= valid & guessed
         valid &= ~guessed
         rejected = None
-        if consistency_tol > 0 and len(sources) > 1:
-            count, spread = source_disagreement(cam, depth, sources)
+        if check:
             rejected = (valid | padded) & (count >= 2) & (spread > consistency_tol)
             valid &= ~rejected
             padded &= ~rejected

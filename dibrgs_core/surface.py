@@ -63,7 +63,7 @@ class HeightField:
 
     @classmethod
     def build(cls, points: np.ndarray, cams: Sequence[Camera], cell: float | None = None,
-              hole_percentile: float = 10.0, margin: float = 0.25) -> "HeightField":
+              hole_percentile: float = 10.0, margin: float = 0.25, smooth: int = 3) -> "HeightField":
         """Height field of ``points`` (N,3 world, N >= 1) seen by ``cams``.
 
         Each cell holds the highest point in it (the visible surface from
@@ -77,7 +77,9 @@ class HeightField:
         median point spacing. The grid reaches ``margin`` times the cloud's
         extent past it on each side (ground the cameras see beyond the cloud).
         Points far outside the cloud's 1st-99th percentile box (by more than
-        half its size) are ignored.
+        half its size) are ignored. Last, a ``smooth`` x ``smooth`` median
+        filter (1 = none) removes single-cell spikes: a cell keeps its
+        highest point, so one floating MVS outlier would raise it.
         """
         from .pseudo_views import point_spacing
 
@@ -126,6 +128,8 @@ class HeightField:
                 if b > a:
                     fill[k] = np.percentile(rh[a:b], hole_percentile)
             heights[hole] = fill[lab[hole]]
+        if smooth > 1:
+            heights = ndimage.median_filter(heights, size=int(smooth), mode="nearest")
         return cls(F, o, lo, cell, heights, measured)
 
     def height(self, xy: np.ndarray) -> np.ndarray:

@@ -79,6 +79,21 @@ def test_holes_take_the_low_rim_streets_become_ground_roofs_stay_roofs():
     assert abs(h((0.0, 0.0)) - BOX_H) < 0.5, "roof hole filled with roof"
 
 
+def test_median_smoothing_removes_a_floating_outlier_but_keeps_the_building():
+    pts = np.vstack([box_points(), [[25.1, 25.1, 12.0]]])  # one MVS outlier 12 above the ground
+
+    def h(field, xy):
+        loc = (np.array([[xy[0], xy[1], 0.0]]) - field.origin) @ field.frame.T
+        return float(field.height(loc[:, :2])[0] + field.origin @ field.frame[2])
+
+    raw = HeightField.build(pts, CAMS, cell=0.5, smooth=1)
+    smooth = HeightField.build(pts, CAMS, cell=0.5)
+    assert h(raw, (25.1, 25.1)) > 11.0
+    assert abs(h(smooth, (25.1, 25.1))) < 0.5
+    for field in (raw, smooth):
+        assert abs(h(field, (0.0, 0.0)) - BOX_H) < 0.5 and abs(h(field, (9.6, 9.6)) - BOX_H) < 0.5
+
+
 def test_height_field_depth_completes_pseudo_view_holes_better_than_nearest_pixel():
     from dibrgs_core.pseudo_views import complete_depth, zbuffer_depth
 
@@ -196,3 +211,38 @@ def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
     again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "b", surface=True,
                                consistency_tol=0.1)
     assert all(np.array_equal(x.rejected, y.rejected) for x, y in zip(rej, again))
+
+
+def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_ground(tmp_path):
+    """MVS noise: a sheet of points hovering 6 above one street. The completed cloud depth puts the
+    street at the sheet; the height field (median-smoothed) keeps the ground. The sources' colours
+    agree at the ground, so the pseudo view takes the height-field depth there."""
+    from dibrgs_core.io_levir import View
+    from dibrgs_core.pseudo_views import build_pseudo_views
+
+    def img(c: Camera) -> np.ndarray:
+        o, d = c.pixel_rays()
+        p = o + box_depth(c).ravel()[:, None] * d
+        rgb = np.stack([0.5 + 0.4 * np.sin(p[:, 0] / 2), 0.5 + 0.4 * np.cos(p[:, 1] / 2.5), 0.3 + p[:, 2] / 30], 1)
+        return np.clip(rgb, 0, 1).reshape(c.height, c.width, 3).astype(np.float32)
+
+    pts = box_points(step=1.0)
+    g = np.arange(-30.0, -14.0, 4.0)   # sparse: one floating point every 4 units
+    fx, fy = np.meshgrid(g, g)
+    floating = np.stack([fx.ravel(), fy.ravel(), np.full(fx.size, 6.0)], 1)
+    dirty = np.concatenate([pts, floating])
+    views = [View(camera=c, image=img(c)) for c in CAMS]
+    tgt = [cam(60, 15)]
+    pv = build_pseudo_views(views, dirty, 1, 0, tmp_path / "p", path=tgt, surface=True, consistency_tol=0.1)[0]
+    ref = box_depth(tgt[0])
+    o, d = tgt[0].pixel_rays()
+    p = o + ref.ravel()[:, None] * d
+    street = ((p[:, 0] > -30) & (p[:, 0] < -16) & (p[:, 1] > -30) & (p[:, 1] < -16)).reshape(ref.shape)
+    assert street.sum() > 30
+    from dibrgs_core.pseudo_views import complete_depth, point_spacing, zbuffer_depth
+
+    cloud_only = complete_depth(zbuffer_depth(dirty, tgt[0], point_spacing(dirty)),
+                                fill=HeightField.build(dirty, CAMS).depth(tgt[0]))
+    err_cloud = np.abs(cloud_only - ref)[street].mean()
+    err_pv = np.abs(pv.depth - ref)[street].mean()
+    assert err_pv < 0.5 * err_cloud, (err_pv, err_cloud)

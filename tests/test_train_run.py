@@ -254,6 +254,24 @@ def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
     # Bad input: a missing run folder is a clear error, exit code 2.
     r = _dibrgs("eval", str(tmp_path / "nope"))
     assert r.returncode == 2 and "no trained model" in r.stderr
+    # The held-out error split by training-view visibility, on the same run.
+    script = Path(__file__).resolve().parents[1] / "scripts" / "error_by_visibility.py"
+    r = subprocess.run([sys.executable, str(script), str(tiny_scene), str(work), "--json", str(tmp_path / "v.json"),
+                        "--png", str(tmp_path / "v.png")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    split = json.loads((tmp_path / "v.json").read_text())
+    assert sum(split["fractions"][k] for k in ("unseen", "one", "two_plus")) == pytest.approx(1.0)
+    p = split["runs"][0]["psnr"]
+    # Pooled over pixels, "all" is close to (not equal to) the mean of per-view PSNRs.
+    assert abs(p["all"] - m["psnr"]) < 1.5, (p, m["psnr"])
+    # Pixels more training views see are reconstructed better.
+    assert p["two_plus"] > p["unseen"], p
+    assert (tmp_path / "v.png").stat().st_size > 0 and "seen by none" in r.stdout
+    no_depth = tmp_path / "nodepth"
+    shutil.copytree(tiny_scene, no_depth, ignore=shutil.ignore_patterns("Depths"))
+    r = subprocess.run([sys.executable, str(script), str(no_depth), str(work)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "no depth" in r.stderr, r.stderr[-2000:]
 
 
 def test_pseudo_view_flags_reach_the_config():
