@@ -261,7 +261,8 @@ def _result_steps(context, python: str) -> list["jobs.Step"]:
     if held:
         cams = path_mod.write_camera_list(bdir / "heldout_cameras.json", held)
         steps.append(_step(context, "Render held-out", jobs.render_command(python, work, cams, bdir / "renders" / "heldout")))
-    pseudo = scene_build.path_cameras(context, context.scene.dibrgs.pseudo_count, "pseudo")
+    props = context.scene.dibrgs
+    pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count), "pseudo")
     cams = path_mod.write_camera_list(bdir / "pseudo_render_cameras.json", pseudo)
     steps.append(_step(context, "Render pseudo path", jobs.render_command(python, work, cams, bdir / "renders" / "pseudo")))
     if held:
@@ -314,7 +315,8 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
         props = context.scene.dibrgs
         python, work, root = _python(context), work_dir(context), scene_dir(context)
         # The path as it is now is what training uses.
-        pseudo = scene_build.path_cameras(context, props.pseudo_count, "pseudo")
+        pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count),
+                                          "pseudo")
         pseudo_json = path_mod.write_camera_list(blender_dir(context) / "pseudo_path.json", pseudo)
         opts = jobs.TrainOptions(preset=props.preset, method=props.method,
                                  iterations=props.iterations or None, pseudo_path=pseudo_json,

@@ -64,8 +64,9 @@ class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
     iterations: IntProperty(name="Iterations", default=0, min=0,
                             description="0: the preset's number of iterations")
     resume: BoolProperty(name="Resume", default=False, description="Continue from the run folder's checkpoint")
-    pseudo_count: IntProperty(name="Pseudo views", default=12, min=1, max=1000,
-                              description="Number of pseudo views sampled along the path")
+    pseudo_count: IntProperty(name="Pseudo views", default=0, min=0, max=1000,
+                              description="Number of pseudo views sampled along the path; 0: the preset's "
+                                          "number (96 for cpu)")
     path_curve: PointerProperty(name="Path", type=bpy.types.Object, poll=_is_curve,
                                 description="Curve the pseudo views and the fly-through follow")
     path_target: PointerProperty(name="Look at", type=bpy.types.Object,

@@ -30,14 +30,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--preset", choices=["test", "cpu", "paper"], default="cpu")
     p.add_argument("--method", choices=["dibrgs", "3dgs"], default="dibrgs")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
-    p.add_argument("--pseudo-views", type=int, default=12, help="pseudo views sampled along the orbit")
+    p.add_argument("--pseudo-views", type=int, default=0,
+                   help="pseudo views sampled along the orbit (0: the preset's number, 96 for cpu)")
     p.add_argument("--fly-frames", type=int, default=0, help="render a fly-through of this many frames (0: none)")
     p.add_argument("--no-init", action="store_true", help="skip the separate initialise step (training runs it)")
     p.add_argument("--python", default=None, help="interpreter with torch and dibrgs_core")
     p.add_argument("--blend", type=Path, default=None, help="output .blend (default OUT/dibrgs.blend)")
     args = p.parse_args(argv)
-    if args.iterations < 0 or args.pseudo_views < 1 or args.fly_frames < 0:
-        p.error("--iterations and --fly-frames must be >= 0, --pseudo-views >= 1")
+    if args.iterations < 0 or args.pseudo_views < 0 or args.fly_frames < 0:
+        p.error("--iterations, --pseudo-views and --fly-frames must be >= 0")
     if not args.scene.is_dir():
         p.error(f"--scene {args.scene}: not a folder")
     return args

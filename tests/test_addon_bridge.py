@@ -166,6 +166,12 @@ def test_train_command_carries_the_options(tmp_path):
         jobs.TrainOptions(iterations=0)
     env = jobs.subprocess_env({"PYTHONPATH": "/elsewhere"})
     assert env["PYTHONPATH"].split(":")[0] == str(REPO) and "/elsewhere" in env["PYTHONPATH"]
+    # The panel's "Pseudo views" 0 means the preset's own count; a number the user sets wins.
+    from dibrgs_core.config import preset
+
+    assert jobs.pseudo_view_count("cpu") == preset("cpu").pseudo.n_views == 96
+    assert jobs.pseudo_view_count("test") == preset("test").pseudo.n_views
+    assert jobs.pseudo_view_count("cpu", 7) == 7
 
 
 def _script(tmp_path: Path, name: str, body: str) -> list[str]:
