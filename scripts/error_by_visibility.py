@@ -36,7 +36,7 @@ def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
                                     "(a scene from scripts/make_scene.py has it)")
     sources = [(v.camera, v.depth) for v in scene.train_views()]
     counts = {v.name: visibility_count(v.camera, v.depth, sources, tol) for v in scene.test_views()}
-    pixels = SplitError.empty()
+    pixels = SplitError.empty()  # an exact render: only the pixel counts per group matter
     for v in scene.test_views():
         pixels.add(v.image[..., :3], v.image[..., :3], counts[v.name])
     runs = []
