@@ -20,7 +20,7 @@ import numpy as np
 
 from .cameras import Camera
 
-#: Groups reported by :func:`psnr_by_visibility`: (name, min count, max count or None).
+#: Groups :class:`SplitError` reports: (name, min count, max count or None).
 GROUPS: tuple[tuple[str, int, int | None], ...] = (("unseen", 0, 0), ("one", 1, 1), ("two_plus", 2, None))
 
 

@@ -58,6 +58,12 @@ def box_points(step: float = 0.5, street_hole: bool = False, roof_hole: bool = F
 CAMS = [cam(a) for a in (0, 120, 240)]
 
 
+def world_height(field: HeightField, xy: tuple[float, float]) -> float:
+    """World height of ``field`` under world (x, y); up is +z in these scenes."""
+    loc = (np.array([[xy[0], xy[1], 0.0]]) - field.origin) @ field.frame.T
+    return float(field.height(loc[:, :2])[0] + field.origin @ field.frame[2])
+
+
 def test_raycast_matches_the_exact_box_scene_walls_included():
     field = HeightField.build(box_points(), CAMS, cell=0.5)
     for c in (cam(60, 15), cam(200, 30)):
@@ -71,27 +77,19 @@ def test_raycast_matches_the_exact_box_scene_walls_included():
 def test_holes_take_the_low_rim_streets_become_ground_roofs_stay_roofs():
     field = HeightField.build(box_points(street_hole=True, roof_hole=True), CAMS, cell=0.5)
     assert not field.measured.all()
-    def h(xy):  # world height of the field under world (x, y); up is +z here
-        X = np.array([[xy[0], xy[1], 0.0]])
-        loc = (X - field.origin) @ field.frame.T
-        return float(field.height(loc[:, :2])[0] + field.origin @ field.frame[2])
-    assert abs(h((15.0, 0.0)) - 0.0) < 0.5, "street hole filled with ground"
-    assert abs(h((0.0, 0.0)) - BOX_H) < 0.5, "roof hole filled with roof"
+    assert abs(world_height(field, (15.0, 0.0)) - 0.0) < 0.5, "street hole filled with ground"
+    assert abs(world_height(field, (0.0, 0.0)) - BOX_H) < 0.5, "roof hole filled with roof"
 
 
 def test_median_smoothing_removes_a_floating_outlier_but_keeps_the_building():
     pts = np.vstack([box_points(), [[25.1, 25.1, 12.0]]])  # one MVS outlier 12 above the ground
-
-    def h(field, xy):
-        loc = (np.array([[xy[0], xy[1], 0.0]]) - field.origin) @ field.frame.T
-        return float(field.height(loc[:, :2])[0] + field.origin @ field.frame[2])
-
     raw = HeightField.build(pts, CAMS, cell=0.5, smooth=1)
     smooth = HeightField.build(pts, CAMS, cell=0.5)
-    assert h(raw, (25.1, 25.1)) > 11.0
-    assert abs(h(smooth, (25.1, 25.1))) < 0.5
+    assert world_height(raw, (25.1, 25.1)) > 11.0
+    assert abs(world_height(smooth, (25.1, 25.1))) < 0.5
     for field in (raw, smooth):
-        assert abs(h(field, (0.0, 0.0)) - BOX_H) < 0.5 and abs(h(field, (9.6, 9.6)) - BOX_H) < 0.5
+        assert abs(world_height(field, (0.0, 0.0)) - BOX_H) < 0.5
+        assert abs(world_height(field, (9.6, 9.6)) - BOX_H) < 0.5
 
 
 def test_height_field_depth_completes_pseudo_view_holes_better_than_nearest_pixel():
