@@ -23,11 +23,11 @@ CORE_PACKAGE = f"{_PARENT}.dibrgs_core" if _PARENT else "dibrgs_core"
 #: Blender registered, i.e. the extension root, or "addon" when top-level.
 ADDON_PACKAGE = _PARENT or __package__
 
-cameras = importlib.import_module(CORE_PACKAGE + ".cameras")
+cameras = importlib.import_module(CORE_PACKAGE + ".camera.pinhole")
 path = importlib.import_module(CORE_PACKAGE + ".bridge.path")
 progress = importlib.import_module(CORE_PACKAGE + ".bridge.progress")
 compositor = importlib.import_module(CORE_PACKAGE + ".bridge.compositor")
 jobs = importlib.import_module(CORE_PACKAGE + ".bridge.jobs")
 reports = importlib.import_module(CORE_PACKAGE + ".bridge.reports")
 geometry = importlib.import_module(CORE_PACKAGE + ".bridge.geometry")
-height_map = importlib.import_module(CORE_PACKAGE + ".height_map")
+height_map = importlib.import_module(CORE_PACKAGE + ".geometry.height_map")

@@ -15,7 +15,7 @@ _result_items: list[tuple[str, str, str]] = []
 
 
 class DIBRGS_Decision(bpy.types.PropertyGroup):
-    """One stage decision from a report (``dibrgs_core.report``)."""
+    """One stage decision from a report (``dibrgs_core.common.report``)."""
 
     stage: StringProperty()
     step: StringProperty()

@@ -1,6 +1,6 @@
 """Blender objects of the add-on: scene cameras, dense points, height map, path, fly-through.
 
-Poses and intrinsics go through ``dibrgs_core.cameras.to_blender`` /
+Poses and intrinsics go through ``dibrgs_core.camera.pinhole.to_blender`` /
 ``from_blender`` only, so the Blender cameras reproduce the files exactly.
 """
 from __future__ import annotations

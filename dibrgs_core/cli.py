@@ -14,7 +14,7 @@ import sys
 # 2-core machine; must be set before torch is first imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from .errors import InputError
+from .common.errors import InputError
 
 COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export"]
 

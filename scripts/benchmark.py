@@ -21,7 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dibrgs_core import benchmark as bm  # noqa: E402
+from dibrgs_core.bench import runner as bm  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 
 For a scene with true depth (a generated one), every held-out pixel is counted
 as seen by 0, 1 or >= 2 training views (occlusion-tested against the training
-views' true depth, :mod:`dibrgs_core.visibility`). Each trained run given is
+views' true depth, :mod:`dibrgs_core.geometry.visibility`). Each trained run given is
 rendered at the held-out cameras and its PSNR reported per group, pooled over
 the pixels of all held-out views (so "all" is the PSNR of the pooled squared
 error, not the benchmark's mean of per-view PSNRs).
@@ -23,10 +23,10 @@ sys.path.insert(0, str(REPO))
 
 def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
     """Visibility fractions of the held-out pixels and each run's PSNR per group."""
-    from dibrgs_core.errors import InputError
-    from dibrgs_core.evaluate import load_trained
-    from dibrgs_core.io_levir import read_scene
-    from dibrgs_core.visibility import SplitError, visibility_count
+    from dibrgs_core.common.errors import InputError
+    from dibrgs_core.evaluation.evaluate import load_trained
+    from dibrgs_core.data.levir import read_scene
+    from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
     scene = read_scene(scene_dir)
     views = scene.train_views() + scene.test_views()
@@ -75,7 +75,7 @@ def plot(res: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from dibrgs_core.fileio import atomic_path
+    from dibrgs_core.common.fileio import atomic_path
 
     groups = [("all", "all"), ("unseen", "seen by none"), ("one", "by one"), ("two_plus", "by two+")]
     n = len(res["runs"])
@@ -95,8 +95,8 @@ def plot(res: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dibrgs_core.errors import InputError
-    from dibrgs_core.fileio import write_json
+    from dibrgs_core.common.errors import InputError
+    from dibrgs_core.common.fileio import write_json
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene", type=Path)

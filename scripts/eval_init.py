@@ -49,7 +49,7 @@ def corrupted_disparity(depth: np.ndarray, rng: np.random.Generator) -> np.ndarr
 
 def reprojection_errors(cams, gts, points) -> tuple[float, float, float]:
     """(MAE, Abs Rel, coverage) of the z-buffered cloud against ground truth over the views."""
-    from dibrgs_core.fusion import zbuffer
+    from dibrgs_core.geometry.fusion import zbuffer
 
     abs_e, rel_e, cov = [], [], []
     for cam, gt in zip(cams, gts):
@@ -64,7 +64,7 @@ def reprojection_errors(cams, gts, points) -> tuple[float, float, float]:
 
 def write_section(md: Path, body: str) -> None:
     """Replace (or append) the ``## Initialisation`` section of ``md``."""
-    from dibrgs_core.fileio import write_text
+    from dibrgs_core.common.fileio import write_text
 
     text = md.read_text() if md.exists() else "# Benchmarks\n"
     lines = text.splitlines(keepends=True)
@@ -92,11 +92,18 @@ def main(argv: list[str] | None = None) -> int:
 
     pycolmap.logging.minloglevel = 2
     torch.set_num_threads(2)
-    from dibrgs_core.depth_prior import PriorMaps, compute_prior
-    from dibrgs_core.fusion import backproject_views
-    from dibrgs_core.init import InitConfig, initialise, prior_depths, refine_cloud, run_sparse, scene_geometry
-    from dibrgs_core.io_levir import read_any_scene
-    from dibrgs_core.report import Report
+    from dibrgs_core.geometry.depth_prior import PriorMaps, compute_prior
+    from dibrgs_core.geometry.fusion import backproject_views
+    from dibrgs_core.geometry.pipeline import (
+        InitConfig,
+        initialise,
+        prior_depths,
+        refine_cloud,
+        run_sparse,
+        scene_geometry,
+    )
+    from dibrgs_core.data.levir import read_any_scene
+    from dibrgs_core.common.report import Report
 
     scene = read_any_scene(args.scene, train_ids=args.train_ids.split(",") if args.train_ids else None,
                            load_depth=True)

@@ -30,17 +30,17 @@ sys.path.insert(0, str(REPO))
 def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None, surface: str = "auto",
              consistency_tol: float = 0.0) -> dict:
     """Initialise ``scene_dir`` with ``prior`` in ``work`` and score pseudo views at the held-out cameras.
-    ``mvs`` overrides :class:`dibrgs_core.mvs.MvsConfig` fields; ``surface`` (auto | on | off) and
-    ``consistency_tol`` are the trainer's pseudo-view options (:class:`dibrgs_core.config.PseudoConfig`)."""
+    ``mvs`` overrides :class:`dibrgs_core.geometry.mvs.MvsConfig` fields; ``surface`` (auto | on | off) and
+    ``consistency_tol`` are the trainer's pseudo-view options (:class:`dibrgs_core.training.config.PseudoConfig`)."""
     from dataclasses import replace
 
     import torch
 
-    from dibrgs_core.init import InitConfig, initialise
-    from dibrgs_core.io_levir import read_scene
-    from dibrgs_core.losses import psnr
-    from dibrgs_core.pseudo_views import build_pseudo_views
-    from dibrgs_core.surface import decide
+    from dibrgs_core.geometry.pipeline import InitConfig, initialise
+    from dibrgs_core.data.levir import read_scene
+    from dibrgs_core.training.losses import psnr
+    from dibrgs_core.training.pseudo_views import build_pseudo_views
+    from dibrgs_core.geometry.surface import decide
 
     scene = read_scene(scene_dir)
     t0 = time.perf_counter()

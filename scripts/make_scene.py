@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Render a procedural aerial scene in LEVIR-NVS layout (thin CLI over dibrgs_core.scenegen).
+"""Render a procedural aerial scene in LEVIR-NVS layout (thin CLI over dibrgs_core.synth.writer).
 
 Runs with the bpy module or inside Blender:
 
@@ -16,7 +16,7 @@ from pathlib import Path
 # Inside Blender the repository is not installed: import dibrgs_core from the checkout.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dibrgs_core.scenegen import DEFAULT_ORBIT, KINDS, ORBITS, make_scene  # noqa: E402
+from dibrgs_core.synth.writer import DEFAULT_ORBIT, KINDS, ORBITS, make_scene  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

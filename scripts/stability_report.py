@@ -23,7 +23,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dibrgs_core.fileio import write_text  # noqa: E402
+from dibrgs_core.common.fileio import write_text  # noqa: E402
 
 
 class Collector:

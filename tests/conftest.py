@@ -27,7 +27,7 @@ def shared_file(rel: str) -> Path:
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     """A 64x64 generated city scene in LEVIR-NVS layout (rendered once per session)."""
-    from dibrgs_core.scenegen import make_scene
+    from dibrgs_core.synth.writer import make_scene
 
     out = tmp_path_factory.mktemp("scenes") / "city64"
     make_scene(kind="city", resolution=64, seed=0, out=out)

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dibrgs_core.cameras import Camera, look_at
+from dibrgs_core.camera.pinhole import Camera, look_at
 
 try:  # the foundation helper's scene types, when present
-    from dibrgs_core.io_levir import Scene, View
+    from dibrgs_core.data.levir import Scene, View
 except ImportError:  # pragma: no cover - until io_levir lands
     @dataclass
     class View:  # type: ignore[no-redef]

@@ -15,8 +15,8 @@ import pytest
 
 from dibrgs_core.bridge import compositor, jobs, path, progress, reports
 from dibrgs_core.bridge.geometry import height_map_mesh
-from dibrgs_core.cameras import Camera, camera_from_dict, fit_orbit, look_at
-from dibrgs_core.height_map import HeightMap
+from dibrgs_core.camera.pinhole import Camera, camera_from_dict, fit_orbit, look_at
+from dibrgs_core.geometry.height_map import HeightMap
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -167,7 +167,7 @@ def test_train_command_carries_the_options(tmp_path):
     env = jobs.subprocess_env({"PYTHONPATH": "/elsewhere"})
     assert env["PYTHONPATH"].split(":")[0] == str(REPO) and "/elsewhere" in env["PYTHONPATH"]
     # The panel's "Pseudo views" 0 means the preset's own count; a number the user sets wins.
-    from dibrgs_core.config import preset
+    from dibrgs_core.training.config import preset
 
     assert jobs.pseudo_view_count("cpu") == preset("cpu").pseudo.n_views == 96
     assert jobs.pseudo_view_count("test") == preset("test").pseudo.n_views
@@ -263,14 +263,14 @@ def test_reports_decisions_and_metrics(tmp_path):
                                  "per_view": [1, 2], "mean": {"psnr": 25.5, "deep": {"x": 1}}})
     assert m == {"psnr": 25.5, "ssim": 0.8, "mean/psnr": 25.5}
     (tmp_path / "bad.json").write_text("{")
-    from dibrgs_core.errors import InputError
+    from dibrgs_core.common.errors import InputError
     with pytest.raises(InputError, match="bad.json"):
         reports.read_json(tmp_path / "bad.json")
 
 
 def test_height_map_mesh_in_world_coordinates():
     up = np.array([0.0, 0.6, 0.8])
-    from dibrgs_core.cameras import up_frame
+    from dibrgs_core.camera.pinhole import up_frame
     F = up_frame(up)
     bounds = np.array([[1.0, 2.0, np.nan], [3.0, 4.0, 5.0]])
     hm = HeightMap(up_frame=F, origin=np.array([10.0, 0, 0]), cell=2.0, x0=-1.0, y0=0.0, bounds=bounds)

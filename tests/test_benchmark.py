@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from dibrgs_core import benchmark as bm
+from dibrgs_core.bench import runner as bm
 
 
 def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene):

@@ -6,9 +6,20 @@ import math
 import numpy as np
 import pytest
 
-from dibrgs_core.cameras import (BlenderCameraParams, Camera, camera_from_dict, camera_to_dict, estimate_up,
-                                 fit_orbit, from_blender, look_at, nadir_angle_deg, rigid_inverse, to_blender,
-                                 up_frame)
+from dibrgs_core.camera.pinhole import (
+    BlenderCameraParams,
+    Camera,
+    camera_from_dict,
+    camera_to_dict,
+    estimate_up,
+    fit_orbit,
+    from_blender,
+    look_at,
+    nadir_angle_deg,
+    rigid_inverse,
+    to_blender,
+    up_frame,
+)
 
 FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 

@@ -5,10 +5,16 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.depth_prior import (align_view, compute_prior, load_depth_anything, map_disparity,
-                                     predict_disparity, robust_affine)
-from dibrgs_core.errors import InputError
-from dibrgs_core.mvs import MvsConfig, mvs_depths
+from dibrgs_core.geometry.depth_prior import (
+    align_view,
+    compute_prior,
+    load_depth_anything,
+    map_disparity,
+    predict_disparity,
+    robust_affine,
+)
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.geometry.mvs import MvsConfig, mvs_depths
 from geom_synth import make_synthetic_scene
 
 torch.set_num_threads(2)
@@ -37,7 +43,7 @@ def test_depth_anything_tiny_model_roundtrip(tmp_path):
     assert disp.shape == (40, 50) and np.isfinite(disp).all()
     assert disp.std() > 0  # the randomly initialised head still responds to the image
     # The same path through compute_prior gives disparity maps for every view.
-    from dibrgs_core.cameras import Camera
+    from dibrgs_core.camera.pinhole import Camera
     cam = Camera(np.diag([50.0, 50.0, 1.0]) + np.array([[0, 0, 25], [0, 0, 20], [0, 0, 0]]), np.eye(4), 50, 40)
     prior = compute_prior("depth-anything-v2", [cam], [img], None, None, 10.0, depth_model=tmp_path)
     assert prior.kind == "disparity" and prior.maps[0].shape == (40, 50)
@@ -151,7 +157,7 @@ def test_mvs_reduced_resolution_path(scene128):
 def test_consistency_drops_floating_and_keeps_confirmed_depths(scene128):
     """The cross-view check keeps ground-truth depths that another view confirms and drops a depth
     map that floats 10% in front of the surfaces (each pair of such maps agrees with nothing)."""
-    from dibrgs_core.mvs import MvsResult, _consistency_filter
+    from dibrgs_core.geometry.mvs import MvsResult, _consistency_filter
 
     vs = scene128.train_views()
     cams = [v.camera for v in vs]
@@ -167,7 +173,7 @@ def test_consistency_drops_floating_and_keeps_confirmed_depths(scene128):
 
 def test_height_planes_chosen_for_nadir_views(scene128):
     """``planes="auto"`` sweeps horizontal planes for these downward-looking cameras, ``fronto`` does not."""
-    from dibrgs_core.mvs import sweep_up
+    from dibrgs_core.geometry.mvs import sweep_up
 
     cams = [v.camera for v in scene128.train_views()]
     up = sweep_up(cams, MvsConfig())
@@ -182,7 +188,7 @@ def test_semi_global_aggregation_recovers_planes_that_winner_take_all_misses():
     only 0.3 cheaper than the others under noise of 0.15: winner-take-all on the raw cost is right
     at under half the pixels, semi-global aggregation (4 and 8 paths) at most of them on both sides
     of the step."""
-    from dibrgs_core.mvs import semi_global
+    from dibrgs_core.geometry.mvs import semi_global
 
     g = torch.Generator().manual_seed(0)
     D, H, W = 40, 48, 64
@@ -204,7 +210,7 @@ def test_semi_global_aggregation_recovers_planes_that_winner_take_all_misses():
 @pytest.mark.parametrize("shape", [(1, 1, 1), (3, 1, 50), (3, 50, 1), (5, 2, 3)])
 def test_semi_global_degenerate_shapes_and_flat_costs(shape):
     """One plane, one-pixel lines and a constant cost volume stay finite and keep the cost's shape."""
-    from dibrgs_core.mvs import semi_global
+    from dibrgs_core.geometry.mvs import semi_global
 
     for cost in (torch.full(shape, 2.0), torch.zeros(shape)):
         for paths in (4, 8):
@@ -226,7 +232,7 @@ def test_mvs_with_semi_global_is_at_least_as_complete(scene128):
 
 
 def test_semi_global_refuses_other_path_counts():
-    from dibrgs_core.mvs import semi_global
+    from dibrgs_core.geometry.mvs import semi_global
 
     with pytest.raises(ValueError, match="4 or 8"):
         semi_global(torch.zeros(3, 4, 4), 0.1, 1.0, paths=2)

@@ -5,9 +5,18 @@ import pytest
 
 import numpy as np
 
-from dibrgs_core.cameras import Camera, look_at, up_frame
-from dibrgs_core.fusion import (backproject_views, dip_cells, overlap_pairs_drop, read_ply, reproject_max_depth,
-                                to_frame, voxel_downsample, write_ply, zbuffer)
+from dibrgs_core.camera.pinhole import Camera, look_at, up_frame
+from dibrgs_core.geometry.fusion import (
+    backproject_views,
+    dip_cells,
+    overlap_pairs_drop,
+    read_ply,
+    reproject_max_depth,
+    to_frame,
+    voxel_downsample,
+    write_ply,
+    zbuffer,
+)
 
 
 def _cam(eye=(0, 0, 100.0), size=32):

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.cameras import up_frame
-from dibrgs_core.errors import InputError
-from dibrgs_core.height_map import HeightMap
+from dibrgs_core.camera.pinhole import up_frame
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.geometry.height_map import HeightMap
 
 
 def _cloud():

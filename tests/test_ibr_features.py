@@ -1,14 +1,22 @@
-"""Tests for dibrgs_core.ibr_features: DINO key names, weight loading, projection/sampling."""
+"""Tests for dibrgs_core.models.ibr.features: DINO key names, weight loading, projection/sampling."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.cameras import Camera, look_at
-from dibrgs_core.errors import InputError
-from dibrgs_core.ibr_features import (IBRFeatures, ResNetFeatures, ViTFeatures, build_ibr, dino_resnet50,
-                                      dino_vitb8, load_backbone_weights, resolve_encoder)
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.models.ibr.features import (
+    IBRFeatures,
+    ResNetFeatures,
+    ViTFeatures,
+    build_ibr,
+    dino_resnet50,
+    dino_vitb8,
+    load_backbone_weights,
+    resolve_encoder,
+)
 
 torch.set_num_threads(2)
 

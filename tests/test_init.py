@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.fusion import read_ply, zbuffer
-from dibrgs_core.height_map import HeightMap
-from dibrgs_core.init import InitConfig, initialise
+from dibrgs_core.geometry.fusion import read_ply, zbuffer
+from dibrgs_core.geometry.height_map import HeightMap
+from dibrgs_core.geometry.pipeline import InitConfig, initialise
 from geom_synth import make_synthetic_scene
 
 torch.set_num_threads(2)

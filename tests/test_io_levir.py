@@ -8,11 +8,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dibrgs_core.cameras import Camera, camera_to_dict, look_at
+from dibrgs_core.camera.pinhole import Camera, camera_to_dict, look_at
 from dibrgs_core.cli import main as dibrgs
-from dibrgs_core.errors import InputError
-from dibrgs_core.io_levir import (View, default_split, read_cameras, read_cams_file, read_depth, read_scene,
-                                  write_cams_file, write_depth_exr, write_depth_tiff, write_scene)
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.data.levir import (
+    View,
+    default_split,
+    read_cameras,
+    read_cams_file,
+    read_depth,
+    read_scene,
+    write_cams_file,
+    write_depth_exr,
+    write_depth_tiff,
+    write_scene,
+)
 
 W, H = 24, 16  # non-square on purpose
 

@@ -1,4 +1,4 @@
-"""Tests for dibrgs_core.losses against scikit-image and at numeric extremes."""
+"""Tests for dibrgs_core.training.losses against scikit-image and at numeric extremes."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from dibrgs_core.losses import photometric_loss, psnr, ssim
+from dibrgs_core.training.losses import photometric_loss, psnr, ssim
 
 torch.set_num_threads(2)
 

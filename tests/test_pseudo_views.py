@@ -1,4 +1,4 @@
-"""Tests for dibrgs_core.pseudo_views on an analytic two-layer scene with known depth and colour."""
+"""Tests for dibrgs_core.training.pseudo_views on an analytic two-layer scene with known depth and colour."""
 from __future__ import annotations
 
 import time
@@ -6,10 +6,18 @@ import time
 import numpy as np
 import pytest
 
-from dibrgs_core.cameras import Camera, fit_orbit, look_at
-from dibrgs_core.io_levir import View
-from dibrgs_core.pseudo_views import (EMPTY, PADDED, build_pseudo_views, complete_depth, remove_see_through,
-                                      sample_orbit_poses, warp_progressive, zbuffer_depth)
+from dibrgs_core.camera.pinhole import Camera, fit_orbit, look_at
+from dibrgs_core.data.levir import View
+from dibrgs_core.training.pseudo_views import (
+    EMPTY,
+    PADDED,
+    build_pseudo_views,
+    complete_depth,
+    remove_see_through,
+    sample_orbit_poses,
+    warp_progressive,
+    zbuffer_depth,
+)
 
 TOP_H = 1.0  # height of the floating square [-0.6,0.6]^2 above the ground plane z=0
 
@@ -193,7 +201,7 @@ def test_speed_256():
 
 def test_generated_scene_warp_with_gt_depth(tiny_scene):
     """On the rendered city: view 001 warped into 002's pose with GT depth reproduces 002."""
-    from dibrgs_core.io_levir import read_scene
+    from dibrgs_core.data.levir import read_scene
 
     v = read_scene(tiny_scene).views
     a, b = v["001"], v["002"]

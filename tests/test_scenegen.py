@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from dibrgs_core.cameras import estimate_up, fit_orbit, nadir_angle_deg
-from dibrgs_core.io_levir import read_depth, read_scene
-from dibrgs_core.scenegen import DEFAULT_ORBIT, ORBITS, scene_cameras
+from dibrgs_core.camera.pinhole import estimate_up, fit_orbit, nadir_angle_deg
+from dibrgs_core.data.levir import read_depth, read_scene
+from dibrgs_core.synth.writer import DEFAULT_ORBIT, ORBITS, scene_cameras
 
 pytest.importorskip("bpy")
 
@@ -120,7 +120,7 @@ def test_acquisition_geometry(scene):
 
 
 def test_every_kind_renders_and_seed_is_deterministic(tmp_path):
-    from dibrgs_core.scenegen import KINDS, make_scene
+    from dibrgs_core.synth.writer import KINDS, make_scene
 
     def render(kind, seed, name):
         out = make_scene(kind, 16, seed, tmp_path / name, samples=4)
@@ -180,7 +180,7 @@ def test_orbit_presets(name, off_nadir):
 
 
 def test_unknown_orbit_is_refused(tmp_path):
-    from dibrgs_core.scenegen import make_scene
+    from dibrgs_core.synth.writer import make_scene
 
     with pytest.raises(ValueError, match="orbit must be one of"):
         make_scene("city", 16, 0, tmp_path / "x", orbit="spiral")

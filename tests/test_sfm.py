@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dibrgs_core.sfm import SparseCloud, triangulate_known_poses
+from dibrgs_core.geometry.sfm import SparseCloud, triangulate_known_poses
 from geom_synth import make_synthetic_scene
 
 

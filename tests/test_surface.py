@@ -1,11 +1,11 @@
-"""Tests for dibrgs_core.surface (height field of the cloud, ray-cast depth) and its use in pseudo views."""
+"""Tests for dibrgs_core.geometry.surface (height field of the cloud, ray-cast depth) and its use in pseudo views."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from dibrgs_core.cameras import Camera, look_at
-from dibrgs_core.surface import HeightField, applies
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.geometry.surface import HeightField, applies
 
 BOX_H = 10.0  # a 20 x 20 building on flat ground at height 0
 
@@ -93,7 +93,7 @@ def test_median_smoothing_removes_a_floating_outlier_but_keeps_the_building():
 
 
 def test_height_field_depth_completes_pseudo_view_holes_better_than_nearest_pixel():
-    from dibrgs_core.pseudo_views import complete_depth, zbuffer_depth
+    from dibrgs_core.training.pseudo_views import complete_depth, zbuffer_depth
 
     pts = box_points(street_hole=True)
     field = HeightField.build(pts, CAMS, cell=0.5)
@@ -179,8 +179,8 @@ def test_rays_that_do_not_descend_get_no_depth():
 
 
 def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
-    from dibrgs_core.io_levir import View
-    from dibrgs_core.pseudo_views import build_pseudo_views, source_disagreement
+    from dibrgs_core.data.levir import View
+    from dibrgs_core.training.pseudo_views import build_pseudo_views, source_disagreement
 
     def img(c: Camera, shift: float = 0.0) -> np.ndarray:
         o, d = c.pixel_rays()
@@ -215,8 +215,8 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     """MVS noise: a sheet of points hovering 6 above one street. The completed cloud depth puts the
     street at the sheet; the height field (median-smoothed) keeps the ground. The sources' colours
     agree at the ground, so the pseudo view takes the height-field depth there."""
-    from dibrgs_core.io_levir import View
-    from dibrgs_core.pseudo_views import build_pseudo_views
+    from dibrgs_core.data.levir import View
+    from dibrgs_core.training.pseudo_views import build_pseudo_views
 
     def img(c: Camera) -> np.ndarray:
         o, d = c.pixel_rays()
@@ -237,7 +237,7 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     p = o + ref.ravel()[:, None] * d
     street = ((p[:, 0] > -30) & (p[:, 0] < -16) & (p[:, 1] > -30) & (p[:, 1] < -16)).reshape(ref.shape)
     assert street.sum() > 30
-    from dibrgs_core.pseudo_views import complete_depth, point_spacing, zbuffer_depth
+    from dibrgs_core.training.pseudo_views import complete_depth, point_spacing, zbuffer_depth
 
     cloud_only = complete_depth(zbuffer_depth(dirty, tgt[0], point_spacing(dirty)),
                                 fill=HeightField.build(dirty, CAMS).depth(tgt[0]))

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.cameras import Camera, look_at
-from dibrgs_core.config import TrainConfig, expon_lr, preset
-from dibrgs_core.neural_gaussians import NeuralGaussians, build_model, voxelize
-from dibrgs_core.strategy import AnchorStrategy
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.training.config import TrainConfig, expon_lr, preset
+from dibrgs_core.models.scaffold import NeuralGaussians, build_model, voxelize
+from dibrgs_core.strategy.anchor import AnchorStrategy
 
 torch.set_num_threads(1)
 
@@ -23,7 +23,7 @@ def _cam(eye=(0.0, -30.0, 40.0), size=32) -> Camera:
 
 
 def _camt(cam: Camera):
-    from dibrgs_core.train import CamT
+    from dibrgs_core.training.trainer import CamT
 
     return CamT.of(cam)
 
@@ -39,7 +39,7 @@ def _model(n=200, seed=0, use_ibr=False) -> NeuralGaussians:
 # -- config ------------------------------------------------------------------------
 def test_paper_schedule_matches_the_paper_and_scales_with_length():
     """The paper preset gives the paper's iteration numbers; shorter runs keep the fractions."""
-    from dibrgs_core.strategy import AnchorStrategy
+    from dibrgs_core.strategy.anchor import AnchorStrategy
 
     cfg = preset("paper")
     assert cfg.iterations == 30000
@@ -185,7 +185,7 @@ def test_growth_adds_anchors_in_empty_cells_with_zero_moments():
 
 
 def test_height_map_vetoes_growth_at_the_coarsest_level_only():
-    from dibrgs_core.height_map import HeightMap
+    from dibrgs_core.geometry.height_map import HeightMap
 
     m = _model(60)
     cfg = preset("test").growth
@@ -262,8 +262,8 @@ def test_update_accumulates_ndc_gradients_of_rasterized_gaussians():
 
 # -- 3DGS -------------------------------------------------------------------------
 def test_gs3d_clone_split_prune_keep_optimizer_consistent():
-    from dibrgs_core.config import GS3DConfig
-    from dibrgs_core.gs3d import GAUSS_PARAMS, DensifyStrategy, Gaussians3D, eval_sh, optimizer_for
+    from dibrgs_core.training.config import GS3DConfig
+    from dibrgs_core.models.gs3d import GAUSS_PARAMS, DensifyStrategy, Gaussians3D, eval_sh, optimizer_for
 
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (100, 3))
@@ -297,7 +297,7 @@ def test_gs3d_clone_split_prune_keep_optimizer_consistent():
 def test_ply_writer_reads_back_with_trimesh(tmp_path):
     import trimesh
 
-    from dibrgs_core.export import SH_C0, write_gaussian_ply
+    from dibrgs_core.evaluation.export import SH_C0, write_gaussian_ply
 
     rng = np.random.default_rng(0)
     n = 50
@@ -323,8 +323,8 @@ def test_ply_writer_reads_back_with_trimesh(tmp_path):
 
 # -- LPIPS --------------------------------------------------------------------------
 def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
-    from dibrgs_core.errors import InputError
-    from dibrgs_core.evaluate import LPIPS, avge, load_lpips
+    from dibrgs_core.common.errors import InputError
+    from dibrgs_core.evaluation.evaluate import LPIPS, avge, load_lpips
 
     torch.manual_seed(0)
     net = LPIPS("alex")

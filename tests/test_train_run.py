@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.config import preset
-from dibrgs_core.train import MODEL, Trainer, TrainingFailed, train
+from dibrgs_core.training.config import preset
+from dibrgs_core.training.trainer import MODEL, Trainer, TrainingFailed, train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from train_synth import make_synth_scene  # noqa: E402
@@ -149,7 +149,7 @@ def test_extreme_learning_rates_stay_finite(synth, synth_init, tmp_path, factor)
 def test_all_black_images_train_to_a_finite_model(tmp_path):
     """A scene whose images are all black (no SfM points, no texture): the geometry falls back, training
     ends with finite parameters and renders black."""
-    from dibrgs_core.io_levir import View, read_scene, write_scene
+    from dibrgs_core.data.levir import View, read_scene, write_scene
 
     src = make_synth_scene(tmp_path / "src", resolution=24)
     sc = read_scene(src)
@@ -159,7 +159,7 @@ def test_all_black_images_train_to_a_finite_model(tmp_path):
     res = train(black, work, _cfg(20))
     assert res.status == "done"
     _assert_finite(work)
-    from dibrgs_core.evaluate import load_trained
+    from dibrgs_core.evaluation.evaluate import load_trained
 
     img, depth = load_trained(work).render(sc.test_views()[0].camera)
     assert np.isfinite(img).all() and np.isfinite(depth).all() and img.mean() < 0.2
@@ -169,8 +169,8 @@ def test_all_black_images_train_to_a_finite_model(tmp_path):
 def test_pseudo_view_without_valid_pixels_is_left_out(synth, synth_init, tmp_path):
     """A pseudo-view camera that looks away from the scene gets no warped pixel: it is left out with a
     reason in the report, and training still ends finite."""
-    from dibrgs_core.cameras import camera_to_dict, look_at
-    from dibrgs_core.io_levir import read_scene
+    from dibrgs_core.camera.pinhole import camera_to_dict, look_at
+    from dibrgs_core.data.levir import read_scene
 
     cam = read_scene(synth).train_views()[0].camera
     away = type(cam)(K=cam.K, w2c=look_at(cam.center, cam.center + (cam.center - np.zeros(3)), [0, 0, 1.0]),
@@ -277,7 +277,7 @@ def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
 def test_pseudo_view_flags_reach_the_config():
     from dibrgs_core.cli import build_parser
     from dibrgs_core.commands.train import config_from_args
-    from dibrgs_core.errors import InputError
+    from dibrgs_core.common.errors import InputError
 
     p = build_parser()
     cfg = config_from_args(p.parse_args(["train", "S", "--out", "W", "--preset", "cpu"]))

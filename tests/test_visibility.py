@@ -1,11 +1,11 @@
-"""Training-view visibility of held-out pixels and the error split by it (dibrgs_core.visibility)."""
+"""Training-view visibility of held-out pixels and the error split by it (dibrgs_core.geometry.visibility)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from dibrgs_core.io_levir import read_scene
-from dibrgs_core.visibility import SplitError, visibility_count
+from dibrgs_core.data.levir import read_scene
+from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
 
 @pytest.fixture(scope="module")

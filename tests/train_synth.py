@@ -40,9 +40,9 @@ def _cloud(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def make_synth_scene(root: Path, resolution: int = 48, seed: int = 0) -> Path:
     """Write the synthetic scene in LEVIR-NVS layout to ``root`` and return it."""
-    from dibrgs_core.io_levir import View, write_scene
+    from dibrgs_core.data.levir import View, write_scene
     from dibrgs_core.render import rasterize
-    from dibrgs_core.scenegen import OrbitSpec, scene_cameras
+    from dibrgs_core.synth.writer import OrbitSpec, scene_cameras
 
     pts, cols = _cloud(seed)
     spec = OrbitSpec()

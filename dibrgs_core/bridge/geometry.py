@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..height_map import HeightMap
+from ..geometry.height_map import HeightMap
 
 
 def height_map_mesh(hm: HeightMap) -> tuple[np.ndarray, np.ndarray]:

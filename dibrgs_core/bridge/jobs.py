@@ -35,10 +35,10 @@ METHODS = ("dibrgs", "3dgs")
 
 def pseudo_view_count(preset: str, requested: int = 0) -> int:
     """Pseudo views to sample on the add-on's path: ``requested``, or when it is 0 the
-    preset's own count (:mod:`dibrgs_core.config`, 96 for ``cpu``)."""
+    preset's own count (:mod:`dibrgs_core.training.config`, 96 for ``cpu``)."""
     if requested > 0:
         return int(requested)
-    from ..config import preset as make_preset
+    from ..training.config import preset as make_preset
 
     return make_preset(preset).pseudo.n_views
 

@@ -4,7 +4,7 @@ The add-on evaluates its curve object in world space (Blender does the spline
 maths, whatever the spline type) and hands the resulting polyline here. The
 polyline is resampled uniformly by arc length and every sample becomes a
 camera looking at the target, with the intrinsics of a reference camera.
-World units and the OpenCV camera convention of :mod:`dibrgs_core.cameras`.
+World units and the OpenCV camera convention of :mod:`dibrgs_core.camera.pinhole`.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..cameras import Camera, Orbit, camera_to_dict, look_at
-from ..fileio import write_json
+from ..camera.pinhole import Camera, Orbit, camera_to_dict, look_at
+from ..common.fileio import write_json
 
 
 def resample_polyline(points: np.ndarray, n: int, closed: bool) -> np.ndarray:

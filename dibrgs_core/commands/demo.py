@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..cli import main as dibrgs
-    from ..scenegen import make_scene
+    from ..synth.writer import make_scene
 
     out: Path = args.out
     scene = out / "scene"

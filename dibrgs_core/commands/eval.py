@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..evaluate import evaluate
+    from ..evaluation.evaluate import evaluate
 
     torch.set_num_threads(max(1, args.threads))
     m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)

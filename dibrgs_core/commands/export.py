@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..export import export_ply
+    from ..evaluation.export import export_ply
 
     torch.set_num_threads(max(1, args.threads))
 

@@ -27,8 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..init import InitConfig, initialise
-    from ..io_levir import read_any_scene
+    from ..geometry.pipeline import InitConfig, initialise
+    from ..data.levir import read_any_scene
 
     torch.set_num_threads(min(2, torch.get_num_threads()))
     train_ids = args.train_ids.split(",") if args.train_ids else None

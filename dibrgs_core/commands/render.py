@@ -26,9 +26,9 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from ..errors import InputError
-    from ..evaluate import load_trained
-    from ..io_levir import read_cameras, write_depth_exr, write_png
+    from ..common.errors import InputError
+    from ..evaluation.evaluate import load_trained
+    from ..data.levir import read_cameras, write_depth_exr, write_png
 
     torch.set_num_threads(max(1, args.threads))
     tr = load_trained(args.work)

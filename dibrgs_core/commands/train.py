@@ -55,13 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def config_from_args(args: argparse.Namespace):
     """The TrainConfig the arguments ask for."""
-    from ..config import preset
+    from ..training.config import preset
 
     cfg = preset(args.preset)
     cfg.method = args.method
     if args.iterations is not None:
         if args.iterations < 1:
-            from ..errors import InputError
+            from ..common.errors import InputError
 
             raise InputError(None, f"--iterations must be positive, got {args.iterations}")
         cfg.iterations = args.iterations
@@ -76,7 +76,7 @@ def config_from_args(args: argparse.Namespace):
     cfg.pseudo.surface = args.pseudo_surface
     if args.pseudo_consistency is not None:
         if not (args.pseudo_consistency >= 0.0):
-            from ..errors import InputError
+            from ..common.errors import InputError
 
             raise InputError(None, f"--pseudo-consistency must be >= 0, got {args.pseudo_consistency}")
         cfg.pseudo.consistency_tol = args.pseudo_consistency
@@ -90,7 +90,7 @@ def config_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..train import Trainer, TrainingFailed
+    from ..training.trainer import Trainer, TrainingFailed
 
     torch.set_num_threads(max(1, args.threads))
     cfg = config_from_args(args)

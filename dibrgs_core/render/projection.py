@@ -3,7 +3,7 @@
 Conventions (shared by the whole ``dibrgs_core.render`` package):
 
 * ``viewmat`` is the 4x4 world-to-camera matrix with OpenCV axes (x right,
-  y down, z forward), as ``Camera.w2c`` in ``dibrgs_core.cameras``.
+  y down, z forward), as ``Camera.w2c`` in ``dibrgs_core.camera.pinhole``.
 * ``K`` is in pixels; pixel ``(i, j)`` covers ``[i, i+1] x [j, j+1]`` so its
   centre is ``(i + 0.5, j + 0.5)``. A camera with ``cx = W / 2`` is centred.
   The skew ``K[0, 1]`` is ignored (pinhole without skew).

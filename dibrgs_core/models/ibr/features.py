@@ -21,7 +21,7 @@ Encoders (``IBRFeatures(encoder=...)``):
   |grad|); ``P`` is a 1x1 convolution per level, bilinearly upsampled.
 * ``"none"``: no IBR feature; :func:`build_ibr` returns ``None``.
 
-Pixel convention (as :mod:`dibrgs_core.cameras`): pixel ``(i, j)`` covers
+Pixel convention (as :mod:`dibrgs_core.camera.pinhole`): pixel ``(i, j)`` covers
 ``[i, i+1] x [j, j+1]``, so full-resolution coordinate ``u`` maps to the
 normalised grid coordinate ``2 u / W - 1`` of ``grid_sample(align_corners=False)``
 for a map of any size that covers the whole image.
@@ -40,8 +40,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .cameras import Camera
-from .errors import InputError
+from ...camera.pinhole import Camera
+from ...common.errors import InputError
 
 log = logging.getLogger("dibrgs.ibr_features")
 

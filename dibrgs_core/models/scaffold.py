@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ModelConfig
+from ..training.config import ModelConfig
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 

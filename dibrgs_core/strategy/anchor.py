@@ -48,8 +48,8 @@ from typing import Any, Callable, Protocol
 import torch
 from torch import nn
 
-from .config import GrowthConfig
-from .neural_gaussians import ANCHOR_PARAMS, Decoded, NeuralGaussians
+from ..training.config import GrowthConfig
+from ..models.scaffold import ANCHOR_PARAMS, Decoded, NeuralGaussians
 
 log = logging.getLogger("dibrgs.strategy")
 

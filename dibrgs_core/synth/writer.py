@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, look_at, to_blender
-from .fileio import write_json
+from ..camera.pinhole import Camera, look_at, to_blender
+from ..common.fileio import write_json
 
 log = logging.getLogger("dibrgs.scenegen")
 
@@ -721,7 +721,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     """
     import bpy
 
-    from .io_levir import write_cams_file, write_depth_exr, write_depth_tiff, write_png
+    from ..data.levir import write_cams_file, write_depth_exr, write_depth_tiff, write_png
 
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -765,7 +765,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     for cam in track:
         cam.depth_range = (0.95 * dmin_all, 1.05 * dmax_all)
         write_cams_file(out / "Track" / f"{cam.name}.txt", cam)
-    write_json(out / "scene.json", {"generator": "dibrgs_core.scenegen", "kind": kind, "seed": seed,
+    write_json(out / "scene.json", {"generator": "dibrgs_core.synth.writer", "kind": kind, "seed": seed,
                                     "resolution": resolution, "samples": samples, "orbit_phase_rad": phase,
                                     "orbit_name": orbit, "orbit": spec.__dict__, "up": [0.0, 0.0, 1.0],
                                     "depth": "z-depth along the camera axis, metres; 0 = no surface"})

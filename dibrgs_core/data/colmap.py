@@ -1,4 +1,4 @@
-"""COLMAP models (text or binary) as :class:`~dibrgs_core.io_levir.Scene`, through pycolmap.
+"""COLMAP models (text or binary) as :class:`~dibrgs_core.data.levir.Scene`, through pycolmap.
 
 Accepted layouts (the first that holds ``cameras.bin`` or ``cameras.txt`` wins)::
 
@@ -10,7 +10,7 @@ COLMAP poses are world-to-camera with OpenCV axes and pixel centres at +0.5,
 the project's own convention, so they are taken over unchanged. Only
 undistorted pinhole cameras are accepted (distortion parameters all 0):
 run ``colmap image_undistorter`` first otherwise. View ids are the image file
-stems; the split follows :func:`~dibrgs_core.io_levir.default_split`.
+stems; the split follows :func:`~dibrgs_core.data.levir.default_split`.
 """
 from __future__ import annotations
 
@@ -20,9 +20,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .cameras import Camera
-from .errors import InputError
-from .io_levir import Scene, View, make_split, read_image, validate_camera_arrays
+from ..camera.pinhole import Camera
+from ..common.errors import InputError
+from .levir import Scene, View, make_split, read_image, validate_camera_arrays
 
 log = logging.getLogger("dibrgs.io_colmap")
 

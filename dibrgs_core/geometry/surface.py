@@ -20,13 +20,13 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from .cameras import Camera, estimate_up, nadir_angle_deg, up_frame
+from ..camera.pinhole import Camera, estimate_up, nadir_angle_deg, up_frame
 
 
 def applies(cams: Sequence[Camera]) -> tuple[bool, str]:
     """Whether a height field describes the scene these cameras see, and why: the geometry
     stage's near-nadir test (:func:`init.near_nadir` with :class:`init.InitConfig`'s thresholds)."""
-    from .init import InitConfig, near_nadir
+    from .pipeline import InitConfig, near_nadir
 
     up, conf = estimate_up(cams)
     return near_nadir(conf, nadir_angle_deg(cams, up), InitConfig())
@@ -81,7 +81,7 @@ class HeightField:
         filter (1 = none) removes single-cell spikes: a cell keeps its
         highest point, so one floating MVS outlier would raise it.
         """
-        from .pseudo_views import point_spacing
+        from ..training.pseudo_views import point_spacing
 
         pts = np.asarray(points, np.float64).reshape(-1, 3)
         pts = pts[np.isfinite(pts).all(1)]

@@ -27,10 +27,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from .cameras import Camera, camera_from_dict
-from .config import TrainConfig
-from .errors import InputError
-from .fileio import write_json
+from ..camera.pinhole import Camera, camera_from_dict
+from ..training.config import TrainConfig
+from ..common.errors import InputError
+from ..common.fileio import write_json
 
 log = logging.getLogger("dibrgs.evaluate")
 
@@ -52,7 +52,7 @@ class Trained:
     @torch.no_grad()
     def gaussians(self, cam: Camera) -> dict[str, torch.Tensor]:
         """Activated Gaussians for ``cam``: means, quats (wxyz), scales, opacities, colors."""
-        from .train import CamT
+        from ..training.trainer import CamT
 
         c = CamT.of(cam)
         if self.method == "3dgs":
@@ -75,7 +75,7 @@ class Trained:
             return {"means": means, "quats": quats, "scales": scales, "opacities": opac,
                     "sh_dc": self.model.sh_dc[:, 0], "sh_rest": self.model.sh_rest}
         cam = mean_camera(self.train_cameras)
-        from .train import CamT
+        from ..training.trainer import CamT
 
         c = CamT.of(cam)
         vis = torch.ones(self.model.num_anchors, dtype=torch.bool)
@@ -86,7 +86,7 @@ class Trained:
     @torch.no_grad()
     def render(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         """(image (H,W,3) float32 in [0,1], z-depth (H,W) float32, 0 where empty)."""
-        from .render import rasterize
+        from ..render import rasterize
 
         g = self.gaussians(cam)
         bg = torch.tensor(self.cfg.background, dtype=torch.float32)
@@ -114,7 +114,7 @@ def mean_camera(cams: list[Camera]) -> Camera:
 
 def load_trained(work: str | Path) -> Trained:
     """Load ``WORK/model.pt`` (``InputError`` when the run has not finished)."""
-    from .train import MODEL, _gs3d_from_state, _neural_from_state
+    from ..training.trainer import MODEL, _gs3d_from_state, _neural_from_state
 
     path = Path(work) / MODEL
     if not path.exists():
@@ -274,8 +274,8 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
     from tqdm import tqdm
 
-    from .io_levir import write_png
-    from .train import load_scene, views_to_frames
+    from ..data.levir import write_png
+    from ..training.trainer import load_scene, views_to_frames
 
     work = Path(work)
     tr = load_trained(work)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .fileio import atomic_path
+from ..common.fileio import atomic_path
 
 SH_C0 = 0.28209479177387814
 

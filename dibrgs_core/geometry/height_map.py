@@ -127,7 +127,7 @@ class HeightMap:
     # -- persistence ---------------------------------------------------------
     def save(self, path: str | Path) -> None:
         """Write an .npz atomically."""
-        from .fileio import atomic_path
+        from ..common.fileio import atomic_path
 
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
@@ -138,7 +138,7 @@ class HeightMap:
     @classmethod
     def load(cls, path: str | Path) -> "HeightMap":
         """Read a height map written by :meth:`save`; InputError when the file is not one."""
-        from .errors import InputError
+        from ..common.errors import InputError
 
         try:
             with np.load(path) as z:

@@ -21,14 +21,21 @@ from typing import Any
 
 import numpy as np
 
-from .cameras import Camera, estimate_up, look_at_target, nadir_angle_deg, up_frame
+from ..camera.pinhole import Camera, estimate_up, look_at_target, nadir_angle_deg, up_frame
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
-from .errors import InputError
-from .fusion import (backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame,
-                     voxel_downsample, write_ply)
+from ..common.errors import InputError
+from .fusion import (
+    backproject_views,
+    dip_cells,
+    overlap_pairs_drop,
+    reproject_max_depth,
+    to_frame,
+    voxel_downsample,
+    write_ply,
+)
 from .height_map import HeightMap
 from .mvs import MvsConfig
-from .report import Report
+from ..common.report import Report
 from .sfm import SfmConfig, SparseCloud, triangulate_known_poses
 
 log = logging.getLogger("dibrgs.init")

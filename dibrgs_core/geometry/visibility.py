@@ -18,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .cameras import Camera
+from ..camera.pinhole import Camera
 
 #: Groups :class:`SplitError` reports: (name, min count, max count or None).
 GROUPS: tuple[tuple[str, int, int | None], ...] = (("unseen", 0, 0), ("one", 1, 1), ("two_plus", 2, None))

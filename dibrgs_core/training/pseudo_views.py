@@ -17,7 +17,7 @@ the caller gives):
 4. warped pixels that two sources see but colour differently (wrong depth, most
    likely) are rejected from supervision (:func:`source_disagreement`).
 
-Conventions: OpenCV cameras from :mod:`dibrgs_core.cameras`, pixel centres at
+Conventions: OpenCV cameras from :mod:`dibrgs_core.camera.pinhole`, pixel centres at
 +0.5, z-depth in world units along the camera axis, 0 marks "no depth".
 Everything here is NumPy on the CPU.
 """
@@ -34,9 +34,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .cameras import Camera, fit_orbit
-from .fileio import atomic_path, write_json
-from .fusion import zbuffer
+from ..camera.pinhole import Camera, fit_orbit
+from ..common.fileio import atomic_path, write_json
+from ..geometry.fusion import zbuffer
 
 log = logging.getLogger("dibrgs.pseudo_views")
 
@@ -420,7 +420,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     spacing = point_spacing(pts)
     field = None
     if surface and len(pts):
-        from .surface import HeightField
+        from ..geometry.surface import HeightField
 
         field = HeightField.build(pts, [v.camera for v in train_views])
 

@@ -2,7 +2,7 @@
 
 Run folder (``WORK``):
 
-* ``config.json`` - the :class:`~dibrgs_core.config.TrainConfig` and the scene path;
+* ``config.json`` - the :class:`~dibrgs_core.training.config.TrainConfig` and the scene path;
 * ``init/`` - geometry initialisation (dense cloud, height map, its report), reused
   when present;
 * ``pseudo/`` - cached pseudo views;
@@ -42,11 +42,11 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .cameras import Camera, camera_from_dict, camera_to_dict
+from ..camera.pinhole import Camera, camera_from_dict, camera_to_dict
 from .config import TrainConfig, expon_lr
-from .errors import InputError
-from .fileio import atomic_path, write_json, write_text
-from .report import Decision, Report
+from ..common.errors import InputError
+from ..common.fileio import atomic_path, write_json, write_text
+from ..common.report import Decision, Report
 
 log = logging.getLogger("dibrgs.train")
 
@@ -67,7 +67,7 @@ def load_scene(root: str | Path) -> Any:
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder does not exist")
-    from .io_levir import read_any_scene
+    from ..data.levir import read_any_scene
 
     return read_any_scene(root)
 
@@ -126,7 +126,7 @@ class DibrgsMethod:
 
     def __init__(self, model: Any, cfg: TrainConfig, ibr: Any | None, height_map: Any | None,
                  frozen_ibr: torch.Tensor | None = None) -> None:
-        from .strategy import AnchorStrategy
+        from ..strategy.anchor import AnchorStrategy
 
         self.model = model
         self.cfg = cfg
@@ -163,7 +163,7 @@ class DibrgsMethod:
         return self.ibr(self.model.anchor[visible].detach())
 
     def render(self, c: CamT, bg: torch.Tensor, need_grad_stats: bool = False) -> tuple[torch.Tensor, ...]:
-        from .render import rasterize
+        from ..render import rasterize
 
         m = self.model
         W, H = c.cam.width, c.cam.height
@@ -257,7 +257,7 @@ class GS3DMethod:
     name = "3dgs"
 
     def __init__(self, model: Any, cfg: TrainConfig, extent: float) -> None:
-        from .gs3d import DensifyStrategy, optimizer_for
+        from ..models.gs3d import DensifyStrategy, optimizer_for
 
         self.model = model
         self.cfg = cfg
@@ -273,7 +273,7 @@ class GS3DMethod:
                 g["lr"] = expon_lr(it, self.cfg.iterations, init * self.extent, final * self.extent)
 
     def render(self, c: CamT, bg: torch.Tensor, need_grad_stats: bool = False) -> tuple[torch.Tensor, ...]:
-        from .render import rasterize
+        from ..render import rasterize
 
         means, quats, scales, opac, rgb = self.model.activated(c.center)
         img, alpha, depth, meta = rasterize(means, quats, scales, opac, rgb, c.w2c, c.K,
@@ -319,7 +319,7 @@ class GS3DMethod:
 # Building a model (fresh, or with the shapes stored in a state dict)
 # ---------------------------------------------------------------------------
 def _neural_from_state(sd: dict[str, torch.Tensor], meta: dict[str, Any], cfg: TrainConfig) -> Any:
-    from .neural_gaussians import NeuralGaussians
+    from ..models.scaffold import NeuralGaussians
 
     n = sd["anchor"].shape[0]
     model = NeuralGaussians(torch.zeros(n, 3), meta["voxel_size"], meta["dist_scale"], cfg.model,
@@ -329,7 +329,7 @@ def _neural_from_state(sd: dict[str, torch.Tensor], meta: dict[str, Any], cfg: T
 
 
 def _gs3d_from_state(sd: dict[str, torch.Tensor], cfg: TrainConfig) -> Any:
-    from .gs3d import Gaussians3D
+    from ..models.gs3d import Gaussians3D
 
     n = sd["means"].shape[0]
     model = Gaussians3D(np.zeros((n, 3)), np.zeros((n, 3)), cfg.gs3d.sh_degree)
@@ -410,7 +410,7 @@ class Trainer:
         return ckpt
 
     def _sfm_points(self, scene: Any) -> tuple[np.ndarray, np.ndarray]:
-        from .sfm import triangulate_known_poses
+        from ..geometry.sfm import triangulate_known_poses
 
         views = scene.train_views()
         cache = self.work / "init" / "sfm_points.npz"
@@ -423,7 +423,7 @@ class Trainer:
         return sc.points, sc.colors
 
     def _setup_3dgs(self, scene: Any, ckpt: dict | None) -> None:
-        from .gs3d import Gaussians3D
+        from ..models.gs3d import Gaussians3D
 
         cfg = self.cfg
         centers = np.stack([f.cam.cam.center for f in self.train_frames])
@@ -451,8 +451,8 @@ class Trainer:
 
     def _init_geometry(self, scene: Any) -> Any:
         """Run the geometry initialisation, or reuse ``WORK/init`` when it was made with the same options."""
-        from .height_map import HeightMap
-        from .init import InitConfig, InitResult, initialise
+        from ..geometry.height_map import HeightMap
+        from ..geometry.pipeline import InitConfig, InitResult, initialise
 
         out = self.work / "init"
         icfg = InitConfig()
@@ -478,14 +478,14 @@ class Trainer:
         return initialise(scene, out, icfg)
 
     def _setup_dibrgs(self, scene: Any, ckpt: dict | None) -> None:
-        from .neural_gaussians import build_model
+        from ..models.scaffold import build_model
 
         cfg = self.cfg
         rep = self.report
         res = self._init_geometry(scene)
         scale = res.report.values.get("scale")
         if not scale:
-            from .init import InitConfig, scene_geometry
+            from ..geometry.pipeline import InitConfig, scene_geometry
 
             scale = scene_geometry(scene, InitConfig()).scale
         if cfg.dense_init:
@@ -529,7 +529,7 @@ class Trainer:
         self._setup_pseudo(points)
 
     def _build_ibr(self) -> Any:
-        from .ibr_features import build_ibr, resolve_encoder
+        from ..models.ibr.features import build_ibr, resolve_encoder
 
         cfg = self.cfg
         name, reason = resolve_encoder(cfg.ibr, (cfg.dino_resnet, cfg.dino_vit))
@@ -556,12 +556,12 @@ class Trainer:
 
         path = None
         if cfg.pseudo_path:
-            from .io_levir import read_cameras
+            from ..data.levir import read_cameras
 
             path = read_cameras(cfg.pseudo_path)
         frames = [f.cam.cam for f in self.train_frames]
         train_views = [_SimpleView(c, f.image.numpy()) for c, f in zip(frames, self.train_frames)]
-        from .surface import decide
+        from ..geometry.surface import decide
 
         surface, why = decide(cfg.pseudo.surface, frames)
         self.report.decide("train", "pseudo_depth_height_field", surface, why)
@@ -864,7 +864,7 @@ def random_init(cams: list[Camera], n: int, rng: np.random.Generator) -> tuple[n
     A flat box around the cameras' common look-at point: horizontally as wide as
     the mean image footprint there, vertically a quarter of that.
     """
-    from .cameras import estimate_up, look_at_target, up_frame
+    from ..camera.pinhole import estimate_up, look_at_target, up_frame
 
     target = look_at_target(cams)
     up, _ = estimate_up(cams)

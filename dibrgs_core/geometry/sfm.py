@@ -17,8 +17,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .cameras import Camera
-from .io_levir import to_uint8
+from ..camera.pinhole import Camera
+from ..data.levir import to_uint8
 
 log = logging.getLogger("dibrgs.sfm")
 

@@ -25,8 +25,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .cameras import Camera
-from .io_levir import to_uint8
+from ..camera.pinhole import Camera
+from ..data.levir import to_uint8
 
 log = logging.getLogger("dibrgs.fusion")
 
@@ -209,7 +209,7 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> None:
     """Coloured point cloud as binary PLY (trimesh), written atomically. Positions are float64 world."""
     import trimesh
 
-    from .fileio import atomic_path
+    from ..common.fileio import atomic_path
 
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     col = np.asarray(colors, np.uint8).reshape(-1, 3)

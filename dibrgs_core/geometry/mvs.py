@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .cameras import Camera
+from ..camera.pinhole import Camera
 
 log = logging.getLogger("dibrgs.mvs")
 
@@ -381,7 +381,7 @@ def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig) -> tu
     repetitive texture (street grids), finds spurious matches far from the
     scene. None (full range) when the look-at point is undefined or not below the cameras.
     """
-    from .cameras import look_at_target
+    from ..camera.pinhole import look_at_target
 
     n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
     target = look_at_target(cams)
@@ -403,7 +403,7 @@ def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:
     NCC windows match exactly even across wide baselines, where a fronto-parallel
     plane cuts the tilted ground at one depth only.
     """
-    from .cameras import estimate_up, nadir_angle_deg
+    from ..camera.pinhole import estimate_up, nadir_angle_deg
 
     if config.planes == "fronto":
         return None

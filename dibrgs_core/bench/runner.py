@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from .fileio import atomic_path, write_json, write_text
-from .scenegen import DEFAULT_ORBIT
+from ..common.fileio import atomic_path, write_json, write_text
+from ..synth.writer import DEFAULT_ORBIT
 
 log = logging.getLogger("dibrgs.benchmark")
 
@@ -124,7 +124,7 @@ def ensure_scene(spec: RunSpec, scene_dir: Path) -> Path:
             # Rendered in a child process: bpy crashes when driven from more than one thread of a
             # process, and local jobs are threads.
             tmp = scene_dir.with_name(scene_dir.name + f".tmp{os.getpid()}")
-            code = ("import sys; from dibrgs_core.scenegen import make_scene; "
+            code = ("import sys; from dibrgs_core.synth.writer import make_scene; "
                     "make_scene(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], orbit=sys.argv[5])")
             scene_dir.parent.mkdir(parents=True, exist_ok=True)
             _child([sys.executable, "-c", code, spec.kind, str(spec.resolution), str(spec.seed), str(tmp), spec.orbit],

@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import GS3DConfig
-from .strategy import _swap_param, cat_rows, keep_rows
+from ..training.config import GS3DConfig
+from ..strategy.anchor import _swap_param, cat_rows, keep_rows
 
 log = logging.getLogger("dibrgs.gs3d")
 
@@ -86,7 +86,7 @@ class Gaussians3D(nn.Module):
     def __init__(self, points: np.ndarray, colors: np.ndarray, sh_degree: int) -> None:
         """``points`` (N,3) world units, ``colors`` (N,3) RGB in [0,1]."""
         super().__init__()
-        from .neural_gaussians import init_log_scaling
+        from .scaffold import init_log_scaling
 
         p = torch.as_tensor(np.asarray(points), dtype=torch.float32)
         c = torch.as_tensor(np.asarray(colors), dtype=torch.float32).clamp(0.0, 1.0)

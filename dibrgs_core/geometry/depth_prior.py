@@ -5,7 +5,7 @@ Priors, by name:
 * ``depth-anything-v2``: Depth Anything V2 through ``transformers`` from a
   local folder (``--depth-model PATH``); output is *relative disparity*
   (larger = nearer, unknown scale and shift).
-* ``mvs``: :mod:`dibrgs_core.mvs` plane sweep; metric z-depth, NaN where
+* ``mvs``: :mod:`dibrgs_core.geometry.mvs` plane sweep; metric z-depth, NaN where
   unreliable. The default when no weights are given.
 * ``gt``: the dataset's depth maps (oracle ablations only).
 
@@ -23,9 +23,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .cameras import Camera
-from .errors import InputError
-from .io_levir import to_uint8
+from ..camera.pinhole import Camera
+from ..common.errors import InputError
+from ..data.levir import to_uint8
 
 log = logging.getLogger("dibrgs.depth_prior")
 

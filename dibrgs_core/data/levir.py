@@ -13,7 +13,7 @@ Views 001-020 form the orbit; view 000 (near nadir) is in neither split by
 default. The standard 3-view protocol trains on the orbit views at indices
 0, 7 and 14 (001, 008, 015) and evaluates on the other 17.
 
-Bad input raises :class:`~dibrgs_core.errors.InputError` naming the file.
+Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 This module needs numpy, Pillow, tifffile and OpenEXR, never torch or bpy.
 """
 from __future__ import annotations
@@ -28,9 +28,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .cameras import Camera, camera_from_dict
-from .errors import InputError
-from .fileio import atomic_path, write_text
+from ..camera.pinhole import Camera, camera_from_dict
+from ..common.errors import InputError
+from ..common.fileio import atomic_path, write_text
 
 log = logging.getLogger("dibrgs.io_levir")
 
@@ -236,7 +236,7 @@ def write_cams_file(path: str | Path, cam: Camera) -> None:
 
 def read_cameras(path: str | Path) -> list[Camera]:
     """Cameras from a LEVIR Cams file, a folder of them (or a scene folder with
-    ``Cams/``), or a JSON list of :func:`~dibrgs_core.cameras.camera_to_dict`
+    ``Cams/``), or a JSON list of :func:`~dibrgs_core.camera.pinhole.camera_to_dict`
     entries (optionally under a ``"cameras"`` key)."""
     path = Path(path)
     if not path.exists():
@@ -476,7 +476,7 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
         raise InputError(root, "scene folder not found")
     if (root / "Cams").is_dir():
         return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids)
-    from .io_colmap import find_colmap_model, read_colmap_scene
+    from .colmap import find_colmap_model, read_colmap_scene
 
     if find_colmap_model(root) is not None:
         return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)

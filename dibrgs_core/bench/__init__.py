@@ -1,0 +1,1 @@
+"""Benchmark suites: runs (local or Ray) and their pages (CSV, curves, Markdown tables)."""

@@ -1,0 +1,1 @@
+"""Shared plumbing every stage uses: user-facing errors, atomic file writes, stage reports."""
