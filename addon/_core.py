@@ -10,7 +10,7 @@ One rule: the add-on uses the ``dibrgs_core`` that sits beside it.
   repository root on ``sys.path``) there is no parent package and the
   absolute ``dibrgs_core`` is used, which is the same checkout.
 
-Only numpy-only modules are imported here (``cameras``, ``bridge.*``); torch
+Only numpy-only modules are imported here (``camera.*``, ``bridge.*``, the height map); torch
 runs in subprocesses (``bridge.jobs``).
 """
 from __future__ import annotations
@@ -23,7 +23,11 @@ CORE_PACKAGE = f"{_PARENT}.dibrgs_core" if _PARENT else "dibrgs_core"
 #: Blender registered, i.e. the extension root, or "addon" when top-level.
 ADDON_PACKAGE = _PARENT or __package__
 
-cameras = importlib.import_module(CORE_PACKAGE + ".camera.pinhole")
+pinhole = importlib.import_module(CORE_PACKAGE + ".camera.pinhole")
+camera_frame = importlib.import_module(CORE_PACKAGE + ".camera.frame")
+orbit = importlib.import_module(CORE_PACKAGE + ".camera.orbit")
+camera_blender = importlib.import_module(CORE_PACKAGE + ".camera.blender")
+serialize = importlib.import_module(CORE_PACKAGE + ".camera.serialize")
 path = importlib.import_module(CORE_PACKAGE + ".bridge.path")
 progress = importlib.import_module(CORE_PACKAGE + ".bridge.progress")
 compositor = importlib.import_module(CORE_PACKAGE + ".bridge.compositor")

@@ -8,7 +8,7 @@ import numpy as np
 from mathutils import Matrix
 
 from . import compositor, scene_build
-from ._core import cameras, reports
+from ._core import camera_blender, pinhole, reports
 
 
 def _image(name: str, path: Path) -> bpy.types.Image:
@@ -98,7 +98,7 @@ def load_init(context: bpy.types.Context, init: Path) -> int:
     return len(obj.data.vertices)
 
 
-def flythrough(context: bpy.types.Context, folder: Path, cams: list["cameras.Camera"]) -> bpy.types.Object:
+def flythrough(context: bpy.types.Context, folder: Path, cams: list["pinhole.Camera"]) -> bpy.types.Object:
     """An animated camera that follows the path frame by frame, the renders as its background sequence."""
     scene = context.scene
     n = len(cams)
@@ -117,7 +117,7 @@ def flythrough(context: bpy.types.Context, folder: Path, cams: list["cameras.Cam
     obj.rotation_mode = "QUATERNION"
     prev = None
     for f, cam in enumerate(cams, start=1):
-        M = Matrix(cameras.to_blender(cam).matrix_world.tolist())
+        M = Matrix(camera_blender.to_blender(cam).matrix_world.tolist())
         loc, q, _ = M.decompose()
         if prev is not None and prev.dot(q) < 0:  # shortest way between consecutive frames
             q.negate()

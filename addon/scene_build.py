@@ -14,7 +14,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ._core import cameras, geometry, height_map, path as path_mod
+from ._core import camera_blender, camera_frame, geometry, height_map, orbit, pinhole, serialize, path as path_mod
 
 ROOT_COLLECTION = "DIBR-GS"
 TRAIN_COLLECTION = "DIBR-GS Train views"
@@ -68,9 +68,9 @@ def clear_collection(name: str) -> None:
 # ---------------------------------------------------------------------------
 # cameras
 # ---------------------------------------------------------------------------
-def apply_camera(obj: bpy.types.Object, cam: "cameras.Camera", scene: bpy.types.Scene | None = None) -> None:
+def apply_camera(obj: bpy.types.Object, cam: "pinhole.Camera", scene: bpy.types.Scene | None = None) -> None:
     """Set ``obj``'s pose and camera data from an OpenCV camera (render size on ``scene`` if given)."""
-    p = cameras.to_blender(cam)
+    p = camera_blender.to_blender(cam)
     d = obj.data
     d.type = "PERSP"
     d.lens_unit = "MILLIMETERS"
@@ -87,13 +87,13 @@ def apply_camera(obj: bpy.types.Object, cam: "cameras.Camera", scene: bpy.types.
         set_render_size(scene, p)
 
 
-def set_render_size(scene: bpy.types.Scene, p: "cameras.BlenderCameraParams") -> None:
+def set_render_size(scene: bpy.types.Scene, p: "camera_blender.BlenderCameraParams") -> None:
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = p.resolution_x, p.resolution_y, 100
     r.pixel_aspect_x, r.pixel_aspect_y = p.pixel_aspect_x, p.pixel_aspect_y
 
 
-def camera_from_object(obj: bpy.types.Object, scene: bpy.types.Scene) -> "cameras.Camera":
+def camera_from_object(obj: bpy.types.Object, scene: bpy.types.Scene) -> "pinhole.Camera":
     """The OpenCV camera a Blender camera object renders with the scene's render settings."""
     if obj.type != "CAMERA":
         raise ValueError(f"{obj.name} is not a camera")
@@ -102,13 +102,13 @@ def camera_from_object(obj: bpy.types.Object, scene: bpy.types.Scene) -> "camera
         raise ValueError(f"{obj.name}: only perspective cameras can be rendered (type is {d.type})")
     r = scene.render
     scale = r.resolution_percentage / 100.0
-    p = cameras.BlenderCameraParams(
+    p = camera_blender.BlenderCameraParams(
         matrix_world=np.array(obj.matrix_world, dtype=np.float64), lens=d.lens, sensor_width=d.sensor_width,
         sensor_height=d.sensor_height, sensor_fit=d.sensor_fit, shift_x=d.shift_x, shift_y=d.shift_y,
         resolution_x=max(1, round(r.resolution_x * scale)), resolution_y=max(1, round(r.resolution_y * scale)),
         pixel_aspect_x=r.pixel_aspect_x, pixel_aspect_y=r.pixel_aspect_y, clip_start=d.clip_start,
         clip_end=d.clip_end, name=obj.get("dibrgs_view", obj.name))
-    return cameras.from_blender(p, depth_range=True)
+    return camera_blender.from_blender(p, depth_range=True)
 
 
 def new_camera_object(name: str, coll: bpy.types.Collection) -> bpy.types.Object:
@@ -130,7 +130,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     root = _root(scene)
     objs: dict[str, bpy.types.Object] = {}
     for v in desc["views"]:
-        cam = cameras.camera_from_dict(v["camera"], source=desc["root"])
+        cam = serialize.camera_from_dict(v["camera"], source=desc["root"])
         coll = collection(scene, SPLIT_COLLECTIONS[v["split"]], root)
         obj = new_camera_object(v["name"], coll)
         obj["dibrgs_view"] = v["name"]
@@ -162,32 +162,32 @@ def scene_description() -> dict[str, Any]:
     return json.loads(text.as_string())
 
 
-def described_cameras(desc: dict[str, Any], split: str) -> list["cameras.Camera"]:
-    return [cameras.camera_from_dict(v["camera"], source=desc["root"]) for v in desc["views"]
+def described_cameras(desc: dict[str, Any], split: str) -> list["pinhole.Camera"]:
+    return [serialize.camera_from_dict(v["camera"], source=desc["root"]) for v in desc["views"]
             if v["split"] == split]
 
 
-def reference_camera(desc: dict[str, Any], name: str = "") -> "cameras.Camera":
+def reference_camera(desc: dict[str, Any], name: str = "") -> "pinhole.Camera":
     """The camera whose intrinsics pseudo and fly-through cameras copy (first training view by default)."""
     views = {v["name"]: v for v in desc["views"]}
     key = name if name in views else (desc["train"][0] if desc["train"] else next(iter(views)))
-    return cameras.camera_from_dict(views[key]["camera"], source=desc["root"])
+    return serialize.camera_from_dict(views[key]["camera"], source=desc["root"])
 
 
 # ---------------------------------------------------------------------------
 # pseudo-view path
 # ---------------------------------------------------------------------------
-def fit_orbit(desc: dict[str, Any]) -> "cameras.Orbit":
+def fit_orbit(desc: dict[str, Any]) -> "orbit.Orbit":
     """The acquisition orbit: fitted to the Track cameras if any, else to the training views."""
-    track = [cameras.camera_from_dict(c, source=desc["root"]) for c in desc.get("track", [])]
+    track = [serialize.camera_from_dict(c, source=desc["root"]) for c in desc.get("track", [])]
     train = described_cameras(desc, "train")
     all_views = train + described_cameras(desc, "test")
     cams = track if len(track) >= 3 else (train if len(train) >= 3 else all_views)
-    up, _ = cameras.estimate_up(all_views or cams)
-    return cameras.fit_orbit(cams, up=up)
+    up, _ = camera_frame.estimate_up(all_views or cams)
+    return orbit.fit_orbit(cams, up=up)
 
 
-def create_path(context: bpy.types.Context, orbit: "cameras.Orbit", n_ctrl: int = 8) -> bpy.types.Object:
+def create_path(context: bpy.types.Context, orbit: "orbit.Orbit", n_ctrl: int = 8) -> bpy.types.Object:
     """The orbit as an editable cyclic Bezier curve, plus a look-at Empty; both set on ``scene.dibrgs``.
 
     Handles are 'ALIGNED' with the length that makes each segment a circular
@@ -247,7 +247,7 @@ def curve_polyline(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[n
     return pts, bool(first.use_cyclic_u)
 
 
-def path_cameras(context: bpy.types.Context, n: int, prefix: str) -> list["cameras.Camera"]:
+def path_cameras(context: bpy.types.Context, n: int, prefix: str) -> list["pinhole.Camera"]:
     """``n`` cameras sampled from the path curve as it is now, looking at the target object."""
     props = context.scene.dibrgs
     pts, closed = curve_polyline(context, props.path_curve)

@@ -49,7 +49,7 @@ def corrupted_disparity(depth: np.ndarray, rng: np.random.Generator) -> np.ndarr
 
 def reprojection_errors(cams, gts, points) -> tuple[float, float, float]:
     """(MAE, Abs Rel, coverage) of the z-buffered cloud against ground truth over the views."""
-    from dibrgs_core.geometry.fusion import zbuffer
+    from dibrgs_core.geometry.pointcloud import zbuffer
 
     abs_e, rel_e, cov = [], [], []
     for cam, gt in zip(cams, gts):
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         run_sparse,
         scene_geometry,
     )
-    from dibrgs_core.data.levir import read_any_scene
+    from dibrgs_core.data.load import read_any_scene
     from dibrgs_core.common.report import Report
 
     scene = read_any_scene(args.scene, train_ids=args.train_ids.split(",") if args.train_ids else None,

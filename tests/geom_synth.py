@@ -16,7 +16,7 @@ import numpy as np
 from dibrgs_core.camera.pinhole import Camera, look_at
 
 try:  # the foundation helper's scene types, when present
-    from dibrgs_core.data.levir import Scene, View
+    from dibrgs_core.data.scene import Scene, View
 except ImportError:  # pragma: no cover - until io_levir lands
     @dataclass
     class View:  # type: ignore[no-redef]

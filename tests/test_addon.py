@@ -19,7 +19,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from dibrgs_core.camera.pinhole import to_blender  # noqa: E402
+from dibrgs_core.camera.blender import to_blender  # noqa: E402
 from dibrgs_core.data.levir import read_cams_file, read_scene  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,7 +76,7 @@ def test_register_unregister_twice(ext):
         assert bpy.ops.dibrgs.train.idname() == "DIBRGS_OT_train"
     # The add-on resolved the extension's own dibrgs_core, not the top-level one.
     assert _mod("_core").CORE_PACKAGE == "dibrgs_ext.dibrgs_core"
-    assert _mod("_core").cameras.__name__ == "dibrgs_ext.dibrgs_core.camera.pinhole"
+    assert _mod("_core").pinhole.__name__ == "dibrgs_ext.dibrgs_core.camera.pinhole"
 
 
 def test_import_scene_reproduces_every_camera(tiny_scene, fresh):
@@ -199,7 +199,7 @@ def test_initialise_imports_points_height_map_and_decisions(tiny_scene, fresh):
 # ---------------------------------------------------------------------------
 def test_train_operator_completes_and_fills_the_compositor(tiny_scene, fresh):
     from dibrgs_core.bridge.compositor import IMAGE_NODE_PREFIX, OUTPUT_NODE, VIEWER_NODE
-    from dibrgs_core.camera.pinhole import camera_from_dict
+    from dibrgs_core.camera.serialize import camera_from_dict
     import json
 
     bpy.ops.dibrgs.import_scene(directory=str(tiny_scene))

@@ -15,7 +15,9 @@ import pytest
 
 from dibrgs_core.bridge import compositor, jobs, path, progress, reports
 from dibrgs_core.bridge.geometry import height_map_mesh
-from dibrgs_core.camera.pinhole import Camera, camera_from_dict, fit_orbit, look_at
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.camera.serialize import camera_from_dict
+from dibrgs_core.camera.orbit import fit_orbit
 from dibrgs_core.geometry.height_map import HeightMap
 
 REPO = Path(__file__).resolve().parents[1]
@@ -270,7 +272,7 @@ def test_reports_decisions_and_metrics(tmp_path):
 
 def test_height_map_mesh_in_world_coordinates():
     up = np.array([0.0, 0.6, 0.8])
-    from dibrgs_core.camera.pinhole import up_frame
+    from dibrgs_core.camera.frame import up_frame
     F = up_frame(up)
     bounds = np.array([[1.0, 2.0, np.nan], [3.0, 4.0, 5.0]])
     hm = HeightMap(up_frame=F, origin=np.array([10.0, 0, 0]), cell=2.0, x0=-1.0, y0=0.0, bounds=bounds)

@@ -6,20 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from dibrgs_core.camera.pinhole import (
-    BlenderCameraParams,
-    Camera,
-    camera_from_dict,
-    camera_to_dict,
-    estimate_up,
-    fit_orbit,
-    from_blender,
-    look_at,
-    nadir_angle_deg,
-    rigid_inverse,
-    to_blender,
-    up_frame,
-)
+from dibrgs_core.camera.blender import BlenderCameraParams, from_blender, to_blender
+from dibrgs_core.camera.pinhole import Camera, look_at, rigid_inverse
+from dibrgs_core.camera.serialize import camera_from_dict, camera_to_dict
+from dibrgs_core.camera.frame import estimate_up, nadir_angle_deg, up_frame
+from dibrgs_core.camera.orbit import fit_orbit
 
 FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 

@@ -5,18 +5,17 @@ import pytest
 
 import numpy as np
 
-from dibrgs_core.camera.pinhole import Camera, look_at, up_frame
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.camera.frame import up_frame
 from dibrgs_core.geometry.fusion import (
     backproject_views,
     dip_cells,
     overlap_pairs_drop,
-    read_ply,
     reproject_max_depth,
     to_frame,
-    voxel_downsample,
-    write_ply,
-    zbuffer,
 )
+from dibrgs_core.data.ply import read_ply, write_ply
+from dibrgs_core.geometry.pointcloud import voxel_downsample, zbuffer
 
 
 def _cam(eye=(0, 0, 100.0), size=32):

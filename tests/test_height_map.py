@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.camera.pinhole import up_frame
+from dibrgs_core.camera.frame import up_frame
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.geometry.height_map import HeightMap
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from dibrgs_core.geometry.fusion import read_ply, zbuffer
+from dibrgs_core.data.ply import read_ply
+from dibrgs_core.geometry.pointcloud import zbuffer
 from dibrgs_core.geometry.height_map import HeightMap
 from dibrgs_core.geometry.pipeline import InitConfig, initialise
 from geom_synth import make_synthetic_scene

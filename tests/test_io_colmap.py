@@ -9,7 +9,8 @@ import pytest
 
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.colmap import find_colmap_model, read_colmap_cameras, read_colmap_scene, write_colmap_model
-from dibrgs_core.data.levir import read_any_scene, write_png
+from dibrgs_core.data.load import read_any_scene
+from dibrgs_core.data.images import write_png
 
 from test_io_levir import H, W, make_views
 

@@ -8,21 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dibrgs_core.camera.pinhole import Camera, camera_to_dict, look_at
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.camera.serialize import camera_to_dict
 from dibrgs_core.cli import main as dibrgs
 from dibrgs_core.common.errors import InputError
-from dibrgs_core.data.levir import (
-    View,
-    default_split,
-    read_cameras,
-    read_cams_file,
-    read_depth,
-    read_scene,
-    write_cams_file,
-    write_depth_exr,
-    write_depth_tiff,
-    write_scene,
-)
+from dibrgs_core.data.scene import View, default_split
+from dibrgs_core.data.levir import read_cameras, read_cams_file, read_scene, write_cams_file, write_scene
+from dibrgs_core.data.images import read_depth, write_depth_exr, write_depth_tiff
 
 W, H = 24, 16  # non-square on purpose
 

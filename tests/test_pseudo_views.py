@@ -6,8 +6,9 @@ import time
 import numpy as np
 import pytest
 
-from dibrgs_core.camera.pinhole import Camera, fit_orbit, look_at
-from dibrgs_core.data.levir import View
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.camera.orbit import fit_orbit
+from dibrgs_core.data.scene import View
 from dibrgs_core.training.pseudo_views import (
     EMPTY,
     PADDED,

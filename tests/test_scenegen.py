@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from dibrgs_core.camera.pinhole import estimate_up, fit_orbit, nadir_angle_deg
-from dibrgs_core.data.levir import read_depth, read_scene
+from dibrgs_core.camera.frame import estimate_up, nadir_angle_deg
+from dibrgs_core.camera.orbit import fit_orbit
+from dibrgs_core.data.images import read_depth
+from dibrgs_core.data.levir import read_scene
 from dibrgs_core.synth.writer import DEFAULT_ORBIT, ORBITS, scene_cameras
 
 pytest.importorskip("bpy")

@@ -179,7 +179,7 @@ def test_rays_that_do_not_descend_get_no_depth():
 
 
 def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
-    from dibrgs_core.data.levir import View
+    from dibrgs_core.data.scene import View
     from dibrgs_core.training.pseudo_views import build_pseudo_views, source_disagreement
 
     def img(c: Camera, shift: float = 0.0) -> np.ndarray:
@@ -215,7 +215,7 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     """MVS noise: a sheet of points hovering 6 above one street. The completed cloud depth puts the
     street at the sheet; the height field (median-smoothed) keeps the ground. The sources' colours
     agree at the ground, so the pseudo view takes the height-field depth there."""
-    from dibrgs_core.data.levir import View
+    from dibrgs_core.data.scene import View
     from dibrgs_core.training.pseudo_views import build_pseudo_views
 
     def img(c: Camera) -> np.ndarray:
@@ -237,7 +237,8 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     p = o + ref.ravel()[:, None] * d
     street = ((p[:, 0] > -30) & (p[:, 0] < -16) & (p[:, 1] > -30) & (p[:, 1] < -16)).reshape(ref.shape)
     assert street.sum() > 30
-    from dibrgs_core.training.pseudo_views import complete_depth, point_spacing, zbuffer_depth
+    from dibrgs_core.training.pseudo_views import complete_depth, zbuffer_depth
+    from dibrgs_core.geometry.pointcloud import point_spacing
 
     cloud_only = complete_depth(zbuffer_depth(dirty, tgt[0], point_spacing(dirty)),
                                 fill=HeightField.build(dirty, CAMS).depth(tgt[0]))

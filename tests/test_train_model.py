@@ -10,7 +10,8 @@ import torch
 
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.training.config import TrainConfig, expon_lr, preset
-from dibrgs_core.models.scaffold import NeuralGaussians, build_model, voxelize
+from dibrgs_core.models.scaffold import NeuralGaussians, build_model
+from dibrgs_core.geometry.pointcloud import voxelize
 from dibrgs_core.strategy.anchor import AnchorStrategy
 
 torch.set_num_threads(1)

@@ -149,7 +149,8 @@ def test_extreme_learning_rates_stay_finite(synth, synth_init, tmp_path, factor)
 def test_all_black_images_train_to_a_finite_model(tmp_path):
     """A scene whose images are all black (no SfM points, no texture): the geometry falls back, training
     ends with finite parameters and renders black."""
-    from dibrgs_core.data.levir import View, read_scene, write_scene
+    from dibrgs_core.data.scene import View
+    from dibrgs_core.data.levir import read_scene, write_scene
 
     src = make_synth_scene(tmp_path / "src", resolution=24)
     sc = read_scene(src)
@@ -169,7 +170,8 @@ def test_all_black_images_train_to_a_finite_model(tmp_path):
 def test_pseudo_view_without_valid_pixels_is_left_out(synth, synth_init, tmp_path):
     """A pseudo-view camera that looks away from the scene gets no warped pixel: it is left out with a
     reason in the report, and training still ends finite."""
-    from dibrgs_core.camera.pinhole import camera_to_dict, look_at
+    from dibrgs_core.camera.serialize import camera_to_dict
+    from dibrgs_core.camera.pinhole import look_at
     from dibrgs_core.data.levir import read_scene
 
     cam = read_scene(synth).train_views()[0].camera

@@ -40,7 +40,8 @@ def _cloud(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def make_synth_scene(root: Path, resolution: int = 48, seed: int = 0) -> Path:
     """Write the synthetic scene in LEVIR-NVS layout to ``root`` and return it."""
-    from dibrgs_core.data.levir import View, write_scene
+    from dibrgs_core.data.scene import View
+    from dibrgs_core.data.levir import write_scene
     from dibrgs_core.render import rasterize
     from dibrgs_core.synth.writer import OrbitSpec, scene_cameras
 

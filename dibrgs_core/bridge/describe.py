@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..camera.pinhole import camera_to_dict
+from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..common.fileio import write_json
 
@@ -44,7 +44,7 @@ def find_image(root: Path, name: str) -> Path | None:
 def describe_scene(root: Path) -> dict[str, Any]:
     """The JSON-ready description of the scene at ``root`` (raises InputError)."""
     root = Path(root)
-    from ..data.levir import read_any_scene
+    from ..data.load import read_any_scene
 
     scene = read_any_scene(root, load_depth=False)
     train, test = list(scene.train), list(scene.test)

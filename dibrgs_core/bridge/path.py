@@ -13,7 +13,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera.pinhole import Camera, Orbit, camera_to_dict, look_at
+from ..camera.pinhole import Camera, look_at
+from ..camera.orbit import Orbit
+from ..camera.serialize import camera_to_dict
 from ..common.fileio import write_json
 
 

@@ -24,8 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def summarize(scene) -> dict:
     """The JSON-serialisable summary printed by ``dibrgs info``."""
-    from ..camera.pinhole import estimate_up, fit_orbit, nadir_angle_deg
-    from ..data.levir import orbit_ids
+    from ..camera.frame import estimate_up, nadir_angle_deg
+    from ..camera.orbit import fit_orbit
+    from ..data.scene import orbit_ids
 
     cams = scene.cameras
     W, H = scene.resolution
@@ -57,7 +58,7 @@ def summarize(scene) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data.levir import read_any_scene
+    from ..data.load import read_any_scene
 
     train = [s.strip() for s in args.train.split(",") if s.strip()] if args.train else None
     scene = read_any_scene(args.scene, train_ids=train)

@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from ..geometry.pipeline import InitConfig, initialise
-    from ..data.levir import read_any_scene
+    from ..data.load import read_any_scene
 
     torch.set_num_threads(min(2, torch.get_num_threads()))
     train_ids = args.train_ids.split(",") if args.train_ids else None

@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
 
     from ..common.errors import InputError
     from ..evaluation.evaluate import load_trained
-    from ..data.levir import read_cameras, write_depth_exr, write_png
+    from ..data.levir import read_cameras
+    from ..data.images import write_depth_exr, write_png
 
     torch.set_num_threads(max(1, args.threads))
     tr = load_trained(args.work)

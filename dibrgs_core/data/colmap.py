@@ -22,7 +22,8 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
-from .levir import Scene, View, make_split, read_image, validate_camera_arrays
+from .scene import Scene, View, make_split, validate_camera_arrays
+from .images import read_image
 
 log = logging.getLogger("dibrgs.io_colmap")
 

@@ -22,125 +22,20 @@ import json
 import logging
 import math
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..camera.pinhole import Camera, camera_from_dict
+from ..camera.pinhole import Camera
+from ..camera.serialize import camera_from_dict
 from ..common.errors import InputError
-from ..common.fileio import atomic_path, write_text
+from ..common.fileio import write_text
+from .images import DEPTH_EXTS, IMAGE_EXTS, image_size, read_depth, read_image, write_depth_tiff, write_png
+from .scene import Scene, View, make_split, validate_camera_arrays
 
 log = logging.getLogger("dibrgs.io_levir")
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-DEPTH_EXTS = (".tiff", ".tif", ".exr")
-N_CAM_VALUES = 16 + 9 + 2
-
-
-@dataclass
-class View:
-    """One input view.
-
-    Attributes:
-        camera: the view's camera (its ``name`` is the view id, e.g. ``"001"``).
-        image: float32 (H, W, 3) RGB in [0, 1] (sRGB-encoded values as stored).
-        depth: optional float32 (H, W) z-depth in world units; 0 where unknown.
-    """
-
-    camera: Camera
-    image: np.ndarray
-    depth: np.ndarray | None = None
-
-    @property
-    def name(self) -> str:
-        return self.camera.name
-
-
-@dataclass
-class Scene:
-    """A multi-view scene with its train/test split.
-
-    Attributes:
-        root: the folder it was read from.
-        views: view id -> :class:`View`, sorted by id.
-        track: render-path cameras (may be empty).
-        train, test: view ids of the split.
-    """
-
-    root: Path
-    views: dict[str, View]
-    track: list[Camera] = field(default_factory=list)
-    train: list[str] = field(default_factory=list)
-    test: list[str] = field(default_factory=list)
-
-    def train_views(self) -> list[View]:
-        return [self.views[i] for i in self.train]
-
-    def test_views(self) -> list[View]:
-        return [self.views[i] for i in self.test]
-
-    @property
-    def cameras(self) -> list[Camera]:
-        """Cameras of all views, sorted by id."""
-        return [v.camera for v in self.views.values()]
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        """(width, height) shared by all views."""
-        c = next(iter(self.views.values())).camera
-        return c.width, c.height
-
-
-# ---------------------------------------------------------------------------
-# Split protocol
-# ---------------------------------------------------------------------------
-def orbit_ids(ids: Sequence[str]) -> list[str]:
-    """The orbit views among ``ids``: all but the near-nadir view 000 of a 21-view LEVIR scene."""
-    ids = sorted(ids)
-    if len(ids) == 21 and ids[0] == "000":
-        return ids[1:]
-    return list(ids)
-
-
-def default_split(ids: Sequence[str], n_train: int = 3) -> tuple[list[str], list[str]]:
-    """LEVIR-NVS sparse-view protocol: ``n_train`` evenly spaced orbit views
-    (indices ceil(i * n / n_train): 0, 7, 14 of 20) train, the other orbit views test."""
-    orbit = orbit_ids(ids)
-    if len(orbit) < 2:
-        raise ValueError("need at least 2 orbit views for a train/test split")
-    n_train = min(n_train, len(orbit) - 1)
-    idx = sorted({math.ceil(i * len(orbit) / n_train) for i in range(n_train)})
-    train = [orbit[i] for i in idx]
-    return train, [i for i in orbit if i not in train]
-
-
-def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
-               test_ids: Iterable[str] | None = None) -> tuple[list[str], list[str]]:
-    """Train/test ids: the default protocol, or the given train ids (test = the other orbit views)."""
-    if train_ids is None:
-        if test_ids is not None:
-            raise ValueError("test_ids needs train_ids")
-        return default_split(ids)
-    train = [_norm_id(i) for i in train_ids]
-    missing = [i for i in train if i not in ids]
-    if missing:
-        raise InputError(root, f"train views {missing} not in the scene (views: {', '.join(ids)})")
-    if test_ids is None:
-        test = [i for i in orbit_ids(ids) if i not in train]
-    else:
-        test = [_norm_id(i) for i in test_ids]
-        missing = [i for i in test if i not in ids]
-        if missing:
-            raise InputError(root, f"test views {missing} not in the scene")
-    return train, test
-
-
-def _norm_id(i: str | int) -> str:
-    """Accept 8 or "8" or "008" for view 008."""
-    s = str(i)
-    return f"{int(s):03d}" if s.isdigit() and len(s) < 3 else s
 
 
 # ---------------------------------------------------------------------------
@@ -171,27 +66,6 @@ def parse_cams_text(text: str, path: Path) -> tuple[np.ndarray, np.ndarray, tupl
     dr = (float(rest[9]), float(rest[10]))
     validate_camera_arrays(w2c, K, dr, path)
     return w2c, K, dr
-
-
-def validate_camera_arrays(w2c: np.ndarray, K: np.ndarray, depth_range: tuple[float, float] | None,
-                           path: Path | None) -> None:
-    """Raise InputError unless w2c is a finite rigid transform and K a finite upper-triangular pinhole."""
-    if not (np.isfinite(w2c).all() and np.isfinite(K).all()):
-        raise InputError(path, "camera has NaN or infinite values")
-    if depth_range is not None and not all(map(math.isfinite, depth_range)):
-        raise InputError(path, f"depth range {depth_range} is not finite")
-    if not np.allclose(w2c[3], [0, 0, 0, 1], atol=1e-6):
-        raise InputError(path, f"extrinsic last row must be 0 0 0 1, got {w2c[3].tolist()}")
-    R = w2c[:3, :3]
-    det = float(np.linalg.det(R))
-    if abs(det) < 1e-6:
-        raise InputError(path, f"extrinsic rotation is singular (det {det:.3g})")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or det < 0:
-        raise InputError(path, f"extrinsic rotation is not a rotation (det {det:.4g}, R R^T != I)")
-    if abs(float(np.linalg.det(K))) < 1e-12 or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(path, f"intrinsic matrix is singular or has non-positive focal length: {K.tolist()}")
-    if not np.allclose(K[2], [0, 0, 1], atol=1e-9) or abs(K[1, 0]) > 1e-9:
-        raise InputError(path, f"intrinsic matrix must be upper-triangular with last row 0 0 1: {K.tolist()}")
 
 
 def read_cams_file(path: str | Path, size: tuple[int, int] | None = None) -> Camera:
@@ -272,120 +146,12 @@ def read_cameras(path: str | Path) -> list[Camera]:
     return [read_cams_file(path)]
 
 
-# ---------------------------------------------------------------------------
-# Images and depth maps
-# ---------------------------------------------------------------------------
 def _find(folder: Path, stem: str, exts: Sequence[str]) -> Path | None:
     for e in exts:
         p = folder / f"{stem}{e}"
         if p.is_file():
             return p
     return None
-
-
-def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) from the image header."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (OSError, UnidentifiedImageError) as e:
-        raise InputError(path, f"unreadable image ({e})") from None
-
-
-def read_image(path: str | Path) -> np.ndarray:
-    """Float32 (H, W, 3) RGB in [0, 1]; 16-bit images are scaled by 1/65535, alpha is dropped."""
-    from PIL import Image, UnidentifiedImageError
-
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            im.load()  # decodes fully: truncated files fail here
-            if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-                a = np.asarray(im, dtype=np.float32) / 65535.0
-                return np.repeat(a[..., None], 3, axis=2)
-            return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-    except FileNotFoundError:
-        raise InputError(path, "image file not found") from None
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
-        raise InputError(path, f"unreadable or truncated image ({e})") from None
-
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    """Float image in [0, 1] -> uint8, rounded; NaN becomes 0 and values outside [0, 1] are clipped."""
-    return np.round(np.clip(np.nan_to_num(np.asarray(image, dtype=np.float64)), 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-def write_png(path: str | Path, image: np.ndarray) -> None:
-    """Write an 8-bit PNG from uint8 (H,W,3) or float in [0, 1] (rounded)."""
-    from PIL import Image
-
-    a = np.asarray(image)
-    if a.dtype != np.uint8:
-        a = to_uint8(a)
-    with atomic_path(path) as tmp:
-        Image.fromarray(a).save(tmp, format="PNG")
-
-
-def read_depth(path: str | Path) -> np.ndarray:
-    """Float32 (H, W) depth from .tiff/.tif (tifffile) or .exr (channel Z, else the first);
-    non-finite values become 0 (no depth)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "depth file not found")
-    try:
-        if path.suffix.lower() == ".exr":
-            d = read_depth_exr(path)
-        else:
-            import tifffile
-
-            d = tifffile.imread(path)
-    except InputError:
-        raise
-    except Exception as e:  # tifffile/OpenEXR raise many types for corrupt files
-        raise InputError(path, f"unreadable depth map ({type(e).__name__}: {e})") from None
-    d = np.asarray(d)
-    if d.size == 0:
-        raise InputError(path, "unreadable depth map (no pixel data)")
-    if d.ndim == 3 and d.shape[2] == 1:
-        d = d[..., 0]
-    if d.ndim != 2:
-        raise InputError(path, f"depth map must be 2-D, got shape {d.shape}")
-    d = d.astype(np.float32)
-    bad = ~np.isfinite(d)
-    if bad.any():
-        log.warning("%s: %d non-finite depth values set to 0", path, int(bad.sum()))
-        d[bad] = 0.0
-    return d
-
-
-def write_depth_tiff(path: str | Path, depth: np.ndarray) -> None:
-    """Write a float32 depth map as TIFF (atomically)."""
-    import tifffile
-
-    with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, np.asarray(depth, dtype=np.float32))
-
-
-def read_depth_exr(path: str | Path) -> np.ndarray:
-    import OpenEXR
-
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        ch = f.channels()
-        key = "Z" if "Z" in ch else next((k for k in ch if k.endswith(".Z") or k.endswith(".V")), None)
-        key = key or next(iter(ch))
-        return np.asarray(ch[key].pixels, dtype=np.float32)
-
-
-def write_depth_exr(path: str | Path, depth: np.ndarray) -> None:
-    """Write a depth map as a 32-bit float EXR with a single channel ``Z`` (atomically)."""
-    import OpenEXR
-
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp:
-        with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth, dtype=np.float32)}) as f:
-            f.write(str(tmp))
 
 
 # ---------------------------------------------------------------------------
@@ -468,17 +234,3 @@ def write_scene(root: str | Path, views: dict[str, View] | Iterable[View], track
     return root
 
 
-def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
-                   test_ids: Iterable[str] | None = None) -> Scene:
-    """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder itself)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise InputError(root, "scene folder not found")
-    if (root / "Cams").is_dir():
-        return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids)
-    from .colmap import find_colmap_model, read_colmap_scene
-
-    if find_colmap_model(root) is not None:
-        return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)
-    raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
-                           "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..camera.pinhole import Camera, camera_from_dict
+from ..camera.pinhole import Camera
+from ..camera.serialize import camera_from_dict
 from ..training.config import TrainConfig
 from ..common.errors import InputError
 from ..common.fileio import write_json
@@ -274,7 +275,7 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
     from tqdm import tqdm
 
-    from ..data.levir import write_png
+    from ..data.images import write_png
     from ..training.trainer import load_scene, views_to_frames
 
     work = Path(work)

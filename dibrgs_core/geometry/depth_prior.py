@@ -25,7 +25,7 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
-from ..data.levir import to_uint8
+from ..data.images import to_uint8
 
 log = logging.getLogger("dibrgs.depth_prior")
 

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from ..camera.pinhole import Camera
-from ..data.levir import to_uint8
+from ..data.images import to_uint8
+from .pointcloud import zbuffer
 
 log = logging.getLogger("dibrgs.fusion")
 
@@ -58,39 +58,6 @@ def backproject_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray], i
     if not P:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
     return np.concatenate(P), np.concatenate(C), np.concatenate(V)
-
-
-def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False, footprint: float = 0.0,
-            max_radius: int = 4, empty: float = np.nan) -> np.ndarray:
-    """Depth image (H,W, float64 z-depth) of ``points`` seen by ``cam``: the nearest point per pixel
-    (or the farthest), ``empty`` where none lands.
-
-    With ``footprint`` (world units, e.g. the cloud's point spacing) each point is splatted as a
-    square of half-size ``round(footprint * f / z / 2)`` pixels, at most ``max_radius``, so a
-    sparse cloud still covers the image; 0 writes only the pixel the point falls in.
-    """
-    H, W = cam.height, cam.width
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    acc = np.full(H * W, -np.inf if farthest else np.inf)
-    if len(pts):
-        uv, z = cam.project(pts)
-        ok = (z > 0) & np.isfinite(z) & np.isfinite(uv).all(1)
-        uv, z = uv[ok], z[ok]
-        f = 0.5 * (cam.fx + cam.fy)
-        r = np.clip(np.round(0.5 * footprint * f / z), 0, max_radius).astype(np.int64)
-        u = np.floor(uv[:, 0]).astype(np.int64)
-        v = np.floor(uv[:, 1]).astype(np.int64)
-        near = (u >= -r) & (u < W + r) & (v >= -r) & (v < H + r)
-        u, v, z, r = u[near], v[near], z[near], r[near]
-        reduce = np.maximum.at if farthest else np.minimum.at
-        R = int(r.max()) if len(r) else 0
-        for dy in range(-R, R + 1):
-            for dx in range(-R, R + 1):
-                m = r >= max(abs(dx), abs(dy))
-                x, y = u[m] + dx, v[m] + dy
-                inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-                reduce(acc, y[inside] * W + x[inside], z[m][inside])
-    return np.where(np.isfinite(acc), acc, empty).reshape(H, W)
 
 
 def reproject_max_depth(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> list[np.ndarray]:
@@ -185,47 +152,3 @@ def overlap_pairs_drop(local: np.ndarray, candidates: np.ndarray, cell: float, e
     return drop
 
 
-def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float, origin: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean position and colour per occupied voxel of side ``voxel`` (world axes, relative to ``origin``)."""
-    if len(points) == 0 or not voxel or voxel <= 0:
-        return np.asarray(points, np.float64), np.asarray(colors, np.uint8)
-    origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
-    rel = np.asarray(points, np.float64) - origin
-    keys = np.floor(rel / voxel).astype(np.int64)
-    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    m = len(cnt)
-    P = np.zeros((m, 3))
-    C = np.zeros((m, 3))
-    np.add.at(P, inv, rel)
-    np.add.at(C, inv, np.asarray(colors, np.float64))
-    P /= cnt[:, None]
-    C /= cnt[:, None]
-    return P + origin, np.clip(C.round(), 0, 255).astype(np.uint8)
-
-
-def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> None:
-    """Coloured point cloud as binary PLY (trimesh), written atomically. Positions are float64 world."""
-    import trimesh
-
-    from ..common.fileio import atomic_path
-
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    col = np.asarray(colors, np.uint8).reshape(-1, 3)
-    rgba = np.concatenate([col, np.full((len(col), 1), 255, np.uint8)], 1)
-    pc = trimesh.PointCloud(pts, colors=rgba)
-    with atomic_path(path) as tmp:
-        pc.export(tmp, file_type="ply")
-
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N,3) float64, colors (N,3) uint8) of a PLY written by :func:`write_ply`."""
-    import trimesh
-
-    pc = trimesh.load(path, process=False)
-    pts = np.asarray(pc.vertices, np.float64)
-    cols = getattr(pc, "colors", None)
-    if cols is None or len(cols) != len(pts):
-        cols = np.full((len(pts), 3), 128, np.uint8)
-    return pts, np.asarray(cols)[:, :3].astype(np.uint8)

@@ -20,6 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE
 from ..camera.pinhole import Camera
 
 log = logging.getLogger("dibrgs.mvs")
@@ -56,8 +57,8 @@ class MvsConfig:
             below to ``height_above`` above the ground (the cameras' look-at
             point), in units of the flying height above it (0 = the range the
             cameras' depth ranges allow).
-        max_nadir_deg: ``auto`` uses height planes when the mean view
-            direction is within this angle of straight down.
+        max_nadir_deg, min_up_confidence: ``auto`` uses height planes when the
+            cameras are near-nadir by these thresholds (:func:`~dibrgs_core.camera.frame.near_nadir`).
         sgm_paths: semi-global aggregation of the cost volume along 4 or 8
             image directions before the winner-take-all (0 = off; other
             values are refused); see
@@ -81,7 +82,8 @@ class MvsConfig:
     height_below: float = 0.1
     height_above: float = 0.6
     prefilter: bool = True
-    max_nadir_deg: float = 60.0
+    max_nadir_deg: float = MAX_NADIR_DEG
+    min_up_confidence: float = MIN_UP_CONFIDENCE
     sgm_paths: int = 4
     sgm_p1: float = 0.1
     sgm_p2: float = 1.0
@@ -381,7 +383,7 @@ def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig) -> tu
     repetitive texture (street grids), finds spurious matches far from the
     scene. None (full range) when the look-at point is undefined or not below the cameras.
     """
-    from ..camera.pinhole import look_at_target
+    from ..camera.frame import look_at_target
 
     n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
     target = look_at_target(cams)
@@ -403,7 +405,7 @@ def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:
     NCC windows match exactly even across wide baselines, where a fronto-parallel
     plane cuts the tilted ground at one depth only.
     """
-    from ..camera.pinhole import estimate_up, nadir_angle_deg
+    from ..camera.frame import estimate_up, near_nadir
 
     if config.planes == "fronto":
         return None
@@ -412,7 +414,7 @@ def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:
         return up
     if config.planes != "auto":
         raise ValueError(f"unknown MVS plane family {config.planes!r} (auto, height, fronto)")
-    if conf < 0.5 or nadir_angle_deg(cams, up) > config.max_nadir_deg:
+    if not near_nadir(cams, config.max_nadir_deg, config.min_up_confidence)[0]:
         return None
     return up
 

@@ -21,18 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from ..camera.pinhole import Camera, estimate_up, look_at_target, nadir_angle_deg, up_frame
+from ..camera.pinhole import Camera
+from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE, estimate_up, look_at_target, nadir_angle_deg, near_nadir, up_frame
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
 from ..common.errors import InputError
-from .fusion import (
-    backproject_views,
-    dip_cells,
-    overlap_pairs_drop,
-    reproject_max_depth,
-    to_frame,
-    voxel_downsample,
-    write_ply,
-)
+from .fusion import backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame
+from .pointcloud import voxel_downsample
+from ..data.ply import write_ply
 from .height_map import HeightMap
 from .mvs import MvsConfig
 from ..common.report import Report
@@ -86,8 +81,8 @@ class InitConfig:
     height_percentile: float = 95.0
     height_relax: float = 1.1
     height_margin: float = 1.0
-    max_nadir_deg: float = 60.0
-    min_up_confidence: float = 0.5
+    max_nadir_deg: float = MAX_NADIR_DEG
+    min_up_confidence: float = MIN_UP_CONFIDENCE
     min_sfm_points: int = 20
     dense_sfm_ratio: float = 0.05
     sfm: SfmConfig = field(default_factory=SfmConfig)
@@ -205,19 +200,9 @@ def prior_depths(geo: SceneGeometry, config: InitConfig, sparse_points: np.ndarr
     return out
 
 
-def near_nadir(up_confidence: float, nadir_deg: float, config: InitConfig) -> tuple[bool, str]:
-    """Whether cameras with this up-axis agreement (:func:`cameras.estimate_up`) and mean angle from
-    straight down (degrees) are near-nadir with a clear up axis, and why."""
-    if up_confidence < config.min_up_confidence:
-        return False, f"the up axis is ambiguous (camera agreement {up_confidence:.2f} < {config.min_up_confidence})"
-    if nadir_deg > config.max_nadir_deg:
-        return False, f"cameras are not near-nadir (mean {nadir_deg:.1f} deg from straight down > {config.max_nadir_deg})"
-    return True, f"near-nadir cameras ({nadir_deg:.1f} deg from straight down, up agreement {up_confidence:.2f})"
-
-
 def overlap_applicable(geo: SceneGeometry, config: InitConfig) -> tuple[bool, str]:
     """Overlap removal and the height map need near-nadir cameras and a clear up axis."""
-    return near_nadir(geo.up_confidence, geo.nadir_deg, config)
+    return near_nadir(geo.cameras, config.max_nadir_deg, config.min_up_confidence)
 
 
 def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report
@@ -269,7 +254,7 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     if use_prior:
         depths = prior_depths(geo, cfg, sparse.points, report)
         pts, cols = refine_cloud(geo, cfg, depths, cfg.refine, report)
-    dense_pts, dense_cols = pts, cols
+    dense_pts = pts
     if len(pts):
         pts, cols = voxel_downsample(pts, cols, cfg.voxel * geo.scale, geo.origin)
     report.values["voxel_points"] = len(pts)
@@ -278,7 +263,7 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     if len(pts) == 0:
         # Nothing triangulated nor matched: a plane through the look-at point keeps training possible.
         pts, cols = _plane_fallback(geo)
-        dense_pts, dense_cols = pts, cols
+        dense_pts = pts
         report.decide(STAGE, "plane_fallback", True, "no SfM points and no prior depth: a plane at the cameras' "
                       "look-at point stands in for the scene")
     finite = np.isfinite(pts).all(1)

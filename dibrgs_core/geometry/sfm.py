@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from ..camera.pinhole import Camera
-from ..data.levir import to_uint8
+from ..data.images import to_uint8
 
 log = logging.getLogger("dibrgs.sfm")
 

@@ -20,16 +20,15 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..camera.pinhole import Camera, estimate_up, nadir_angle_deg, up_frame
+from ..camera.pinhole import Camera
+from ..camera.frame import estimate_up, near_nadir, up_frame
+from .pointcloud import point_spacing
 
 
 def applies(cams: Sequence[Camera]) -> tuple[bool, str]:
     """Whether a height field describes the scene these cameras see, and why: the geometry
-    stage's near-nadir test (:func:`init.near_nadir` with :class:`init.InitConfig`'s thresholds)."""
-    from .pipeline import InitConfig, near_nadir
-
-    up, conf = estimate_up(cams)
-    return near_nadir(conf, nadir_angle_deg(cams, up), InitConfig())
+    stage's near-nadir test (:func:`~dibrgs_core.camera.frame.near_nadir` with its default thresholds)."""
+    return near_nadir(cams)
 
 
 def decide(mode: str, cams: Sequence[Camera]) -> tuple[bool, str]:
@@ -81,7 +80,6 @@ class HeightField:
         filter (1 = none) removes single-cell spikes: a cell keeps its
         highest point, so one floating MVS outlier would raise it.
         """
-        from ..training.pseudo_views import point_spacing
 
         pts = np.asarray(points, np.float64).reshape(-1, 3)
         pts = pts[np.isfinite(pts).all(1)]

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..geometry.pointcloud import voxelize
 from ..training.config import ModelConfig
 
 log = logging.getLogger("dibrgs.neural_gaussians")
@@ -49,12 +50,6 @@ def _mlp(in_dim: int, hidden: int, out_dim: int, act: nn.Module | None) -> nn.Se
     if act is not None:
         layers.append(act)
     return nn.Sequential(*layers)
-
-
-def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Unique voxel centres ``round(p / voxel) * voxel`` of ``points`` (N,3), as float32."""
-    keys = np.unique(np.round(np.asarray(points, np.float64) / voxel).astype(np.int64), axis=0)
-    return (keys * voxel).astype(np.float32)
 
 
 def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float) -> tuple[float, str]:

@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera.pinhole import Camera, look_at, to_blender
+from ..camera.pinhole import Camera, look_at
+from ..camera.blender import to_blender
 from ..common.fileio import write_json
 
 log = logging.getLogger("dibrgs.scenegen")
@@ -721,7 +722,8 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     """
     import bpy
 
-    from ..data.levir import write_cams_file, write_depth_exr, write_depth_tiff, write_png
+    from ..data.levir import write_cams_file
+    from ..data.images import write_depth_exr, write_depth_tiff, write_png
 
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")

@@ -32,11 +32,11 @@ from typing import Sequence
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
-from ..camera.pinhole import Camera, fit_orbit
+from ..camera.pinhole import Camera
+from ..camera.orbit import fit_orbit
 from ..common.fileio import atomic_path, write_json
-from ..geometry.fusion import zbuffer
+from ..geometry.pointcloud import point_spacing, zbuffer
 
 log = logging.getLogger("dibrgs.pseudo_views")
 
@@ -99,16 +99,6 @@ def sample_orbit_poses(train_cams: Sequence[Camera], n: int, seed: int,
 # ---------------------------------------------------------------------------
 # Depth
 # ---------------------------------------------------------------------------
-def point_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> float:
-    """Median distance from a point to its nearest neighbour (world units); 0 if < 2 points."""
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) < 2:
-        return 0.0
-    tree = cKDTree(pts)
-    rng = np.random.default_rng(seed)
-    q = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
-    d, _ = tree.query(q, k=2)
-    return float(np.median(d[:, 1]))
 
 
 def zbuffer_depth(points: np.ndarray, cam: Camera, spacing: float | None = None,
@@ -471,6 +461,6 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     return out
 
 
-__all__ = ["PseudoView", "EMPTY", "PADDED", "sample_orbit_poses", "point_spacing", "zbuffer_depth",
+__all__ = ["PseudoView", "EMPTY", "PADDED", "sample_orbit_poses", "zbuffer_depth",
            "remove_see_through", "complete_depth", "warp_progressive", "source_disagreement",
            "build_pseudo_views"]

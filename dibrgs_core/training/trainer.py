@@ -42,7 +42,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ..camera.pinhole import Camera, camera_from_dict, camera_to_dict
+from ..camera.pinhole import Camera
+from ..camera.serialize import camera_from_dict, camera_to_dict
 from .config import TrainConfig, expon_lr
 from ..common.errors import InputError
 from ..common.fileio import atomic_path, write_json, write_text
@@ -67,7 +68,7 @@ def load_scene(root: str | Path) -> Any:
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder does not exist")
-    from ..data.levir import read_any_scene
+    from ..data.load import read_any_scene
 
     return read_any_scene(root)
 
@@ -864,7 +865,7 @@ def random_init(cams: list[Camera], n: int, rng: np.random.Generator) -> tuple[n
     A flat box around the cameras' common look-at point: horizontally as wide as
     the mean image footprint there, vertically a quarter of that.
     """
-    from ..camera.pinhole import estimate_up, look_at_target, up_frame
+    from ..camera.frame import estimate_up, look_at_target, up_frame
 
     target = look_at_target(cams)
     up, _ = estimate_up(cams)

@@ -1,0 +1,85 @@
+"""The scene frame a set of cameras implies: up axis, nadir angle, horizontal frame, look-at point.
+
+Aerial views are not assumed to use +Z as up: up is the opposite of the mean
+viewing direction. OpenCV cameras (:mod:`.pinhole`), world units.
+NumPy only.
+"""
+from __future__ import annotations
+
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .pinhole import Camera
+
+
+def estimate_up(cams: Iterable[Camera]) -> tuple[np.ndarray, float]:
+    """Scene up axis from the cameras: opposite to the mean viewing direction.
+
+    Returns ``(up (3,), confidence)`` where confidence is the length of the
+    mean unit viewing direction in [0, 1]; near 0 means the cameras look in
+    all directions and the up axis is ambiguous. Aerial views are not assumed
+    to use +Z as up.
+    """
+    dirs = np.stack([c.view_dir for c in cams])
+    m = dirs.mean(axis=0)
+    n = float(np.linalg.norm(m))
+    if n < 1e-12:
+        return np.array([0.0, 0.0, 1.0]), 0.0
+    return -m / n, n
+
+
+def nadir_angle_deg(cams: Sequence[Camera], up: np.ndarray | None = None) -> float:
+    """Angle in degrees between the mean viewing direction and straight down."""
+    if up is None:
+        up, _ = estimate_up(cams)
+    dirs = np.stack([c.view_dir for c in cams])
+    ang = np.degrees(np.arccos(np.clip(dirs @ -up, -1.0, 1.0)))
+    return float(ang.mean())
+
+
+def up_frame(up: np.ndarray) -> np.ndarray:
+    """3x3 rotation whose rows are (e1, e2, up): world -> (horizontal, horizontal, height)."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    ref = np.eye(3)[np.argmin(np.abs(up))]
+    e1 = np.cross(ref, up)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    return np.stack([e1, e2, up])
+
+
+def look_at_target(cams: Sequence[Camera]) -> np.ndarray:
+    """Least-squares point closest to all optical axes (the orbit's look-at point)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c in cams:
+        d = c.view_dir
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c.center
+    if np.linalg.cond(A) > 1e12:  # all axes parallel: no unique point
+        return np.mean([c.center + c.view_dir for c in cams], axis=0)
+    return np.linalg.solve(A, b)
+
+
+#: Defaults of :func:`near_nadir` (the geometry stage's ``InitConfig`` and the plane sweep use them).
+MAX_NADIR_DEG = 60.0
+MIN_UP_CONFIDENCE = 0.5
+
+
+def near_nadir(cams: Sequence[Camera], max_nadir_deg: float = MAX_NADIR_DEG,
+               min_up_confidence: float = MIN_UP_CONFIDENCE) -> tuple[bool, str]:
+    """Whether ``cams`` look near straight down with a clear up axis, and why.
+
+    Near-nadir: the up axis the cameras imply (:func:`estimate_up`) has a confidence of at
+    least ``min_up_confidence`` and their mean angle from straight down is at most
+    ``max_nadir_deg`` degrees.
+    """
+    up, conf = estimate_up(cams)
+    nadir_deg = nadir_angle_deg(cams, up)
+    if conf < min_up_confidence:
+        return False, f"the up axis is ambiguous (camera agreement {conf:.2f} < {min_up_confidence})"
+    if nadir_deg > max_nadir_deg:
+        return False, f"cameras are not near-nadir (mean {nadir_deg:.1f} deg from straight down > {max_nadir_deg})"
+    return True, f"near-nadir cameras ({nadir_deg:.1f} deg from straight down, up agreement {conf:.2f})"

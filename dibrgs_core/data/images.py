@@ -1,0 +1,125 @@
+"""Images and depth maps on disk: PNG/JPEG/TIFF images (Pillow), float32 depth as TIFF
+(tifffile) or EXR (OpenEXR). Writers are atomic. Never torch or bpy.
+
+Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded); depth maps
+float32 (H, W) z-depth in world units, 0 = no depth.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..common.errors import InputError
+from ..common.fileio import atomic_path
+
+log = logging.getLogger("dibrgs.images")
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+DEPTH_EXTS = (".tiff", ".tif", ".exr")
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) from the image header."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, UnidentifiedImageError) as e:
+        raise InputError(path, f"unreadable image ({e})") from None
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Float32 (H, W, 3) RGB in [0, 1]; 16-bit images are scaled by 1/65535, alpha is dropped."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()  # decodes fully: truncated files fail here
+            if im.mode in ("I;16", "I;16B", "I;16L", "I"):
+                a = np.asarray(im, dtype=np.float32) / 65535.0
+                return np.repeat(a[..., None], 3, axis=2)
+            return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except FileNotFoundError:
+        raise InputError(path, "image file not found") from None
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+        raise InputError(path, f"unreadable or truncated image ({e})") from None
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Float image in [0, 1] -> uint8, rounded; NaN becomes 0 and values outside [0, 1] are clipped."""
+    return np.round(np.clip(np.nan_to_num(np.asarray(image, dtype=np.float64)), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """Write an 8-bit PNG from uint8 (H,W,3) or float in [0, 1] (rounded)."""
+    from PIL import Image
+
+    a = np.asarray(image)
+    if a.dtype != np.uint8:
+        a = to_uint8(a)
+    with atomic_path(path) as tmp:
+        Image.fromarray(a).save(tmp, format="PNG")
+
+
+def read_depth(path: str | Path) -> np.ndarray:
+    """Float32 (H, W) depth from .tiff/.tif (tifffile) or .exr (channel Z, else the first);
+    non-finite values become 0 (no depth)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "depth file not found")
+    try:
+        if path.suffix.lower() == ".exr":
+            d = read_depth_exr(path)
+        else:
+            import tifffile
+
+            d = tifffile.imread(path)
+    except InputError:
+        raise
+    except Exception as e:  # tifffile/OpenEXR raise many types for corrupt files
+        raise InputError(path, f"unreadable depth map ({type(e).__name__}: {e})") from None
+    d = np.asarray(d)
+    if d.size == 0:
+        raise InputError(path, "unreadable depth map (no pixel data)")
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.ndim != 2:
+        raise InputError(path, f"depth map must be 2-D, got shape {d.shape}")
+    d = d.astype(np.float32)
+    bad = ~np.isfinite(d)
+    if bad.any():
+        log.warning("%s: %d non-finite depth values set to 0", path, int(bad.sum()))
+        d[bad] = 0.0
+    return d
+
+
+def write_depth_tiff(path: str | Path, depth: np.ndarray) -> None:
+    """Write a float32 depth map as TIFF (atomically)."""
+    import tifffile
+
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, np.asarray(depth, dtype=np.float32))
+
+
+def read_depth_exr(path: str | Path) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        key = "Z" if "Z" in ch else next((k for k in ch if k.endswith(".Z") or k.endswith(".V")), None)
+        key = key or next(iter(ch))
+        return np.asarray(ch[key].pixels, dtype=np.float32)
+
+
+def write_depth_exr(path: str | Path, depth: np.ndarray) -> None:
+    """Write a depth map as a 32-bit float EXR with a single channel ``Z`` (atomically)."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth, dtype=np.float32)}) as f:
+            f.write(str(tmp))

@@ -1,0 +1,25 @@
+"""Reading any supported scene folder: LEVIR-NVS (``Cams/``) or a COLMAP model."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable
+
+from ..common.errors import InputError
+from .levir import read_scene
+from .scene import Scene
+
+
+def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
+                   test_ids: Iterable[str] | None = None) -> Scene:
+    """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder itself)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "scene folder not found")
+    if (root / "Cams").is_dir():
+        return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids)
+    from .colmap import find_colmap_model, read_colmap_scene
+
+    if find_colmap_model(root) is not None:
+        return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)
+    raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
+                           "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
