@@ -21,7 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dibrgs_core.bench import runner as bm  # noqa: E402
+from dibrgs_core.bench import pages, runner as bm  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         bm.run_local(todo, args.work, results, lpips=args.lpips, jobs=args.jobs)
     command = "python scripts/benchmark.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    res = bm.write_pages(results, suite, args.docs, command)
+    res = pages.write_pages(results, suite, args.docs, command)
     print(f"wrote {args.docs / 'benchmarks' / 'results.csv'}, {args.docs / 'benchmarks' / 'curves.png'} "
           f"and the '{suite.name}' section of {args.docs / 'benchmarks.md'} ({len(res)} runs)")
     return 0

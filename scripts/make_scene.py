@@ -16,7 +16,8 @@ from pathlib import Path
 # Inside Blender the repository is not installed: import dibrgs_core from the checkout.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dibrgs_core.synth.writer import DEFAULT_ORBIT, KINDS, ORBITS, make_scene  # noqa: E402
+from dibrgs_core.synth.layout import DEFAULT_ORBIT, KINDS, ORBITS  # noqa: E402
+from dibrgs_core.synth.writer import make_scene  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

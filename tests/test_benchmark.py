@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from dibrgs_core.bench import runner as bm
+from dibrgs_core.bench import pages, runner as bm
 
 
 def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene):
@@ -37,7 +37,7 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     assert bm.pending(suite, results) == []  # both runs finished despite the killed workers
     assert all((work / f"attempted_{s.key}").exists() for s in suite.runs)
     docs = tmp_path / "docs"
-    res = bm.write_pages(results, suite, docs, "python scripts/benchmark.py --suite tiny")
+    res = pages.write_pages(results, suite, docs, "python scripts/benchmark.py --suite tiny")
     assert len(res) == 2
     rows = list(csv.DictReader(open(docs / "benchmarks" / "results.csv")))
     assert {r["method"] for r in rows} == {"dibrgs", "no-pseudo"}
@@ -48,7 +48,7 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     md = (docs / "benchmarks.md").read_text()
     assert "Benchmark suite `tiny`" in md and "w/o Pseudo Views" in md
     # Rewriting the pages replaces the suite's section instead of appending a second one.
-    bm.write_pages(results, suite, docs, "again")
+    pages.write_pages(results, suite, docs, "again")
     assert (docs / "benchmarks.md").read_text().count("Benchmark suite `tiny`") == 1
 
 

@@ -7,16 +7,10 @@ import torch
 
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.common.errors import InputError
-from dibrgs_core.models.ibr.features import (
-    IBRFeatures,
-    ResNetFeatures,
-    ViTFeatures,
-    build_ibr,
-    dino_resnet50,
-    dino_vitb8,
-    load_backbone_weights,
-    resolve_encoder,
-)
+from dibrgs_core.models.ibr.features import IBRFeatures, build_ibr, resolve_encoder
+from dibrgs_core.models.ibr.resnet import ResNetFeatures, dino_resnet50
+from dibrgs_core.models.ibr.vit import ViTFeatures, dino_vitb8
+from dibrgs_core.models.ibr.weights import load_backbone_weights
 
 torch.set_num_threads(2)
 

@@ -13,7 +13,7 @@ from dibrgs_core.camera.frame import estimate_up, nadir_angle_deg
 from dibrgs_core.camera.orbit import fit_orbit
 from dibrgs_core.data.images import read_depth
 from dibrgs_core.data.levir import read_scene
-from dibrgs_core.synth.writer import DEFAULT_ORBIT, ORBITS, scene_cameras
+from dibrgs_core.synth.layout import DEFAULT_ORBIT, ORBITS, scene_cameras
 
 pytest.importorskip("bpy")
 
@@ -122,7 +122,8 @@ def test_acquisition_geometry(scene):
 
 
 def test_every_kind_renders_and_seed_is_deterministic(tmp_path):
-    from dibrgs_core.synth.writer import KINDS, make_scene
+    from dibrgs_core.synth.layout import KINDS
+    from dibrgs_core.synth.writer import make_scene
 
     def render(kind, seed, name):
         out = make_scene(kind, 16, seed, tmp_path / name, samples=4)

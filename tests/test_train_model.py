@@ -325,7 +325,8 @@ def test_ply_writer_reads_back_with_trimesh(tmp_path):
 # -- LPIPS --------------------------------------------------------------------------
 def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
     from dibrgs_core.common.errors import InputError
-    from dibrgs_core.evaluation.evaluate import LPIPS, avge, load_lpips
+    from dibrgs_core.evaluation.lpips import LPIPS, load_lpips
+    from dibrgs_core.evaluation.evaluate import avge
 
     torch.manual_seed(0)
     net = LPIPS("alex")

@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from ..common.fileio import atomic_path, write_json, write_text
-from ..synth.writer import DEFAULT_ORBIT
+from ..common.fileio import write_json
+from ..synth.layout import DEFAULT_ORBIT
 
 log = logging.getLogger("dibrgs.benchmark")
 
@@ -61,7 +61,7 @@ class RunSpec:
     seed: int = 0
     preset: str = "cpu"
     iterations: int | None = None
-    orbit: str = DEFAULT_ORBIT  # scenegen.ORBITS key
+    orbit: str = DEFAULT_ORBIT  # a synth.layout.ORBITS key
 
     @property
     def scene(self) -> str:
@@ -258,149 +258,5 @@ def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: s
         progress(f"[{done}/{len(specs)}] {spec.key} on {res['host']}: PSNR {res['row']['psnr']:.2f} dB")
 
 
-# ---------------------------------------------------------------------------
-# Pages
-# ---------------------------------------------------------------------------
-def load_results(results: Path, suite: Suite | None = None) -> list[dict[str, Any]]:
-    keys = None if suite is None else {s.key for s in suite.runs}
-    out = []
-    for p in sorted((results / "runs").glob("*.json")):
-        r = json.loads(p.read_text())
-        if keys is None or RunSpec(**r["spec"]).key in keys:
-            out.append(r)
-    return out
 
 
-def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in RESULT_COLUMNS})
-
-
-def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
-    """One panel a scene, one line a method: held-out PSNR against training seconds (log x)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
-
-    scenes = sorted({r["row"]["scene"] for r in res})
-    n = max(1, len(scenes))
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
-        for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
-            c = [p for p in r["curve"] if p["seconds"] > 0]
-            if c:
-                ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], marker=".", label=r["row"]["method"])
-        ax.set_xscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
-        ax.set_title(scene)
-        ax.set_xlabel("training wall-clock (s)")
-        ax.set_ylabel("held-out PSNR (dB)")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-
-
-def _fmt(v: Any, nd: int = 2) -> str:
-    if v is None or v == "":
-        return "n/a"
-    if isinstance(v, float):
-        return f"{v:.{nd}f}"
-    return str(v)
-
-
-def markdown_tables(res: list[dict[str, Any]]) -> str:
-    rows = [r["row"] for r in res]
-    lines: list[str] = []
-    methods = [m for m in ("3dgs", "dibrgs") if any(r["method"] == m for r in rows)]
-    if methods:
-        lines += ["### Methods (mean over scenes; as the paper's Table I)", "",
-                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | Gaussians | peak MiB |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for m in methods:
-            rs = [r for r in rows if r["method"] == m]
-
-            def mean(k: str) -> float | None:
-                vals = [r[k] for r in rs if r.get(k) is not None]
-                return sum(vals) / len(vals) if vals else None
-
-            lines.append(f"| {m} | {_fmt(mean('psnr'))} | {_fmt(mean('ssim'), 3)} | {_fmt(mean('lpips'), 3)} | "
-                         f"{_fmt(mean('avge'), 3)} | {_fmt(mean('fps'), 1)} | {_fmt(mean('train_seconds'), 0)} | "
-                         f"{_fmt(mean('gaussians'), 0)} | {_fmt(mean('peak_memory_mib'), 0)} |")
-        scenes = sorted({r["scene"] for r in rows})
-        lines += ["", "### Per scene PSNR / SSIM (as the paper's Table II)", "",
-                  "| Metric | Method | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]
-        for metric, nd in (("psnr", 2), ("ssim", 3), ("lpips", 3)):
-            for m in methods:
-                vals = []
-                for s in scenes:
-                    hit = [r for r in rows if r["method"] == m and r["scene"] == s]
-                    vals.append(_fmt(hit[0][metric], nd) if hit else "-")
-                lines.append(f"| {metric.upper()} | {m} | " + " | ".join(vals) + " |")
-    abl = [r for r in rows if r["method"] in ABLATIONS or r["method"] == "dibrgs"]
-    abl_scenes = sorted({r["scene"] for r in rows if r["method"] in ABLATIONS})
-    for s in abl_scenes:
-        lines += ["", f"### Ablation of components on {s} (as the paper's architecture ablation)", "",
-                  "| Setting | PSNR | SSIM | LPIPS | AVGE | train s | Gaussians | peak MiB |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for m in ABLATIONS + ["dibrgs"]:
-            hit = [r for r in abl if r["method"] == m and r["scene"] == s]
-            if hit:
-                r = hit[0]
-                lines.append(f"| {ABLATION_LABELS[m]} | {_fmt(r['psnr'])} | {_fmt(r['ssim'], 3)} | "
-                             f"{_fmt(r['lpips'], 3)} | {_fmt(r['avge'], 3)} | {_fmt(r['train_seconds'], 0)} | "
-                             f"{_fmt(r['gaussians'], 0)} | {_fmt(r['peak_memory_mib'], 0)} |")
-    return "\n".join(lines) + "\n"
-
-
-def machine_description() -> str:
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import torch
-
-    return (f"{os.cpu_count()} CPU cores ({model}), {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, torch {torch.__version__}; each run is a `dibrgs train` "
-            f"child process with its default of 1 torch thread")
-
-
-def update_benchmarks_md(md_path: Path, suite: str, command: str, body: str, figure_rel: str) -> None:
-    """Replace (or append) the section for ``suite`` in docs/benchmarks.md, leaving other sections."""
-    start, end = f"<!-- benchmark:{suite}:start -->", f"<!-- benchmark:{suite}:end -->"
-    section = (f"{start}\n## Benchmark suite `{suite}`\n\n"
-               f"Command: `{command}`  \nDate: {time.strftime('%Y-%m-%d')}  \nMachine: {machine_description()}\n\n"
-               f"![held-out PSNR against training time]({figure_rel})\n\n{body}{end}")
-    text = md_path.read_text() if md_path.exists() else "# Benchmarks\n"
-    if start in text and end in text:
-        text = text.split(start)[0] + section + text.split(end, 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    write_text(md_path, text)
-
-
-def write_pages(results: Path, suite: Suite, docs: Path, command: str) -> list[dict[str, Any]]:
-    """Write results.csv and curves.png over every finished run (all suites: their
-    scenes differ by resolution), and the markdown section of ``suite``."""
-    everything = load_results(results)
-    res = load_results(results, suite)
-    if not res:
-        return res
-    write_csv([r["row"] for r in everything], docs / "benchmarks" / "results.csv")
-    fig = docs / "benchmarks" / "curves.png"
-    plot_curves(everything, fig)
-    update_benchmarks_md(docs / "benchmarks.md", suite.name, command, markdown_tables(res),
-                         fig.relative_to(docs).as_posix())
-    return res
