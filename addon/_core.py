@@ -10,8 +10,8 @@ One rule: the add-on uses the ``dibrgs_core`` that sits beside it.
   repository root on ``sys.path``) there is no parent package and the
   absolute ``dibrgs_core`` is used, which is the same checkout.
 
-Only numpy-only modules are imported here (``camera.*``, ``bridge.*``, the height map); torch
-runs in subprocesses (``bridge.jobs``).
+Only numpy- or stdlib-only modules are imported here (``camera.*``, ``bridge.*``, the height
+map, the training presets); torch runs in subprocesses (``bridge.jobs``).
 """
 from __future__ import annotations
 
@@ -35,3 +35,4 @@ jobs = importlib.import_module(CORE_PACKAGE + ".bridge.jobs")
 reports = importlib.import_module(CORE_PACKAGE + ".bridge.reports")
 geometry = importlib.import_module(CORE_PACKAGE + ".bridge.geometry")
 height_map = importlib.import_module(CORE_PACKAGE + ".geometry.height_map")
+train_config = importlib.import_module(CORE_PACKAGE + ".training.config")

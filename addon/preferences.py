@@ -13,13 +13,10 @@ from dataclasses import dataclass, field
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-from ._core import ADDON_PACKAGE, jobs
+from ._core import ADDON_PACKAGE, jobs, train_config
 
-PRESET_ITEMS = [
-    ("test", "Test", "A few hundred iterations (checks the pipeline end to end)"),
-    ("cpu", "CPU", "Scaled for a CPU: a 256x256 3-view scene in under 20 minutes"),
-    ("paper", "Paper", "The paper's schedule: 30,000 iterations at full resolution"),
-]
+PRESET_ITEMS = [(name, name.upper() if name == "cpu" else name.title(), text)
+                for name, text in train_config.PRESET_SUMMARY.items()]
 
 _checked: dict[str, tuple[bool, str]] = {}
 

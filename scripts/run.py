@@ -22,13 +22,17 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    from dibrgs_core.common.modes import MethodName, PresetName, choices
+
     p = argparse.ArgumentParser(
         prog="run.py", description="DIBR-GS batch mode: import, initialise, path, train, results, save .blend.",
         epilog="In Blender: blender -b -P scripts/run.py -- --scene DIR --out DIR [options]")
     p.add_argument("--scene", type=Path, required=True, help="LEVIR-NVS or COLMAP scene folder")
     p.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, renders, the .blend)")
-    p.add_argument("--preset", choices=["test", "cpu", "paper"], default="cpu")
-    p.add_argument("--method", choices=["dibrgs", "3dgs"], default="dibrgs")
+    p.add_argument("--preset", choices=choices(PresetName), default="cpu")
+    p.add_argument("--method", choices=choices(MethodName), default="dibrgs")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
     p.add_argument("--pseudo-views", type=int, default=0,
                    help="pseudo views sampled along the orbit (0: the preset's number, 96 for cpu)")
@@ -57,7 +61,6 @@ def main(argv: list[str]) -> int:
         os.environ["DIBRGS_PYTHON"] = args.python
     import bpy
 
-    sys.path.insert(0, str(REPO))
     import addon  # top-level package: uses the checkout's dibrgs_core (see addon/_core.py)
 
     bpy.ops.wm.read_factory_settings(use_empty=True)

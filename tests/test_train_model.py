@@ -24,9 +24,9 @@ def _cam(eye=(0.0, -30.0, 40.0), size=32) -> Camera:
 
 
 def _camt(cam: Camera):
-    from dibrgs_core.training.trainer import CamT
+    from dibrgs_core.models.base import CameraTensors
 
-    return CamT.of(cam)
+    return CameraTensors.of(cam)
 
 
 def _model(n=200, seed=0, use_ibr=False) -> NeuralGaussians:
@@ -264,7 +264,9 @@ def test_update_accumulates_ndc_gradients_of_rasterized_gaussians():
 # -- 3DGS -------------------------------------------------------------------------
 def test_gs3d_clone_split_prune_keep_optimizer_consistent():
     from dibrgs_core.training.config import GS3DConfig
-    from dibrgs_core.models.gs3d import GAUSS_PARAMS, DensifyStrategy, Gaussians3D, eval_sh, optimizer_for
+    from dibrgs_core.models.gs3d import GAUSS_PARAMS, Gaussians3D, eval_sh
+    from dibrgs_core.strategy.densify import DensifyStrategy
+    from dibrgs_core.training.methods import gs3d_optimizer
 
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (100, 3))
@@ -275,7 +277,7 @@ def test_gs3d_clone_split_prune_keep_optimizer_consistent():
     rgb = eval_sh(3, sh, torch.nn.functional.normalize(torch.randn(100, 3), dim=1)) + 0.5
     assert torch.allclose(rgb, torch.tensor(cols, dtype=torch.float32), atol=1e-5)
     cfg = GS3DConfig()
-    opt = optimizer_for(g, cfg, extent=10.0)
+    opt = gs3d_optimizer(g, cfg, extent=10.0)
     for p in g.parameters():
         p.grad = torch.ones_like(p)
     opt.step()

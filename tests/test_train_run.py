@@ -12,7 +12,9 @@ import pytest
 import torch
 
 from dibrgs_core.training.config import preset
-from dibrgs_core.training.trainer import MODEL, Trainer, TrainingFailed, train
+from dibrgs_core.training.checkpoint import MODEL
+from dibrgs_core.training.methods import TrainingFailed
+from dibrgs_core.training.trainer import Trainer, train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from train_synth import make_synth_scene  # noqa: E402
@@ -196,7 +198,7 @@ def test_padded_pseudo_pixels_get_their_loss_weight(synth, synth_init, tmp_path)
         cfg = _cfg(20)
         cfg.pseudo.padded_weight = w
         tr = Trainer(synth, _with_caches(synth_init, tmp_path / f"w{w}"), cfg)
-        tr._setup()
+        tr.setup()
         masks[w] = torch.stack([f.mask for f in tr.pseudo_frames])
     padded = (masks[1.0] == 1) & (masks[0.0] == 0)
     assert padded.any() and (masks[0.0] == 1).any()

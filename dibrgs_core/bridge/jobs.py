@@ -27,10 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
+from ..common.modes import MethodName, choices
+from ..training.config import PRESETS
 from .progress import Progress, parse_progress_line
 
-PRESETS = ("test", "cpu", "paper")
-METHODS = ("dibrgs", "3dgs")
+METHODS = choices(MethodName)
+
 
 
 def pseudo_view_count(preset: str, requested: int = 0) -> int:

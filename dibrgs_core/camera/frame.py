@@ -83,3 +83,9 @@ def near_nadir(cams: Sequence[Camera], max_nadir_deg: float = MAX_NADIR_DEG,
     if nadir_deg > max_nadir_deg:
         return False, f"cameras are not near-nadir (mean {nadir_deg:.1f} deg from straight down > {max_nadir_deg})"
     return True, f"near-nadir cameras ({nadir_deg:.1f} deg from straight down, up agreement {conf:.2f})"
+
+
+def central_camera(cams: Sequence[Camera]) -> Camera:
+    """The camera nearest to the mean camera centre (a representative viewpoint of a set)."""
+    c = np.mean([x.center for x in cams], 0)
+    return min(cams, key=lambda x: float(np.linalg.norm(x.center - c)))

@@ -13,6 +13,8 @@ import logging
 import time
 from pathlib import Path
 
+from ..common.modes import SceneKind, choices
+
 log = logging.getLogger("dibrgs.demo")
 
 
@@ -20,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="render the embedded default scene and run the whole pipeline on it",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default runs/demo)")
-    p.add_argument("--kind", default="city", choices=["city", "mountain", "village", "stadium"])
+    p.add_argument("--kind", default="city", choices=choices(SceneKind))
     p.add_argument("--resolution", type=int, default=128, help="image size of the generated views")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--preset", default="cpu", help="training preset (cpu, paper, test)")

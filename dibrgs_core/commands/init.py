@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..common.modes import DepthMap, DepthPrior, Refine, choices
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("init", help="initial point cloud, height map and report (WORK/init/)",
@@ -13,12 +15,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS or COLMAP layout)")
     p.add_argument("--out", type=Path, required=True, help="work folder; outputs go to OUT/init/")
     p.add_argument("--train-ids", default=None, help="comma-separated training view ids (default: the scene's split)")
-    p.add_argument("--depth-prior", default="auto", choices=["auto", "mvs", "depth-anything-v2", "gt"],
+    p.add_argument("--depth-prior", default="auto", choices=choices(DepthPrior),
                    help="auto = depth-anything-v2 when --depth-model is given, else mvs; gt = oracle depths")
     p.add_argument("--depth-model", default=None, help="local folder of Depth Anything V2 weights (transformers format)")
-    p.add_argument("--map", dest="depth_map", default="inv", choices=["inv", "neg"],
+    p.add_argument("--map", dest="depth_map", default="inv", choices=choices(DepthMap),
                    help="disparity-to-depth map before alignment (inv = 1/disparity)")
-    p.add_argument("--refine", default="no-ovlp", choices=["no-ovlp", "reproject", "none"])
+    p.add_argument("--refine", default="no-ovlp", choices=choices(Refine))
     p.add_argument("--voxel", type=float, default=None, help="voxel size in paper units (default 1.0; 0 = off)")
     p.add_argument("--scale", type=float, default=None, help="world units per paper unit (default: from the cameras)")
     p.set_defaults(func=run)

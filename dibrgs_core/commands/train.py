@@ -12,6 +12,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
+
 log = logging.getLogger("dibrgs.train")
 
 
@@ -20,9 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS or COLMAP layout)")
     p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
-    p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "test"],
+    p.add_argument("--preset", default="cpu", choices=choices(PresetName),
                    help="numbers to use: the paper's (30k its), cpu (256x256 in < 20 min on 2 cores), test")
-    p.add_argument("--method", default="dibrgs", choices=["dibrgs", "3dgs"])
+    p.add_argument("--method", default="dibrgs", choices=choices(MethodName))
     p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
     p.add_argument("--resolution-scale", type=float, default=None, help="resize the images by this factor")
     p.add_argument("--seed", type=int, default=None)
@@ -32,17 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="cameras for pseudo views instead of orbit samples (LEVIR Cams file/folder or JSON list)")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
-    g.add_argument("--ibr", default="auto", choices=["auto", "dino", "pyramid", "none"], help="IBR encoder")
+    g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")
     g.add_argument("--no-height", action="store_true", help="no height-constrained growth")
     g.add_argument("--no-pseudo", action="store_true", help="no pseudo-view supervision")
-    g.add_argument("--pseudo", default=None, choices=["auto", "on", "off"],
+    g.add_argument("--pseudo", default=None, choices=choices(Switch),
                    help="pseudo views: auto (skip with >= 10 training views), on, off")
-    g.add_argument("--pseudo-surface", default="auto", choices=["auto", "on", "off"],
+    g.add_argument("--pseudo-surface", default="auto", choices=choices(Switch),
                    help="fill pseudo-view depth holes from a height field of the cloud (auto: near-nadir views)")
     g.add_argument("--pseudo-consistency", type=float, default=None, metavar="TOL",
                    help="leave out pseudo-view pixels two training views colour more than TOL apart "
                         "(mean |RGB| in [0,1]; 0 keeps all; default 0.1)")
-    g.add_argument("--depth-prior", default="auto", choices=["auto", "mvs", "depth-anything-v2", "gt"],
+    g.add_argument("--depth-prior", default="auto", choices=choices(DepthPrior),
                    help="depth prior of the geometry initialisation (gt = oracle)")
     w = p.add_argument_group("local weights (nothing is downloaded)")
     w.add_argument("--dino-resnet", default=None, help="dino_resnet50_pretrain.pth")
@@ -90,7 +92,8 @@ def config_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..training.trainer import Trainer, TrainingFailed
+    from ..training.methods import TrainingFailed
+    from ..training.trainer import Trainer
 
     torch.set_num_threads(max(1, args.threads))
     cfg = config_from_args(args)

@@ -46,5 +46,10 @@ class Report:
     def to_dict(self) -> dict[str, Any]:
         return {"decisions": [asdict(d) for d in self.decisions], "values": self.values}
 
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "Report":
+        """The report :meth:`to_dict` (or a saved report file) describes."""
+        return Report([Decision(**x) for x in d.get("decisions", [])], dict(d.get("values", {})))
+
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())

@@ -23,3 +23,11 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
         return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)
     raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
                            "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
+
+
+def load_scene(root: str | Path) -> Scene:
+    """Read a scene folder for a run (``InputError`` when it does not exist or is no scene)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "scene folder does not exist")
+    return read_any_scene(root)

@@ -27,113 +27,55 @@ import numpy as np
 import torch
 
 from ..camera.pinhole import Camera
-from ..camera.serialize import camera_from_dict
-from ..training.config import TrainConfig
 from ..common.errors import InputError
 from ..common.fileio import write_json
+from ..models.base import CameraTensors, GaussianModel, render_model
+from ..training.checkpoint import load_model
+from ..training.config import TrainConfig
 from .lpips import load_lpips
 
 log = logging.getLogger("dibrgs.evaluate")
 
 
-# ---------------------------------------------------------------------------
-# Loading a trained model
-# ---------------------------------------------------------------------------
 @dataclass
 class Trained:
-    """A trained model ready to render any camera."""
+    """A trained model ready to render any camera (see :func:`load_trained`)."""
 
-    method: str
-    model: Any
+    model: GaussianModel
     cfg: TrainConfig
     scene: str
     train_cameras: list[Camera]
-    ibr_feats: torch.Tensor | None = None
+
+    @property
+    def method(self) -> str:
+        return self.model.kind
 
     @torch.no_grad()
     def gaussians(self, cam: Camera) -> dict[str, torch.Tensor]:
         """Activated Gaussians for ``cam``: means, quats (wxyz), scales, opacities, colors."""
-        from ..training.trainer import CamT
-
-        c = CamT.of(cam)
-        if self.method == "3dgs":
-            means, quats, scales, opac, rgb = self.model.activated(c.center)
-            return {"means": means, "quats": quats, "scales": scales, "opacities": opac, "colors": rgb}
-        m = self.model
-        vis = m.visible_anchors(c.K, c.w2c, cam.width, cam.height)
-        feats = None if self.ibr_feats is None else self.ibr_feats[vis]
-        d = m.decode(c.K, c.w2c, c.center, cam.width, cam.height, ibr_feats=feats, visible=vis)
-        return {"means": d.means, "quats": d.quats, "scales": d.scales, "opacities": d.opacities,
-                "colors": d.colors}
+        return self.model.gaussians(CameraTensors.of(cam)).as_dict()
 
     @torch.no_grad()
     def all_gaussians(self) -> dict[str, torch.Tensor]:
-        """Every Gaussian, view-independent: neural Gaussians decoded from the mean training
-        camera with frustum culling off (the export's convention)."""
-        if self.method == "3dgs":
-            center = torch.tensor(np.mean([c.center for c in self.train_cameras], 0), dtype=torch.float32)
-            means, quats, scales, opac, _ = self.model.activated(center)
-            return {"means": means, "quats": quats, "scales": scales, "opacities": opac,
-                    "sh_dc": self.model.sh_dc[:, 0], "sh_rest": self.model.sh_rest}
-        cam = mean_camera(self.train_cameras)
-        from ..training.trainer import CamT
-
-        c = CamT.of(cam)
-        vis = torch.ones(self.model.num_anchors, dtype=torch.bool)
-        d = self.model.decode(c.K, c.w2c, c.center, cam.width, cam.height, ibr_feats=self.ibr_feats, visible=vis)
-        return {"means": d.means, "quats": d.quats, "scales": d.scales, "opacities": d.opacities,
-                "colors": d.colors}
+        """Every Gaussian, view-independent (the export's convention, :meth:`GaussianModel.export_gaussians`)."""
+        return self.model.export_gaussians(self.train_cameras)
 
     @torch.no_grad()
     def render(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         """(image (H,W,3) float32 in [0,1], z-depth (H,W) float32, 0 where empty)."""
-        from ..render import rasterize
-
-        g = self.gaussians(cam)
         bg = torch.tensor(self.cfg.background, dtype=torch.float32)
-        if g["means"].shape[0] == 0:
-            return (np.broadcast_to(bg.numpy(), (cam.height, cam.width, 3)).astype(np.float32).copy(),
-                    np.zeros((cam.height, cam.width), np.float32))
-        img, _a, depth, _ = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
-                                      torch.tensor(cam.w2c, dtype=torch.float32),
-                                      torch.tensor(cam.K, dtype=torch.float32), cam.width, cam.height,
-                                      background=bg)
+        img, _a, depth, _ = render_model(self.model, CameraTensors.of(cam), bg)
         return img.clamp(0, 1).numpy().astype(np.float32), depth[..., 0].numpy().astype(np.float32)
 
     @property
     def sizes(self) -> dict[str, int]:
-        if self.method == "3dgs":
-            return {"anchors": 0, "gaussians": self.model.num_gaussians}
-        return {"anchors": self.model.num_anchors, "gaussians": self.model.num_anchors * self.model.n_offsets}
-
-
-def mean_camera(cams: list[Camera]) -> Camera:
-    """The training camera nearest to the mean camera centre (a representative viewpoint)."""
-    c = np.mean([x.center for x in cams], 0)
-    return min(cams, key=lambda x: float(np.linalg.norm(x.center - c)))
+        return self.model.sizes()
 
 
 def load_trained(work: str | Path) -> Trained:
     """Load ``WORK/model.pt`` (``InputError`` when the run has not finished)."""
-    from ..training.trainer import MODEL, _gs3d_from_state, _neural_from_state
-
-    path = Path(work) / MODEL
-    if not path.exists():
-        raise InputError(path, "no trained model here; run `dibrgs train` to completion first "
-                               "(an interrupted run continues with `dibrgs train ... --resume`)")
-    try:
-        st = torch.load(path, map_location="cpu", weights_only=False)
-        cfg = TrainConfig.from_dict(st["config"])
-    except Exception as e:  # a corrupt or foreign file
-        raise InputError(path, f"cannot read the trained model ({e})") from None
-    cams = [camera_from_dict(d, str(path)) for d in st["train_cameras"]]
-    if st["method"] == "3dgs":
-        model = _gs3d_from_state(st["model"], cfg)
-        model.active_sh_degree = st["active_sh_degree"]
-        return Trained("3dgs", model, cfg, st["scene"], cams)
-    model = _neural_from_state(st["model"], st["model_meta"], cfg)
-    model.eval()
-    return Trained("dibrgs", model, cfg, st["scene"], cams, st.get("ibr_feats"))
+    st = load_model(work)
+    return Trained(st.model, st.cfg, st.scene, st.train_cameras)
 
 
 def avge(psnr: float, ssim: float, lpips: float) -> float:
@@ -152,7 +94,8 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     from tqdm import tqdm
 
     from ..data.images import write_png
-    from ..training.trainer import load_scene, views_to_frames
+    from ..data.load import load_scene
+    from ..training.frames import views_to_frames
 
     work = Path(work)
     tr = load_trained(work)

@@ -68,9 +68,9 @@ def export_ply(work: str | Path, path: str | Path) -> int:
 
     tr = load_trained(work)
     g = tr.all_gaussians()
-    if tr.method == "3dgs":
+    if "sh_dc" in g:  # spherical harmonics as they are
         dc, rest = g["sh_dc"].numpy(), g["sh_rest"].numpy()
-    else:
+    else:  # view-independent colours as the SH DC term
         dc, rest = (g["colors"].numpy() - 0.5) / SH_C0, None
     return write_gaussian_ply(path, g["means"].numpy(), g["quats"].numpy(), g["scales"].numpy(),
                               g["opacities"].numpy(), dc, rest)

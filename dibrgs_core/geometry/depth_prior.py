@@ -25,12 +25,14 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
+from ..common.modes import DepthMap, DepthPrior, choices
 from ..data.images import to_uint8
 
 log = logging.getLogger("dibrgs.depth_prior")
 
-PRIORS = ("mvs", "depth-anything-v2", "gt")
-MAPS = ("inv", "neg")
+#: Priors that can be computed (``auto`` picks one of them).
+PRIORS = tuple(p for p in choices(DepthPrior) if p != "auto")
+MAPS = choices(DepthMap)
 
 
 # ---------------------------------------------------------------------------

@@ -30,7 +30,6 @@ from .pointcloud import zbuffer
 
 log = logging.getLogger("dibrgs.fusion")
 
-REFINES = ("none", "reproject", "no-ovlp")
 
 
 def to_frame(points: np.ndarray, frame: np.ndarray, origin: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE
+from ..common.modes import SweepPlanes
 from ..camera.pinhole import Camera
 
 log = logging.getLogger("dibrgs.mvs")
@@ -78,7 +79,7 @@ class MvsConfig:
     min_consistent_views: int = 1
     max_reproj_px: float = 1.0
     max_size: int = 256
-    planes: str = "auto"
+    planes: SweepPlanes = "auto"
     height_below: float = 0.1
     height_above: float = 0.6
     prefilter: bool = True

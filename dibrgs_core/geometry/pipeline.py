@@ -25,9 +25,10 @@ from ..camera.pinhole import Camera
 from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE, estimate_up, look_at_target, nadir_angle_deg, near_nadir, up_frame
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
 from ..common.errors import InputError
+from ..common.modes import DepthMap, DepthPrior, Refine
 from .fusion import backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame
 from .pointcloud import voxel_downsample
-from ..data.ply import write_ply
+from ..data.ply import read_ply, write_ply
 from .height_map import HeightMap
 from .mvs import MvsConfig
 from ..common.report import Report
@@ -66,10 +67,10 @@ class InitConfig:
             already counts as dense and no depth prior is run.
     """
 
-    depth_prior: str = "auto"
+    depth_prior: DepthPrior = "auto"
     depth_model: str | None = None
-    depth_map: str = "inv"
-    refine: str = "no-ovlp"
+    depth_map: DepthMap = "inv"
+    refine: Refine = "no-ovlp"
     scale: float | None = None
     dip_cell: float = 2.0
     dip_alpha: float = 0.05
@@ -285,6 +286,25 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     elif hm_path.exists():
         hm_path.unlink()  # a stale map from an earlier run must not be picked up
     report.save(out / "init_report.json")
+    return InitResult(pts, cols, hm, report)
+
+
+def load_result(out_dir: str | Path, config: InitConfig) -> InitResult | None:
+    """The result :func:`initialise` saved in ``out_dir``, or None when there is none or it was
+    made with another depth prior or depth model."""
+    import json
+
+    out = Path(out_dir)
+    rep_path, ply = out / "init_report.json", out / "points.ply"
+    if not (rep_path.exists() and ply.exists()):
+        return None
+    report = Report.from_dict(json.loads(rep_path.read_text()))
+    old = report.values.get("config", {})
+    if old.get("depth_prior") != config.depth_prior or old.get("depth_model") != config.depth_model:
+        return None
+    pts, cols = read_ply(ply)
+    hm = HeightMap.load(out / "height_map.npz") if (out / "height_map.npz").exists() else None
+    log.info("reusing the geometry initialisation in %s", out)
     return InitResult(pts, cols, hm, report)
 
 

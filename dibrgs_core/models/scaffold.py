@@ -31,13 +31,17 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
+from ..camera.frame import central_camera
+from ..camera.pinhole import Camera
 from ..geometry.pointcloud import voxelize
-from ..training.config import ModelConfig
+from .base import CameraTensors, Gaussians
+from .config import ModelConfig
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -91,11 +95,15 @@ class Decoded:
 
 
 class NeuralGaussians(nn.Module):
-    """Scaffold-GS anchors + decoders + IBR fusion (E_ref, E_mod).
+    """Scaffold-GS anchors + decoders + IBR fusion (E_ref, E_mod); a :class:`~.base.GaussianModel`.
 
     The anchor tensors are ``nn.Parameter`` attributes named in ``ANCHOR_PARAMS``;
-    the growth strategy replaces them when anchors are added or pruned.
+    the growth strategy replaces them when anchors are added or pruned. The IBR
+    features come from :meth:`set_ibr` (a live feature module while training,
+    the frozen per-anchor features of a trained model).
     """
+
+    kind: ClassVar[str] = "dibrgs"
 
     def __init__(self, anchors: torch.Tensor, voxel_size: float, dist_scale: float,
                  cfg: ModelConfig, use_ibr: bool) -> None:
@@ -122,6 +130,19 @@ class NeuralGaussians(nn.Module):
             with torch.no_grad():
                 self.e_mod.weight.mul_(0.01)
                 self.e_mod.bias.fill_(cfg.gate_bias_init)
+        # visibility mask (N,) -> IBR features (M, C_r) of the visible anchors, or None
+        self._ibr: Callable[[torch.Tensor], torch.Tensor] | None = None
+
+    def set_ibr(self, source: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor | None) -> None:
+        """Where IBR features come from: a module mapping anchor positions (M,3) to features
+        (M, C_r) (evaluated on the visible anchors, positions detached), or a tensor (N, C_r)
+        of per-anchor features (indexed by visibility), or None."""
+        if source is None:
+            self._ibr = None
+        elif isinstance(source, torch.Tensor):
+            self._ibr = lambda vis: source[vis]
+        else:
+            self._ibr = lambda vis: source(self.anchor[vis].detach())
 
     @property
     def num_anchors(self) -> int:
@@ -200,6 +221,41 @@ class NeuralGaussians(nn.Module):
         return Decoded(means=means, quats=quats, scales=scales, opacities=neural_opacity[selected],
                        colors=color, anchor_visible=visible, neural_opacity=neural_opacity,
                        selected=selected)
+
+    # -- the model protocol ------------------------------------------------------
+    def gaussians(self, cam: CameraTensors) -> Gaussians:
+        """Neural Gaussians of the anchors ``cam`` sees (``aux``: the :class:`Decoded`)."""
+        W, H = cam.cam.width, cam.cam.height
+        vis = self.visible_anchors(cam.K, cam.w2c, W, H)
+        feats = None if self._ibr is None else self._ibr(vis)
+        d = self.decode(cam.K, cam.w2c, cam.center, W, H, ibr_feats=feats, visible=vis)
+        return Gaussians(d.means, d.quats, d.scales, d.opacities, d.colors, aux=d)
+
+    @torch.no_grad()
+    def export_gaussians(self, cams: Sequence[Camera]) -> dict[str, torch.Tensor]:
+        """Every anchor's Gaussians decoded from the central training camera, frustum culling off."""
+        c = CameraTensors.of(central_camera(cams))
+        vis = torch.ones(self.num_anchors, dtype=torch.bool)
+        feats = None if self._ibr is None else self._ibr(vis)
+        d = self.decode(c.K, c.w2c, c.center, c.cam.width, c.cam.height, ibr_feats=feats, visible=vis)
+        return Gaussians(d.means, d.quats, d.scales, d.opacities, d.colors).as_dict()
+
+    def sizes(self) -> dict[str, int]:
+        return {"anchors": self.num_anchors, "gaussians": self.num_anchors * self.n_offsets}
+
+    def state(self) -> dict[str, Any]:
+        return {"model": self.state_dict(),
+                "model_meta": {"voxel_size": self.voxel_size, "dist_scale": self.dist_scale,
+                               "use_ibr": self.use_ibr}}
+
+    @classmethod
+    def from_state(cls, st: dict[str, Any], cfg: ModelConfig) -> "NeuralGaussians":
+        """A model with the shapes and values of :meth:`state`'s output."""
+        sd, meta = st["model"], st["model_meta"]
+        model = cls(torch.zeros(sd["anchor"].shape[0], 3), meta["voxel_size"], meta["dist_scale"], cfg,
+                    meta["use_ibr"])
+        model.load_state_dict(sd)
+        return model
 
     def mlp_parameters(self) -> dict[str, list[nn.Parameter]]:
         """Decoder parameter groups by optimiser name."""

@@ -62,37 +62,24 @@ class Projected:
     visible: Tensor
 
 
-def _rotmat_basis(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """(16, 9) matrix A and (9,) offset e with ``R.flatten() = vec(q q^T) @ A + e``."""
-    A = torch.zeros(4, 4, 9, dtype=dtype, device=device)
-    w, x, y, z = range(4)
-    # Each rotation entry as +-2 * (sum of quaternion products), per 3DGS.
-    terms = {
-        0: [(-2, y, y), (-2, z, z)], 1: [(2, x, y), (-2, w, z)], 2: [(2, x, z), (2, w, y)],
-        3: [(2, x, y), (2, w, z)], 4: [(-2, x, x), (-2, z, z)], 5: [(2, y, z), (-2, w, x)],
-        6: [(2, x, z), (-2, w, y)], 7: [(2, y, z), (2, w, x)], 8: [(-2, x, x), (-2, y, y)],
-    }
-    for k, lst in terms.items():
-        for coef, i, j in lst:
-            A[i, j, k] += coef
-    e = torch.tensor([1, 0, 0, 0, 1, 0, 0, 0, 1], dtype=dtype, device=device)
-    return A.reshape(16, 9), e
-
-
 def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices (N, 3, 3) from quaternions (N, 4) in ``(w, x, y, z)`` order.
+    """Rotation matrices (N, 3, 3) from quaternions (N, 4) in ``(w, x, y, z)`` order, any norm.
 
-    The quaternions are normalised; those with a squared norm under 1e-30
-    (zero or denormal) become the identity, with zero gradient.
+    The quaternions are divided by their norm; those with a squared norm under 1e-30
+    (zero or denormal) become the identity, with zero gradient, so a nearly-zero
+    quaternion still gives an orthonormal matrix.
     """
     n2 = (quats * quats).sum(-1, keepdim=True)
     ok = n2 > _QUAT_EPS2
     ident = torch.zeros_like(quats)
     ident[..., 0] = 1.0
-    q = torch.where(ok, quats, ident) * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2)))
-    A, e = _rotmat_basis(q.dtype, q.device)
-    qq = (q[:, :, None] * q[:, None, :]).reshape(-1, 16)
-    return (qq @ A + e).reshape(-1, 3, 3)
+    q = torch.where(ok, quats, ident)
+    q = q / torch.where(ok, q.norm(dim=-1, keepdim=True), torch.ones_like(n2))
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(-1, 3, 3)
 
 
 def project_gaussians(

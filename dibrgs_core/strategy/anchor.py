@@ -43,13 +43,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import torch
-from torch import nn
 
-from ..training.config import GrowthConfig
 from ..models.scaffold import ANCHOR_PARAMS, Decoded, NeuralGaussians
+from ..training.config import GrowthConfig
+from .base import Strategy
+from .ops import cat_rows, keep_rows
 
 log = logging.getLogger("dibrgs.strategy")
 
@@ -58,51 +59,7 @@ class HeightBound(Protocol):
     def allows(self, points: Any) -> Any: ...
 
 
-# ---------------------------------------------------------------------------
-# Optimiser bookkeeping shared with the 3DGS baseline
-# ---------------------------------------------------------------------------
-def _swap_param(optimizer: torch.optim.Optimizer, module: nn.Module, name: str, new: torch.Tensor,
-                state_fn: Callable[[torch.Tensor], torch.Tensor]) -> None:
-    """Replace parameter ``name`` of ``module`` (and its optimiser group) by ``new``.
 
-    ``state_fn`` maps each per-row optimiser moment to the new row layout.
-    """
-    trainable = getattr(module, name).requires_grad
-    param = nn.Parameter(new.detach().contiguous(), requires_grad=trainable)
-    for group in optimizer.param_groups:
-        if group.get("name") != name:
-            continue
-        old = group["params"][0]
-        state = optimizer.state.pop(old, None)
-        if state:
-            for key in ("exp_avg", "exp_avg_sq"):
-                if key in state:
-                    state[key] = state_fn(state[key])
-            optimizer.state[param] = state
-        group["params"][0] = param
-    setattr(module, name, param)
-
-
-def cat_rows(optimizer: torch.optim.Optimizer, module: nn.Module, ext: dict[str, torch.Tensor]) -> None:
-    """Append rows ``ext[name]`` to each named parameter; new rows get zero moments."""
-    for name, rows in ext.items():
-        old = getattr(module, name)
-        rows = rows.to(old.dtype)
-        _swap_param(optimizer, module, name, torch.cat([old.detach(), rows], 0),
-                    lambda s, r=rows: torch.cat([s, torch.zeros_like(r)], 0))
-
-
-def keep_rows(optimizer: torch.optim.Optimizer, module: nn.Module, names: tuple[str, ...],
-              keep: torch.Tensor) -> None:
-    """Keep only rows where ``keep`` (bool) is True in each named parameter and its moments."""
-    for name in names:
-        old = getattr(module, name)
-        _swap_param(optimizer, module, name, old.detach()[keep], lambda s: s[keep])
-
-
-# ---------------------------------------------------------------------------
-# Anchor growth
-# ---------------------------------------------------------------------------
 @dataclass
 class AdjustResult:
     added: int
@@ -110,7 +67,7 @@ class AdjustResult:
     pruned: int
 
 
-class AnchorStrategy:
+class AnchorStrategy(Strategy):
     """Accumulates growth statistics and grows / prunes anchors of a :class:`NeuralGaussians`."""
 
     def __init__(self, model: NeuralGaussians, cfg: GrowthConfig, iterations: int,
@@ -135,6 +92,18 @@ class AnchorStrategy:
 
     def adjusts(self, it: int) -> bool:
         return self.collects(it) and it > self.start and it % self.every == 0
+
+    # -- the strategy hooks -------------------------------------------------------
+    def step_post_backward(self, model: NeuralGaussians, optimizer: torch.optim.Optimizer, step: int,
+                           info: dict[str, Any] | None) -> dict[str, int]:
+        """Statistics of this view (inside the statistics window), then growth and pruning when due."""
+        if info is not None and self.collects(step):
+            self.update(info["aux"], info["means2d"].grad, info["radii"], info["width"], info["height"])
+        if not self.adjusts(step):
+            return {}
+        r = self.adjust(model, optimizer)
+        log.debug("anchors @%d: +%d (vetoed %d) -%d -> %d", step, r.added, r.vetoed, r.pruned, model.num_anchors)
+        return {"added": r.added, "vetoed": r.vetoed, "pruned": r.pruned}
 
     # -- statistics ----------------------------------------------------------
     @torch.no_grad()

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera.pinhole import Camera, look_at
+from ..common.modes import SceneKind, choices
 
 log = logging.getLogger("dibrgs.scenegen")
 
-KINDS = ("city", "mountain", "village", "stadium")
+KINDS = choices(SceneKind)
 N_ORBIT = 20
 N_TRACK = 60
 

@@ -16,7 +16,7 @@ densify_grad_threshold 2e-4, min_opacity 0.005, success_threshold 0.8, learning
 rates offset 1e-2 -> 1e-4, anchor_feat 7.5e-3, scaling 7e-3, mlp_opacity 2e-3 -> 2e-5,
 mlp_cov 4e-3 (constant), mlp_color 8e-3 -> 5e-5, volume regulariser weight 0.01.
 
-This module imports only the standard library.
+This module imports only the standard library (and the standard-library-only model config).
 """
 from __future__ import annotations
 
@@ -24,28 +24,13 @@ import dataclasses
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
+from ..models.config import ModelConfig
+
 
 def at_fraction(frac: float, iterations: int, minimum: int = 0) -> int:
     """The iteration at ``frac`` of ``iterations`` (rounded), at least ``minimum``."""
     return max(minimum, int(round(frac * iterations)))
-
-
-@dataclass
-class ModelConfig:
-    """Neural Gaussian model (Scaffold-GS anchors + IBR fusion)."""
-
-    feat_dim: int = 32
-    n_offsets: int = 10
-    # Anchor voxel in the paper's (LEVIR-NVS) units; converted with the scene's
-    # scale (scene units per paper unit, as in init.py).
-    anchor_voxel: float = 0.03
-    # Budget on initial anchors (None = no budget). When the voxelised cloud has
-    # more anchors, the voxel is doubled until it fits; the report says so.
-    max_init_anchors: int | None = None
-    # IBR fusion: channels of the reference feature (C_r) and initial gate bias
-    # (sigmoid(-5) = 0.007, "initialised to produce small values").
-    ibr_channels: int = 32
-    gate_bias_init: float = -5.0
 
 
 @dataclass
@@ -92,7 +77,7 @@ class LRConfig:
 class PseudoConfig:
     """Pseudo-view supervision through progressive DIBR."""
 
-    mode: str = "auto"          # auto | on | off
+    mode: Switch = "auto"       # auto: skip with >= dense_views training views
     n_views: int = 24           # poses sampled once on the acquisition orbit and cached
     start: float = 0.1
     until: float = 2 / 3
@@ -105,7 +90,7 @@ class PseudoConfig:
     # Large holes in pseudo-view depth: auto = ray-cast a height field of the
     # cloud when the views are near-nadir (surface.applies), else the nearest
     # valid pixel; on / off force it.
-    surface: str = "auto"
+    surface: Switch = "auto"
     # Leave out of supervision warped pixels that two training views see in
     # colours further apart than this (mean |RGB| in [0,1]); 0 keeps all. With
     # the height field, the same check picks per pixel between its depth and
@@ -144,8 +129,8 @@ class GS3DConfig:
 class TrainConfig:
     """Everything a run needs. ``preset`` names the origin of the numbers."""
 
-    preset: str = "paper"
-    method: str = "dibrgs"              # dibrgs | 3dgs
+    preset: PresetName = "paper"
+    method: MethodName = "dibrgs"
     iterations: int = 30000
     resolution_scale: float = 1.0       # images are resized by this factor
     seed: int = 0
@@ -154,11 +139,11 @@ class TrainConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Ablations / auto decisions
     dense_init: bool = True
-    depth_prior: str = "auto"           # auto | mono | gt (oracle)
-    ibr: str = "auto"                   # auto | dino | pyramid | none
+    depth_prior: DepthPrior = "auto"    # gt = oracle depth (ablation)
+    ibr: IbrEncoder = "auto"
     dino_resnet: str | None = None
     dino_vit: str | None = None
-    height: str = "auto"                # auto | on | off
+    height: Switch = "auto"             # the height constraint on anchor growth
     pseudo_path: str | None = None
     # Book-keeping
     checkpoint_every_s: float = 300.0
@@ -180,6 +165,8 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "TrainConfig":
+        """The configuration ``to_dict`` gave (JSON lists back to tuples); ``ValueError`` names
+        any key, top-level or nested, that no field has."""
         sub = {"model": ModelConfig, "growth": GrowthConfig, "lr": LRConfig,
                "pseudo": PseudoConfig, "gs3d": GS3DConfig}
         kw: dict[str, Any] = {}
@@ -188,18 +175,27 @@ class TrainConfig:
             if k not in names:
                 raise ValueError(f"unknown config key {k!r}")
             if k in sub:
-                fields = {f.name: f for f in dataclasses.fields(sub[k])}
-                kw[k] = sub[k](**{kk: tuple(vv) if isinstance(vv, list) else vv
-                                  for kk, vv in v.items() if kk in fields})
+                fields = {f.name for f in dataclasses.fields(sub[k])}
+                unknown = sorted(set(v) - fields)
+                if unknown:
+                    raise ValueError(f"unknown config key{'s' if len(unknown) > 1 else ''} "
+                                     + ", ".join(f"{k}.{u}" for u in unknown))
+                kw[k] = sub[k](**{kk: tuple(vv) if isinstance(vv, list) else vv for kk, vv in v.items()})
             else:
                 kw[k] = tuple(v) if isinstance(v, list) else v
         return TrainConfig(**kw)
 
 
-PRESETS = ("paper", "cpu", "test")
+PRESETS: tuple[str, ...] = choices(PresetName)
+#: One line on each preset, for menus (the Blender add-on); keys are :data:`PRESETS`.
+PRESET_SUMMARY: dict[str, str] = {
+    "paper": "The paper's schedule: 30,000 iterations at full resolution",
+    "cpu": "Scaled for a CPU: a 256x256 3-view scene in under 20 minutes",
+    "test": "A few hundred iterations (checks the pipeline end to end)",
+}
 
 
-def preset(name: str) -> TrainConfig:
+def preset(name: PresetName) -> TrainConfig:
     """A named preset.
 
     * ``paper``: the paper's numbers (30k iterations, full resolution).

@@ -42,6 +42,7 @@ import torch.nn.functional as F
 
 from ...camera.pinhole import Camera
 from ...common.errors import InputError
+from ...common.modes import IbrEncoder, choices
 from .pyramid import image_pyramid
 from .resnet import dino_resnet50
 from .vit import dino_vitb8
@@ -49,7 +50,8 @@ from .weights import load_backbone_weights
 
 log = logging.getLogger("dibrgs.ibr_features")
 
-ENCODERS = ("dino", "pyramid", "none")
+#: Encoders that can be built (``auto`` picks one of them).
+ENCODERS = tuple(e for e in choices(IbrEncoder) if e != "auto")
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 

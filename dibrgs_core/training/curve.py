@@ -1,0 +1,66 @@
+"""Error against run time: held-out PSNR / SSIM at points of the training wall-clock.
+
+``curve.csv`` has one row a point (``seconds`` of training, evaluation and checkpoint time
+excluded; ``iteration``; ``psnr`` in dB; ``ssim``); ``curve.png`` plots both against seconds.
+"""
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..common.fileio import atomic_path, write_text
+from ..models.base import render_model
+from .frames import Frame
+from .losses import psnr, ssim
+
+CURVE_COLUMNS = ["seconds", "iteration", "psnr", "ssim"]
+
+
+@torch.no_grad()
+def evaluate_heldout(model: Any, frames: list[Frame], background: torch.Tensor,
+                     max_views: int | None = None) -> tuple[float, float]:
+    """Mean PSNR and SSIM of ``model`` on ``frames`` (at most ``max_views`` of them, evenly spread)."""
+    if max_views and len(frames) > max_views:
+        idx = np.linspace(0, len(frames) - 1, max_views).round().astype(int)
+        frames = [frames[i] for i in idx]
+    if not frames:
+        return float("nan"), float("nan")
+    ps, ss = [], []
+    for f in frames:
+        img = render_model(model, f.cam, background)[0].clamp(0, 1)
+        ps.append(float(psnr(img, f.image)))
+        ss.append(float(ssim(img, f.image)))
+    return float(np.mean(ps)), float(np.mean(ss))
+
+
+def write_curve(path: Path, rows: list[dict[str, float]]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CURVE_COLUMNS)
+    w.writeheader()
+    for r in rows:
+        w.writerow(r)
+    write_text(path, buf.getvalue())
+
+
+def plot_curve(path: Path, rows: list[dict[str, float]], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    t = [r["seconds"] for r in rows]
+    ax[0].plot(t, [r["psnr"] for r in rows], marker=".")
+    ax[0].set(xlabel="training time [s]", ylabel="held-out PSNR [dB]")
+    ax[1].plot(t, [r["ssim"] for r in rows], marker=".", color="C1")
+    ax[1].set(xlabel="training time [s]", ylabel="held-out SSIM")
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,199 @@
+"""How each method optimises its model: optimisers and learning-rate schedules, the regulariser,
+the densification strategy, and what the model file keeps beside the model.
+
+The trainer sees one :class:`TrainingMethod`; which one is built (and how the model is
+initialised from the scene) is decided in :mod:`.setup`.
+"""
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from typing import Any
+
+import torch
+
+from ..common.report import Report
+from ..models.gs3d import Gaussians3D
+from ..models.scaffold import NeuralGaussians
+from ..strategy.anchor import AnchorStrategy, HeightBound
+from ..strategy.base import Strategy
+from ..strategy.densify import DensifyStrategy
+from .config import GS3DConfig, TrainConfig, expon_lr
+
+log = logging.getLogger("dibrgs.train")
+
+
+class TrainingFailed(RuntimeError):
+    """Training cannot continue (e.g. every anchor was pruned); the message says why."""
+
+
+class TrainingMethod(ABC):
+    """A model with its optimiser(s), schedule and densification strategy."""
+
+    model: Any
+    optimizer: torch.optim.Optimizer
+    strategy: Strategy
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+
+    @abstractmethod
+    def set_lr(self, it: int) -> None:
+        """Learning rates of iteration ``it``."""
+
+    def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
+        """The method's regularisation term for this view (0 by default)."""
+        return torch.zeros(())
+
+    def parameters(self) -> list[torch.Tensor]:
+        return [p for g in self.optimizer.param_groups for p in g["params"]]
+
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def step(self, it: int) -> None:
+        self.optimizer.step()
+
+    def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
+        """After the strategy's post-backward hook (``changes``: what it did this step)."""
+
+    def state(self) -> dict[str, Any]:
+        return {"model": self.model.state(), "optimizer": self.optimizer.state_dict(),
+                "strategy": self.strategy.state_dict()}
+
+    def load(self, st: dict[str, Any]) -> None:
+        """Optimiser and strategy state from :meth:`state` (the model is rebuilt by the setup)."""
+        self.optimizer.load_state_dict(st["optimizer"])
+        self.strategy.load_state_dict(st["strategy"])
+
+    def model_file_extras(self) -> dict[str, Any]:
+        """What the trained model file keeps beside ``model.state()``."""
+        return {}
+
+
+class ScaffoldTraining(TrainingMethod):
+    """Neural Gaussians + IBR features + anchor growth with the height veto (the paper's method).
+
+    Learning rates are Scaffold-GS's with their exponential decays; the IBR projection P
+    has its own AdamW and is frozen after ``lr.projection_freeze`` of training. Anchor
+    positions are not optimised (Scaffold-GS: lr 0). Regulariser: the mean volume
+    ``prod(scales)`` of the rasterized neural Gaussians.
+    """
+
+    def __init__(self, model: NeuralGaussians, cfg: TrainConfig, ibr: Any | None,
+                 height_map: HeightBound | None) -> None:
+        super().__init__(cfg)
+        self.model = model
+        self.ibr = ibr
+        model.set_ibr(ibr)
+        self.strategy = AnchorStrategy(model, cfg.growth, cfg.iterations, height_map)
+        lr = cfg.lr
+        groups = [
+            {"params": [model.offset], "lr": lr.offset[0], "name": "offset"},
+            {"params": [model.anchor_feat], "lr": lr.anchor_feat, "name": "anchor_feat"},
+            {"params": [model.scaling], "lr": lr.scaling, "name": "scaling"},
+        ]
+        for name, params in model.mlp_parameters().items():
+            groups.append({"params": params, "lr": getattr(lr, name)[0], "name": name})
+        model.anchor.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.p_params = list(ibr.projection_parameters()) if ibr is not None else []
+        self.p_optimizer = torch.optim.AdamW(self.p_params, lr=lr.projection) if self.p_params else None
+        self.p_freeze_at = cfg.it(lr.projection_freeze)
+
+    def set_lr(self, it: int) -> None:
+        for g in self.optimizer.param_groups:
+            sched = getattr(self.cfg.lr, g["name"])
+            if isinstance(sched, tuple):
+                g["lr"] = expon_lr(it, self.cfg.iterations, *sched)
+
+    def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
+        if info is None:
+            return torch.zeros(())
+        return info["gaussians"].scales.prod(dim=1).mean()
+
+    def parameters(self) -> list[torch.Tensor]:
+        return super().parameters() + self.p_params
+
+    def zero_grad(self) -> None:
+        super().zero_grad()
+        if self.p_optimizer is not None:
+            self.p_optimizer.zero_grad(set_to_none=True)
+
+    def step(self, it: int) -> None:
+        self.optimizer.step()
+        if self.p_optimizer is not None and it <= self.p_freeze_at:
+            self.p_optimizer.step()
+            if it == self.p_freeze_at:
+                for p in self.p_params:
+                    p.requires_grad_(False)
+                log.info("IBR projection P frozen at iteration %d", it)
+
+    def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
+        if not changes:
+            return
+        growth = report.values.setdefault("growth", {"added": 0, "vetoed": 0, "pruned": 0})
+        for k, v in changes.items():
+            growth[k] += v
+        growth["left_out_by_max_anchors"] = self.strategy.capped
+        if self.model.num_anchors == 0:
+            raise TrainingFailed(
+                f"every anchor was pruned at iteration {it} (opacity stayed below "
+                f"{self.cfg.growth.min_opacity} per visit); check the images and learning rates")
+
+    def state(self) -> dict[str, Any]:
+        return {**super().state(),
+                "p_optimizer": None if self.p_optimizer is None else self.p_optimizer.state_dict(),
+                "ibr": None if self.ibr is None else self.ibr.state_dict(),
+                "p_frozen": bool(self.p_params) and not self.p_params[0].requires_grad}
+
+    def load(self, st: dict[str, Any]) -> None:
+        super().load(st)
+        if self.p_optimizer is not None and st["p_optimizer"] is not None:
+            self.p_optimizer.load_state_dict(st["p_optimizer"])
+        if self.ibr is not None and st["ibr"] is not None:
+            self.ibr.load_state_dict(st["ibr"])
+        if st.get("p_frozen"):
+            for p in self.p_params:
+                p.requires_grad_(False)
+
+    @torch.no_grad()
+    def model_file_extras(self) -> dict[str, Any]:
+        """The per-anchor IBR features, frozen, so rendering needs no encoder."""
+        return {"ibr_feats": None if self.ibr is None else self.ibr(self.model.anchor.detach())}
+
+
+def gs3d_optimizer(model: Gaussians3D, cfg: GS3DConfig, extent: float) -> torch.optim.Adam:
+    """3DGS's Adam groups (position learning rate scaled by the scene extent)."""
+    groups = [
+        {"params": [model.means], "lr": cfg.position_lr[0] * extent, "name": "means"},
+        {"params": [model.sh_dc], "lr": cfg.feature_lr, "name": "sh_dc"},
+        {"params": [model.sh_rest], "lr": cfg.feature_lr / 20.0, "name": "sh_rest"},
+        {"params": [model.opacity], "lr": cfg.opacity_lr, "name": "opacity"},
+        {"params": [model.log_scales], "lr": cfg.scaling_lr, "name": "log_scales"},
+        {"params": [model.quats], "lr": cfg.rotation_lr, "name": "quats"},
+    ]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+class GS3DTraining(TrainingMethod):
+    """Vanilla 3DGS: position learning rate 1.6e-4 -> 1.6e-6 x extent, the SH degree rising by one
+    every ``sh_every`` of training, clone/split/prune with opacity resets; no regulariser."""
+
+    def __init__(self, model: Gaussians3D, cfg: TrainConfig, extent: float) -> None:
+        super().__init__(cfg)
+        self.model = model
+        self.extent = extent
+        self.optimizer = gs3d_optimizer(model, cfg.gs3d, extent)
+        self.strategy = DensifyStrategy(model, cfg.gs3d, cfg.iterations, extent)
+        self.sh_every = max(1, round(cfg.gs3d.sh_every * cfg.iterations))
+
+    def set_lr(self, it: int) -> None:
+        init, final = self.cfg.gs3d.position_lr
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = expon_lr(it, self.cfg.iterations, init * self.extent, final * self.extent)
+
+    def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
+        if it % self.sh_every == 0 and self.model.active_sh_degree < self.model.sh_degree:
+            self.model.active_sh_degree += 1

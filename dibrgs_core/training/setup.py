@@ -1,0 +1,243 @@
+"""Building a run's training method from the scene: the one place where the methods differ.
+
+* ``dibrgs``: geometry initialisation (reused from ``WORK/init`` when it was made with the
+  same options), anchors on the dense cloud (or SfM points, ablation), the height
+  constraint, the IBR encoder, and progressive-DIBR pseudo views;
+* ``3dgs``: SfM points of the training views (``WORK/init/sfm_points.npz``), topped up
+  with random points in the viewed volume when SfM finds too few (3DGS's own fallback).
+
+A resumed run rebuilds the model with the checkpoint's shapes in the same order, so
+the random number streams match a run that was never stopped.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ..camera.frame import estimate_up, look_at_target, up_frame
+from ..camera.pinhole import Camera
+from ..common.fileio import atomic_path
+from ..common.report import Report
+from ..data.scene import Scene, View
+from .config import TrainConfig
+from .frames import Frame
+from .methods import GS3DTraining, ScaffoldTraining, TrainingMethod
+
+log = logging.getLogger("dibrgs.train")
+
+
+@dataclass
+class SetupContext:
+    """What building a method needs: the run's configuration, folder and report, the scene and
+    its training frames, the set-up random generator, the checkpoint to resume (or None)."""
+
+    cfg: TrainConfig
+    work: Path
+    scene: Scene
+    train_frames: list[Frame]
+    report: Report
+    rng: np.random.Generator
+    ckpt: dict[str, Any] | None
+    depth_model: str | None = None
+
+
+@dataclass
+class Setup:
+    """A built method and its pseudo-view frames (empty when pseudo views do not apply)."""
+
+    method: TrainingMethod
+    pseudo_frames: list[Frame]
+
+
+def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
+    """SfM points (N,3) and colours (N,3) uint8 of the training views, cached in ``WORK/init``."""
+    from ..geometry.sfm import triangulate_known_poses
+
+    views = ctx.scene.train_views()
+    cache = ctx.work / "init" / "sfm_points.npz"
+    if cache.exists():
+        d = np.load(cache)
+        return d["points"], d["colors"]
+    sc = triangulate_known_poses([v.camera for v in views], [v.image for v in views])
+    with atomic_path(cache) as tmp:
+        np.savez(tmp, points=sc.points, colors=sc.colors)
+    return sc.points, sc.colors
+
+
+def random_init(cams: list[Camera], n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random points (and grey colours in [0,1]) in the volume the cameras look at.
+
+    A flat box around the cameras' common look-at point: horizontally as wide as
+    the mean image footprint there, vertically a quarter of that.
+    """
+    target = look_at_target(cams)
+    up, _ = estimate_up(cams)
+    R = up_frame(up)
+    half = float(np.mean([np.linalg.norm(c.center - target) * c.width / (2 * c.K[0, 0]) for c in cams]))
+    local = rng.uniform(-1, 1, (n, 3)) * np.array([half, half, half / 4])
+    return target + local @ R, np.full((n, 3), 0.5)
+
+
+def build_3dgs(ctx: SetupContext) -> Setup:
+    from ..models.gs3d import Gaussians3D
+
+    cfg, rep = ctx.cfg, ctx.report
+    centers = np.stack([f.cam.cam.center for f in ctx.train_frames])
+    # 3DGS's cameras_extent: 1.1 x the largest camera distance from their mean.
+    extent = max(1.1 * float(np.max(np.linalg.norm(centers - centers.mean(0), axis=1))), 1e-6)
+    if ctx.ckpt is not None:
+        model = Gaussians3D.from_state(ctx.ckpt["method"]["model"])
+    else:
+        pts, cols = sfm_points(ctx)
+        if len(pts) >= cfg.gs3d.min_sfm_points:
+            rep.decide("train", "sfm_init", True, f"3DGS baseline starts from {len(pts)} SfM points")
+            cols = np.asarray(cols, np.float64) / 255.0
+        else:
+            rp, rc = random_init([f.cam.cam for f in ctx.train_frames], cfg.gs3d.random_points, ctx.rng)
+            rep.decide("train", "sfm_init", False,
+                       f"SfM found only {len(pts)} points (< {cfg.gs3d.min_sfm_points}); "
+                       f"3DGS starts from {len(rp)} random points in the viewed volume as well")
+            pts = np.concatenate([np.asarray(pts).reshape(-1, 3), rp])
+            cols = np.concatenate([np.asarray(cols, np.float64).reshape(-1, 3) / 255.0, rc])
+        model = Gaussians3D(pts, cols, cfg.gs3d.sh_degree)
+    rep.values["extent"] = extent
+    return Setup(GS3DTraining(model, cfg, extent), [])
+
+
+def init_geometry(ctx: SetupContext) -> Any:
+    """The geometry initialisation of ``WORK/init`` (reused when made with the same options)."""
+    from ..geometry.pipeline import InitConfig, initialise, load_result
+
+    icfg = InitConfig()
+    if ctx.cfg.depth_prior != "auto":
+        icfg.depth_prior = ctx.cfg.depth_prior
+    if ctx.depth_model:
+        icfg.depth_model = ctx.depth_model
+    out = ctx.work / "init"
+    return load_result(out, icfg) or initialise(ctx.scene, out, icfg)
+
+
+def _says_near_nadir(report: Report) -> bool | None:
+    """What the geometry report says about near-nadir views (None when it says nothing)."""
+    for key in ("near_nadir", "height_map"):
+        v = report.applied(key)
+        if v is not None:
+            return bool(v)
+    val = report.values.get("near_nadir")
+    return None if val is None else bool(val)
+
+
+def build_dibrgs(ctx: SetupContext) -> Setup:
+    from ..models.scaffold import NeuralGaussians, build_model
+
+    cfg, rep = ctx.cfg, ctx.report
+    res = init_geometry(ctx)
+    scale = res.report.values.get("scale")
+    if not scale:
+        from ..geometry.pipeline import InitConfig, scene_geometry
+
+        scale = scene_geometry(ctx.scene, InitConfig()).scale
+    if cfg.dense_init:
+        # float32-rounded, so a fresh cloud and one re-read from points.ply are the same
+        # numbers (the pseudo-view cache is keyed on them).
+        points = np.asarray(res.points, np.float32).astype(np.float64)
+        rep.decide("train", "dense_init", True, f"anchors from the dense initial cloud ({len(points)} points)")
+    else:
+        points, _ = sfm_points(ctx)
+        points = np.asarray(points, np.float32).astype(np.float64).reshape(-1, 3)
+        rep.decide("train", "dense_init", False, f"ablation --no-dense-init: anchors from {len(points)} SfM points")
+    hm = res.height_map
+    if cfg.height == "off":
+        rep.decide("train", "height_constraint", False, "switched off (--no-height)")
+        hm = None
+    elif hm is None:
+        rep.decide("train", "height_constraint", False,
+                   "the geometry stage built no height map (scene not near-nadir or too few points)")
+    elif cfg.height == "auto" and _says_near_nadir(res.report) is False:
+        rep.decide("train", "height_constraint", False, "geometry report: the views are not near-nadir")
+        hm = None
+    else:
+        rep.decide("train", "height_constraint", True, "height map vetoes coarse-level growth above its relaxed bound")
+    # The IBR encoder's projection is initialised before the model's decoders (random streams).
+    ibr = None
+    if ctx.ckpt is None or ctx.ckpt["method"]["ibr"] is not None:
+        ibr = build_ibr(ctx)
+    if ctx.ckpt is not None:
+        model = NeuralGaussians.from_state(ctx.ckpt["method"]["model"], cfg.model)
+    else:
+        centers = np.stack([f.cam.cam.center for f in ctx.train_frames])
+        model, why = build_model(points, centers, cfg.model, use_ibr=ibr is not None, scale=float(scale))
+        rep.values["anchor_voxel"] = why
+    method = ScaffoldTraining(model, cfg, ibr, hm)
+    return Setup(method, pseudo_frames(ctx, points))
+
+
+def build_ibr(ctx: SetupContext) -> Any:
+    from ..models.ibr.features import build_ibr as build, resolve_encoder
+
+    cfg = ctx.cfg
+    name, reason = resolve_encoder(cfg.ibr, (cfg.dino_resnet, cfg.dino_vit))
+    ctx.report.decide("train", "ibr_features", name != "none", f"encoder {name}: {reason}", encoder=name)
+    if name == "none":
+        return None
+    imgs = torch.stack([f.image.permute(2, 0, 1) for f in ctx.train_frames])
+    cams = [f.cam.cam for f in ctx.train_frames]
+    return build(name, imgs, cams, c_r=cfg.model.ibr_channels, dino_resnet=cfg.dino_resnet, dino_vit=cfg.dino_vit)
+
+
+def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
+    """Progressive-DIBR pseudo views of ``points`` as weighted frames (warped pixels weight 1,
+    padded ones ``padded_weight``), or none when pseudo views do not apply."""
+    from ..geometry.surface import decide
+    from ..models.base import CameraTensors
+    from .pseudo_views import build_pseudo_views
+
+    cfg, rep = ctx.cfg, ctx.report
+    n_train = len(ctx.train_frames)
+    if cfg.pseudo.mode == "off":
+        rep.decide("train", "pseudo_views", False, "switched off (--no-pseudo)")
+        return []
+    if cfg.pseudo.mode == "auto" and n_train >= cfg.pseudo.dense_views:
+        rep.decide("train", "pseudo_views", False,
+                   f"{n_train} training views are dense enough (>= {cfg.pseudo.dense_views})")
+        return []
+    path = None
+    if cfg.pseudo_path:
+        from ..data.levir import read_cameras
+
+        path = read_cameras(cfg.pseudo_path)
+    cams = [f.cam.cam for f in ctx.train_frames]
+    train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
+    surface, why = decide(cfg.pseudo.surface, cams)
+    rep.decide("train", "pseudo_depth_height_field", surface, why)
+    pvs = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed, ctx.work / "pseudo",
+                             path=path, surface=surface, consistency_tol=cfg.pseudo.consistency_tol)
+    if cfg.pseudo.consistency_tol > 0:
+        rej = float(np.mean([pv.rejected.mean() for pv in pvs if pv.rejected is not None] or [0.0]))
+        rep.values["pseudo_rejected_fraction"] = rej
+        log.info("pseudo views: %.1f%% of pixels rejected (training views disagree by > %.2f)",
+                 100 * rej, cfg.pseudo.consistency_tol)
+    frames, empty = [], 0
+    for pv in pvs:
+        weight = np.asarray(pv.valid, np.float32)
+        if pv.padded is not None:
+            weight = np.maximum(weight, cfg.pseudo.padded_weight * np.asarray(pv.padded, np.float32))
+        if not (weight > 0).any():
+            empty += 1
+            continue
+        frames.append(Frame(CameraTensors.of(pv.camera), torch.from_numpy(
+            np.ascontiguousarray(np.clip(pv.image[..., :3], 0, 1), dtype=np.float32)), torch.from_numpy(weight)))
+    rep.decide("train", "pseudo_views", bool(frames),
+               f"{len(frames)} progressive-DIBR pseudo views"
+               + (f" ({empty} without any filled pixel left out)" if empty else "")
+               + (f" on the path {cfg.pseudo_path}" if cfg.pseudo_path else " on the acquisition orbit"))
+    return frames
+
+
+#: The methods ``TrainConfig.method`` can name, and how each is built.
+METHODS: dict[str, Callable[[SetupContext], Setup]] = {"dibrgs": build_dibrgs, "3dgs": build_3dgs}
