@@ -8,35 +8,13 @@ georeferenced coordinates).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from dibrgs_core.camera.pinhole import Camera, look_at
-
-try:  # the foundation helper's scene types, when present
-    from dibrgs_core.data.scene import Scene, View
-except ImportError:  # pragma: no cover - until io_levir lands
-    @dataclass
-    class View:  # type: ignore[no-redef]
-        camera: Camera
-        image: np.ndarray
-        depth: np.ndarray | None = None
-
-    @dataclass
-    class Scene:  # type: ignore[no-redef]
-        root: Path
-        views: dict
-        track: list = field(default_factory=list)
-        train: list = field(default_factory=list)
-        test: list = field(default_factory=list)
-
-        def train_views(self):
-            return [self.views[k] for k in self.train]
-
-        def test_views(self):
-            return [self.views[k] for k in self.test]
+from dibrgs_core.data.scene import Scene, View
 
 
 def _value_noise(rng: np.random.Generator, x: np.ndarray, y: np.ndarray, scales=(40.0, 12.0, 4.0, 1.5)) -> np.ndarray:
@@ -175,8 +153,5 @@ def make_synthetic_scene(size: int = 64, n_views: int = 3, seed: int = 0, radius
         cam = Camera(K, w2c_local @ T, size, size, name=f"{i:03d}", depth_range=(near, float(np.nanmax(depth)) * 1.5))
         views[f"{i:03d}"] = View(camera=cam, image=img, depth=depth)
     names = sorted(views)
-    try:
-        scene = Scene(root=Path("/nonexistent"), views=views, track=[], train=names, test=[])
-    except TypeError:  # pragma: no cover - io_levir's Scene with another signature
-        raise
+    scene = Scene(root=Path("/nonexistent"), views=views, track=[], train=names, test=[])
     return scene, hf

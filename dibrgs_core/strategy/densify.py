@@ -61,13 +61,13 @@ class DensifyStrategy(Strategy):
         if info is not None:
             self.update(info["means2d"].grad, info["radii"], info["width"], info["height"])
         if step > self.start and step % self.every == 0:
-            self._densify_and_prune(step, model, optimizer)
+            self.densify_and_prune(step, model, optimizer)
         if step % self.reset_every == 0:
             self._reset_opacity(model, optimizer)
         return {}
 
     @torch.no_grad()
-    def _densify_and_prune(self, it: int, model: Gaussians3D, optimizer: torch.optim.Optimizer) -> None:
+    def densify_and_prune(self, it: int, model: Gaussians3D, optimizer: torch.optim.Optimizer) -> None:
         cfg = self.cfg
         grads = torch.nan_to_num(self.grad_accum / self.denom, nan=0.0)
         n = model.num_gaussians

@@ -12,7 +12,7 @@ from dibrgs_core.data.colmap import find_colmap_model, read_colmap_cameras, read
 from dibrgs_core.data.load import read_any_scene
 from dibrgs_core.data.images import write_png
 
-from test_io_levir import H, W, make_views
+from test_levir import H, W, make_views
 
 pycolmap = pytest.importorskip("pycolmap")
 

@@ -22,7 +22,7 @@ bpy = pytest.importorskip("bpy")
 from dibrgs_core.camera.blender import to_blender  # noqa: E402
 from dibrgs_core.data.levir import read_cams_file, read_scene  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

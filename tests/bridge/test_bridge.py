@@ -20,7 +20,7 @@ from dibrgs_core.camera.serialize import camera_from_dict
 from dibrgs_core.camera.orbit import fit_orbit
 from dibrgs_core.geometry.height_map import HeightMap
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _like() -> Camera:
@@ -314,6 +314,6 @@ def test_manifest_is_valid_and_builds_an_extension(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     names = zipfile.ZipFile(zpath).namelist()
     for needed in ("__init__.py", "blender_manifest.toml", "addon/__init__.py", "addon/_core.py",
-                   "dibrgs_core/cameras.py", "dibrgs_core/bridge/jobs.py"):
+                   "dibrgs_core/camera/pinhole.py", "dibrgs_core/bridge/jobs.py"):
         assert needed in names
     assert not any(n.startswith(("tests/", "scripts/", ".git")) or "__pycache__" in n for n in names)

@@ -16,8 +16,7 @@ from dibrgs_core.training.checkpoint import MODEL
 from dibrgs_core.training.methods import TrainingFailed
 from dibrgs_core.training.trainer import Trainer, train
 
-sys.path.insert(0, str(Path(__file__).parent))
-from train_synth import make_synth_scene  # noqa: E402
+from train_synth import make_synth_scene
 
 torch.set_num_threads(1)
 
@@ -259,7 +258,7 @@ def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
     r = _dibrgs("eval", str(tmp_path / "nope"))
     assert r.returncode == 2 and "no trained model" in r.stderr
     # The held-out error split by training-view visibility, on the same run.
-    script = Path(__file__).resolve().parents[1] / "scripts" / "error_by_visibility.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "error_by_visibility.py"
     r = subprocess.run([sys.executable, str(script), str(tiny_scene), str(work), "--json", str(tmp_path / "v.json"),
                         "--png", str(tmp_path / "v.png")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]

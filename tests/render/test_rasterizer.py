@@ -263,7 +263,7 @@ def test_missing_compiler_falls_back_with_warning(tmp_path):
     )
     env = dict(os.environ, CXX=str(tmp_path / "no-such-compiler"), DIBRGS_EXT_DIR=str(tmp_path / "ext"))
     res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
-                         cwd=Path(__file__).resolve().parents[1])
+                         cwd=Path(__file__).resolve().parents[2])
     assert res.returncode == 0, res.stderr
     assert "rendered" in res.stdout
     assert "could not build the C++ rasterizer" in res.stderr and "reference" in res.stderr

@@ -1,0 +1,128 @@
+"""Scaffold anchor growth and pruning with the height veto (strategy.anchor)."""
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+import torch
+
+from dibrgs_core.strategy.anchor import AnchorStrategy
+from dibrgs_core.training.config import preset
+from model_synth import camera_tensors, check_optimizer_state, small_camera, small_model, stepped_optimizer
+
+
+def test_growth_adds_anchors_in_empty_cells_with_zero_moments():
+    """Large averaged gradients on Gaussians that moved away from their anchor give new anchors,
+    at most one per cell and never in a cell already holding one; moments stay aligned."""
+    m = small_model(50)
+    cfg = preset("test")
+    s = AnchorStrategy(m, cfg.growth, 30000)
+    opt = stepped_optimizer(m)
+    n0 = m.num_anchors
+    with torch.no_grad():
+        m.offset[:10] = 40.0  # Gaussians of the first 10 anchors far out
+    s.offset_grad[: 10 * m.n_offsets] = 1.0
+    s.offset_denom[:] = 1000
+    torch.manual_seed(0)
+    r = s.adjust(m, opt)
+    assert r.added > 0 and m.num_anchors == n0 + r.added
+    check_optimizer_state(m, opt)
+    new = slice(n0, m.num_anchors)
+    assert (opt.state[m.offset]["exp_avg"][new] == 0).all()
+    assert (m.offset[new] == 0).all()
+    # New anchors do not share a finest-level cell with an old one.
+    cells_old = {tuple(c) for c in torch.round(m.anchor[:n0] / m.voxel_size).long().tolist()}
+    cells_new = [tuple(c) for c in torch.round(m.anchor[new] / m.voxel_size).long().tolist()]
+    assert not any(c in cells_old for c in cells_new)
+    assert len(s.offset_grad) == m.num_anchors * m.n_offsets and len(s.anchor_denom) == m.num_anchors
+
+
+def test_height_map_vetoes_growth_at_the_coarsest_level_only():
+    from dibrgs_core.geometry.height_map import HeightMap
+
+    m = small_model(60)
+    cfg = preset("test").growth
+    pts = m.anchor.detach().numpy()
+    hm = HeightMap.build(pts, np.eye(3), np.zeros(3), cell=5.0, relax=1.0, margin=0.0)
+    with torch.no_grad():
+        m.offset[:10, :, 2] = 40.0  # straight up, far above every bound
+    opt = stepped_optimizer(m)
+    cfg.update_depth = 1  # coarsest level only
+    s = AnchorStrategy(m, cfg, 30000, height_map=hm)
+    s.offset_grad[: 10 * m.n_offsets] = 1.0
+    s.offset_denom[:] = 1000
+    r = s.adjust(m, opt)
+    assert r.added == 0 and r.vetoed > 0
+    # Without the height map the same Gaussians grow anchors.
+    m2 = small_model(60)
+    with torch.no_grad():
+        m2.offset[:10, :, 2] = 40.0
+    opt2 = stepped_optimizer(m2)
+    s2 = AnchorStrategy(m2, cfg, 30000)
+    s2.offset_grad[: 10 * m2.n_offsets] = 1.0
+    s2.offset_denom[:] = 1000
+    assert s2.adjust(m2, opt2).added > 0
+    # At finer levels the veto does not apply.
+    cfg3 = preset("test").growth
+    m3 = small_model(60)
+    with torch.no_grad():
+        m3.offset[:10, :, 2] = 40.0
+    opt3 = stepped_optimizer(m3)
+    s3 = AnchorStrategy(m3, cfg3, 30000, height_map=hm)
+    s3.offset_grad[: 10 * m3.n_offsets] = 1.0
+    s3.offset_denom[:] = 1000
+    torch.manual_seed(1)
+    r3 = s3.adjust(m3, opt3)
+    assert r3.added > 0 and r3.vetoed > 0
+    check_optimizer_state(m3, opt3)
+
+
+def test_pruning_removes_transparent_anchors_after_enough_visits():
+    m = small_model(40)
+    opt = stepped_optimizer(m)
+    cfg = preset("test").growth
+    s = AnchorStrategy(m, cfg, 30000)  # every = 100 its -> judged after > 80 visits
+    s.anchor_denom[:] = 90
+    s.opacity_accum[:] = 1.0
+    s.opacity_accum[:7] = 0.0  # transparent
+    s.anchor_denom[5:7] = 10   # ... but not yet visited often enough
+    keep_feat = m.anchor_feat.detach()[7:].clone()
+    r = s.adjust(m, opt)
+    assert r.pruned == 5 and m.num_anchors == 35
+    assert torch.equal(m.anchor_feat.detach()[2:], keep_feat)
+    check_optimizer_state(m, opt)
+    assert len(s.opacity_accum) == 35 and s.anchor_denom[:2].tolist() == [10, 10]
+
+
+def test_update_accumulates_ndc_gradients_of_rasterized_gaussians():
+    from dibrgs_core.render import rasterize
+
+    m = small_model(80)
+    with torch.no_grad():
+        m.mlp_opacity[2].bias.fill_(0.3)
+    s = AnchorStrategy(m, preset("test").growth, 30000)
+    c = camera_tensors(small_camera())
+    d = m.decode(c.K, c.w2c, c.center, 32, 32)
+    img, _, _, meta = rasterize(d.means, d.quats, d.scales, d.opacities, d.colors, c.w2c, c.K, 32, 32)
+    img.mean().backward()
+    s.update(d, meta["means2d"].grad, meta["radii"], 32, 32)
+    seen = int((meta["radii"] > 0).sum())
+    assert int(s.offset_denom.sum()) == seen > 0
+    g = meta["means2d"].grad[meta["radii"] > 0] * torch.tensor([16.0, 16.0])
+    assert float(s.offset_grad.sum()) == pytest.approx(float(g.norm(dim=1).sum()), rel=1e-5)
+    assert int(s.anchor_denom.sum()) == int(d.anchor_visible.sum())
+
+
+def test_growth_respects_the_anchor_ceiling():
+    m = small_model(50)
+    cfg = preset("test").growth
+    cfg.max_anchors = 55
+    s = AnchorStrategy(m, cfg, 30000)
+    opt = stepped_optimizer(m)
+    with torch.no_grad():
+        m.offset[:, :, :2] = torch.randn(50, 10, 2) * 30.0
+    s.offset_grad[:] = 1.0
+    s.offset_denom[:] = 1000
+    r = s.adjust(m, opt)
+    assert r.added == 5 and m.num_anchors == 55 and s.capped > 0
+    check_optimizer_state(m, opt)

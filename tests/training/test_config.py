@@ -1,0 +1,37 @@
+"""Training configuration: the paper's schedule, fractions of training, presets and their round trip."""
+from __future__ import annotations
+
+
+import pytest
+
+from dibrgs_core.training.config import TrainConfig, expon_lr, preset
+from model_synth import small_model
+
+
+def test_paper_schedule_matches_the_paper_and_scales_with_length():
+    """The paper preset gives the paper's iteration numbers; shorter runs keep the fractions."""
+    from dibrgs_core.strategy.anchor import AnchorStrategy
+
+    cfg = preset("paper")
+    assert cfg.iterations == 30000
+    assert (cfg.it(cfg.pseudo.start), cfg.it(cfg.pseudo.until), cfg.it(cfg.pseudo.every)) == (3000, 20000, 50)
+    assert cfg.it(cfg.lr.projection_freeze) == 20000
+    m = small_model(20)
+    s = AnchorStrategy(m, cfg.growth, cfg.iterations)
+    assert (s.start, s.until, s.every, s.stat_start) == (1500, 15000, 100, 500)
+    s2 = AnchorStrategy(m, cfg.growth, 3000)
+    assert (s2.start, s2.until, s2.every) == (150, 1500, 10)
+    # Round trip through JSON-like dicts (checkpoints, config.json).
+    c2 = TrainConfig.from_dict(preset("cpu").to_dict())
+    assert c2 == preset("cpu")
+    with pytest.raises(ValueError):
+        TrainConfig.from_dict({"nope": 1})
+    with pytest.raises(ValueError):
+        preset("gpu")
+
+
+def test_expon_lr_endpoints_and_monotone():
+    assert expon_lr(0, 100, 0.01, 0.0001) == pytest.approx(0.01)
+    assert expon_lr(100, 100, 0.01, 0.0001) == pytest.approx(0.0001)
+    assert expon_lr(50, 100, 0.01, 0.0001) == pytest.approx(0.001)
+    assert expon_lr(10, 100, 0.0, 0.0) == 0.0
