@@ -197,6 +197,7 @@ def test_initialise_imports_points_height_map_and_decisions(tiny_scene, fresh):
 # ---------------------------------------------------------------------------
 # End to end through the real `dibrgs train/render/eval` subprocesses (--preset test)
 # ---------------------------------------------------------------------------
+@pytest.mark.slow
 def test_train_operator_completes_and_fills_the_compositor(tiny_scene, fresh):
     from dibrgs_core.bridge.compositor import IMAGE_NODE_PREFIX, OUTPUT_NODE, VIEWER_NODE
     from dibrgs_core.camera.serialize import camera_from_dict
@@ -283,6 +284,7 @@ def test_failing_training_is_reported_with_its_log(tiny_scene, fresh, tmp_path):
     assert not fresh.dibrgs.job_running
 
 
+@pytest.mark.slow
 def test_batch_mode_writes_the_blend_and_the_renders(tiny_scene, fresh, tmp_path):
     out = tmp_path / "batch"
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "run.py"), "--scene", str(tiny_scene), "--out",
@@ -315,6 +317,7 @@ def test_batch_mode_rejects_bad_arguments(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_cancel_stops_real_training_and_keeps_a_checkpoint(tiny_scene, tmp_path):
     """What the panel's Cancel does (JobRunner.cancel), on the real `dibrgs train` subprocess."""
     from dibrgs_core.bridge import jobs

@@ -10,6 +10,7 @@ import pytest
 from dibrgs_core.bench import pages, runner as bm
 
 
+@pytest.mark.slow
 def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene):
     ray = pytest.importorskip("ray", reason="ray is an optional extra: pip install -e '.[ray]'")
     work = tmp_path / "bench"

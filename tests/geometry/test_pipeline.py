@@ -82,6 +82,7 @@ def test_gt_with_nan_and_zero_depths(tmp_path):
     assert np.isfinite(res.points).all() and len(res.points) > 100
 
 
+@pytest.mark.slow
 @pytest.mark.stability
 def test_horizontal_cameras_skip_overlap_and_height_map(tmp_path):
     """Cameras looking horizontally: overlap removal and height map are skipped with a reason in the report."""
