@@ -34,8 +34,10 @@ class MvsConfig:
         window: NCC window side in pixels (odd).
         min_ncc: pixels whose best NCC is lower are marked invalid.
         min_confidence: pixels whose peak-ratio confidence is lower are invalid.
-        min_texture: minimum reference-window standard deviation (image
-            units in [0,1]) for NCC to be meaningful.
+        min_texture_rel: minimum reference-window standard deviation for NCC
+            to be meaningful, as a fraction of the image's median window
+            standard deviation (a fixed level in image units would reject
+            more of a darker photo: not gain-invariant).
         consistency_tol: geometric check between views: a depth is kept when
             it agrees, within this relative tolerance, with the depth another
             view estimated at its reprojection.
@@ -65,13 +67,19 @@ class MvsConfig:
             lifts DIBR-GS held-out PSNR by 0.7 dB over the plain sweep.
         sgm_p1, sgm_p2: its penalties (in 1 - NCC units) for moving to a
             neighbouring plane and for jumping to any plane.
+        speckle_px: after the sweep, connected regions of fewer pixels (of the
+            swept resolution) whose neighbouring depths agree within
+            ``speckle_tol`` are dropped (0 = off): tree crowns, water and
+            moving objects match by chance in small scattered patches that a
+            two-view consistency check lets through.
+        speckle_tol: relative depth step that still connects two neighbouring pixels.
     """
 
     num_depths: int = 96
     window: int = 7
     min_ncc: float = 0.6
     min_confidence: float = 0.1
-    min_texture: float = 0.01
+    min_texture_rel: float = 0.15
     plane_chunk: int = 8
     consistency_tol: float = 0.02
     min_consistent_views: int = 1
@@ -85,6 +93,8 @@ class MvsConfig:
     sgm_paths: int = 4
     sgm_p1: float = 0.1
     sgm_p2: float = 1.0
+    speckle_px: int = 50
+    speckle_tol: float = 0.01
 
 
 @dataclass
@@ -235,7 +245,7 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         c2 = torch.where(away, cost, torch.full_like(cost, 2.0)).min(0).values
         conf = ((c2 - c1) / c2.clamp_min(1e-6)).clamp(0, 1)
         ncc_best = 1 - raw.gather(0, k1[None])[0]
-        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture)
+        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture_rel * sd_r.median())
         valid &= torch.isfinite(depth) & (c1 < 2) & (depth >= near * 0.99) & (depth <= far * 1.01)
         depth = torch.where(valid, depth, torch.full_like(depth, float("nan")))
         conf = torch.where(valid, conf, torch.zeros_like(conf))
@@ -356,7 +366,9 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     ranges = [depth_range_for(c, pts, fallback_distance) for c in cams]
     heights = None
     if up is not None and cfg.height_above > 0:
-        heights = _scene_heights(cams, up, cfg)
+        heights = _scene_heights(cams, up, cfg, pts)
+        log.info("MVS height planes: %s", "every height the depth ranges allow (ground unknown)" if heights is None
+                 else f"{cfg.height_below:g} below to {cfg.height_above:g} above the ground, in flying heights")
     out = []
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
         near, far = ranges[i]
@@ -365,6 +377,10 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
         log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid", cams[i].name, near, far,
                  "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean())
         out.append(res)
+    if cfg.speckle_px > 0:
+        out = [MvsResult(*(np.where(keep, a, np.nan if k == 0 else 0).astype(np.float32) if k < 2 else a
+                           for k, a in enumerate((r.depth, r.confidence, r.ncc))))
+               for r in out for keep in [speckle_mask(r.depth, cfg.speckle_tol, cfg.speckle_px)]]
     if cfg.min_consistent_views > 0 and len(cams) > 1:
         out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px)
     if f < 1.0:
@@ -372,25 +388,99 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     return out
 
 
-def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig) -> tuple[float, float] | None:
+def converging_target(cams: Sequence[Camera], min_spread_deg: float = 5.0) -> np.ndarray | None:
+    """The point the cameras' optical axes converge on (:func:`cameras.look_at_target`), or None when
+    it is not determined.
+
+    Axes that are nearly parallel (a nadir mapping grid, a corridor of parallel
+    oblique photos) meet anywhere: the least-squares point then moves tens of
+    flying heights, in front of or behind the cameras, with tilts of a degree.
+    It counts only when the axes spread by at least ``min_spread_deg`` around
+    its direction (the smallest eigenvalue of ``sum(I - d d^T)`` over the
+    cameras, per camera, is at least ``sin^2(min_spread_deg)``) and it lies in
+    front of every camera.
+    """
+    from .cameras import look_at_target
+
+    cams = list(cams)
+    if len(cams) < 2:
+        return None
+    A = sum(np.eye(3) - np.outer(c.view_dir, c.view_dir) for c in cams)
+    if np.linalg.eigvalsh(A)[0] / len(cams) < np.sin(np.radians(min_spread_deg)) ** 2:
+        return None
+    target = look_at_target(cams)
+    if not np.all(np.isfinite(target)):
+        return None
+    if any(float((target - c.center) @ c.view_dir) <= 0 for c in cams):
+        return None
+    return target
+
+
+def scene_ground(cams: Sequence[Camera], up: np.ndarray, sparse_points: np.ndarray | None = None,
+                 min_points: int = 10) -> tuple[float, float, str] | None:
+    """``(ground height, flying height above it, source)`` along ``up`` (world units), or None.
+
+    The ground is the cameras' convergence point (:func:`converging_target`)
+    when their axes determine one, else the 5th percentile of the heights of
+    the SfM points the cameras see (at least ``min_points``); the flying height
+    is the median camera height above it. None when neither exists or the
+    cameras are not above that ground.
+    """
+    n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    cam_h = float(np.median([n_up @ c.center for c in cams]))
+    target = converging_target(cams)
+    if target is not None and cam_h - float(n_up @ target) > 0:
+        ground = float(n_up @ target)
+        return ground, cam_h - ground, "look-at"
+    if sparse_points is not None and len(sparse_points) >= min_points:
+        P = np.asarray(sparse_points, np.float64)
+        seen = np.zeros(len(P), bool)
+        for c in cams:
+            uv, z = c.project(P)
+            seen |= (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        if seen.sum() >= min_points:
+            ground = float(np.percentile(P[seen] @ n_up, 5.0))
+            if cam_h - ground > 0:
+                return ground, cam_h - ground, "sfm"
+    return None
+
+
+def speckle_mask(depth: np.ndarray, tol: float, min_px: int) -> np.ndarray:
+    """True where a finite depth belongs to a connected region of at least ``min_px`` pixels; two
+    4-neighbours connect when their depths differ by at most ``tol`` times the smaller one."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    d = np.asarray(depth, np.float64)
+    H, W = d.shape
+    ok = np.isfinite(d)
+    idx = np.arange(H * W).reshape(H, W)
+    rows, cols = [], []
+    for a, b, da, db in ((idx[:, :-1], idx[:, 1:], d[:, :-1], d[:, 1:]), (idx[:-1], idx[1:], d[:-1], d[1:])):
+        link = np.isfinite(da) & np.isfinite(db) & (np.abs(da - db) <= tol * np.fmin(np.abs(da), np.abs(db)))
+        rows.append(a[link])
+        cols.append(b[link])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(H * W, H * W))
+    _, lab = connected_components(g, directed=False)
+    size = np.bincount(lab)
+    return ok & (size[lab] >= min_px).reshape(H, W)
+
+
+def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig,
+                   sparse_points: np.ndarray | None = None) -> tuple[float, float] | None:
     """Heights to sweep: from ``height_below`` to ``height_above`` times the flying height above the
-    point the cameras look at (taken as ground level).
+    ground (:func:`scene_ground`: the cameras' convergence point, else the SfM points).
 
     The cameras' depth ranges allow every height from far below the ground up
     to the cameras; sweeping all of it spreads the planes thin and, on
     repetitive texture (street grids), finds spurious matches far from the
-    scene. None (full range) when the look-at point is undefined or not below the cameras.
+    scene. None (full range) when the ground is unknown or not below the cameras.
     """
-    from .cameras import look_at_target
-
-    n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    target = look_at_target(cams)
-    if not np.all(np.isfinite(target)):
+    g = scene_ground(cams, up, sparse_points)
+    if g is None:
         return None
-    ground = float(n_up @ target)
-    alt = float(np.median([n_up @ c.center for c in cams])) - ground
-    if not alt > 0:
-        return None
+    ground, alt, _ = g
     return ground - cfg.height_below * alt, ground + cfg.height_above * alt
 
 
