@@ -185,14 +185,28 @@ def overlap_pairs_drop(local: np.ndarray, candidates: np.ndarray, cell: float, e
     return drop
 
 
+def voxel_keys(points: np.ndarray, voxel: float, origin: np.ndarray | None = None) -> np.ndarray:
+    """(N,3) int64 index of the voxel of side ``voxel`` (world axes, relative to ``origin``) holding each point."""
+    origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+    return np.floor((np.asarray(points, np.float64) - origin) / voxel).astype(np.int64)
+
+
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float, origin: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Mean position and colour per occupied voxel of side ``voxel`` (world axes, relative to ``origin``)."""
+    P, C, _ = voxel_downsample_values(points, colors, None, voxel, origin)
+    return P, C
+
+
+def voxel_downsample_values(points: np.ndarray, colors: np.ndarray, values: np.ndarray | None, voxel: float,
+                            origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`voxel_downsample`, also averaging per-point ``values`` (N,) such as a confidence (None: none)."""
+    vals = None if values is None else np.asarray(values, np.float64).reshape(-1)
     if len(points) == 0 or not voxel or voxel <= 0:
-        return np.asarray(points, np.float64), np.asarray(colors, np.uint8)
+        return np.asarray(points, np.float64), np.asarray(colors, np.uint8), vals
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     rel = np.asarray(points, np.float64) - origin
-    keys = np.floor(rel / voxel).astype(np.int64)
+    keys = voxel_keys(points, voxel, origin)
     _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
     m = len(cnt)
@@ -202,11 +216,19 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float, origi
     np.add.at(C, inv, np.asarray(colors, np.float64))
     P /= cnt[:, None]
     C /= cnt[:, None]
-    return P + origin, np.clip(C.round(), 0, 255).astype(np.uint8)
+    V = None
+    if vals is not None:
+        V = np.bincount(inv, weights=vals, minlength=m) / cnt
+    return P + origin, np.clip(C.round(), 0, 255).astype(np.uint8), V
 
 
-def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> None:
-    """Coloured point cloud as binary PLY (trimesh), written atomically. Positions are float64 world."""
+def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray, confidence: np.ndarray | None = None) -> None:
+    """Coloured point cloud as binary PLY (trimesh), written atomically.
+
+    Positions are stored as float32 (the PLY exporter's type). With
+    ``confidence`` (N,) each vertex also gets a float ``confidence`` property
+    (see :class:`init.InitResult`); readers that do not know it ignore it.
+    """
     import trimesh
 
     from .fileio import atomic_path
@@ -214,9 +236,17 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> None:
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     col = np.asarray(colors, np.uint8).reshape(-1, 3)
     rgba = np.concatenate([col, np.full((len(col), 1), 255, np.uint8)], 1)
-    pc = trimesh.PointCloud(pts, colors=rgba)
+    if confidence is None:
+        obj = trimesh.PointCloud(pts, colors=rgba)
+    else:
+        conf = np.asarray(confidence, np.float32).reshape(-1)
+        if len(conf) != len(pts):
+            raise ValueError(f"write_ply: {len(conf)} confidences for {len(pts)} points")
+        # A face-less mesh: trimesh's PLY exporter writes vertex attributes for meshes, not point clouds.
+        obj = trimesh.Trimesh(vertices=pts, faces=np.zeros((0, 3), np.int64), vertex_colors=rgba, process=False)
+        obj.vertex_attributes["confidence"] = conf
     with atomic_path(path) as tmp:
-        pc.export(tmp, file_type="ply")
+        obj.export(tmp, file_type="ply")
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -229,3 +259,15 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if cols is None or len(cols) != len(pts):
         cols = np.full((len(pts), 3), 128, np.uint8)
     return pts, np.asarray(cols)[:, :3].astype(np.uint8)
+
+
+def read_ply_confidence(path: str | Path) -> np.ndarray | None:
+    """The per-vertex ``confidence`` (N,) float64 of a PLY written by :func:`write_ply`, or None without one."""
+    import trimesh
+
+    pc = trimesh.load(path, process=False)
+    data = pc.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+    names = getattr(getattr(data, "dtype", None), "names", None) or ()
+    if "confidence" not in names:
+        return None
+    return np.asarray(data["confidence"], np.float64).reshape(-1)

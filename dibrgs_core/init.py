@@ -17,17 +17,17 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Sequence
 
 import numpy as np
 
-from .cameras import Camera, estimate_up, look_at_target, nadir_angle_deg, up_frame
+from .cameras import Camera, estimate_up, nadir_angle_deg, up_frame
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
 from .errors import InputError
 from .fusion import (backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame,
-                     voxel_downsample, write_ply)
-from .height_map import HeightMap
-from .mvs import MvsConfig
+                     voxel_downsample_values, voxel_keys, write_ply)
+from .height_map import HeightMap, completion_field
+from .mvs import MvsConfig, converging_target
 from .report import Report
 from .sfm import SfmConfig, SparseCloud, triangulate_known_poses
 
@@ -62,6 +62,16 @@ class InitConfig:
         min_sfm_points: fewer SfM points = SfM is not usable for alignment/ranges.
         dense_sfm_ratio: SfM points per training pixel at or above which the cloud
             already counts as dense and no depth prior is run.
+        complete: fill the training pixels the prior left without depth from a
+            height field of what it measured (:func:`complete_depths`):
+            ``auto`` (near-nadir scenes), ``on`` or ``off``.
+        completion_confidence: point confidence of completed depth (measured
+            depth has 0.5 or more, see :class:`InitResult`).
+        completion_cell_px: cell of the completion surface, in training-view
+            pixels at the reference distance.
+        completion_voxel: completed points are voxel-downsampled this many
+            times coarser than measured ones (fewer anchors where the geometry
+            is a guess).
     """
 
     depth_prior: str = "auto"
@@ -83,18 +93,35 @@ class InitConfig:
     min_up_confidence: float = 0.5
     min_sfm_points: int = 20
     dense_sfm_ratio: float = 0.05
+    complete: Literal["auto", "on", "off"] = "auto"
+    completion_confidence: float = 0.25
+    completion_cell_px: float = 4.0
+    completion_voxel: float = 2.0
     sfm: SfmConfig = field(default_factory=SfmConfig)
     mvs: MvsConfig = field(default_factory=MvsConfig)
 
 
 @dataclass
 class InitResult:
-    """Initial point cloud (world float64, uint8 colours), height map (or None) and report."""
+    """Initial point cloud (world float64, uint8 colours), height map (or None) and report.
+
+    ``confidence`` (N,) in [0, 1] says how each point was obtained: 1 for SfM
+    points; ``0.5 + 0.5 c`` for depth the prior measured (``c`` is the plane
+    sweep's per-pixel confidence, 1 for a prior without one); below 0.5
+    (``InitConfig.completion_confidence``) for depth completed from the height
+    field; 0 for the plane fallback. ``points.ply`` stores it as a vertex
+    property (:func:`fusion.read_ply_confidence`). ``dense_points`` /
+    ``dense_confidence`` are the fused cloud before voxel downsampling (what the
+    evaluation reprojects).
+    """
 
     points: np.ndarray
     colors: np.ndarray
     height_map: HeightMap | None
     report: Report
+    confidence: np.ndarray | None = None
+    dense_points: np.ndarray | None = None
+    dense_confidence: np.ndarray | None = None
 
 
 @dataclass
@@ -111,6 +138,7 @@ class SceneGeometry:
     nadir_deg: float
     scale: float
     ref_distance: float
+    ref_source: str = "look-at"
 
     @property
     def n_pixels(self) -> int:
@@ -118,22 +146,80 @@ class SceneGeometry:
 
 
 def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
-    """Cameras, up frame, local origin and scale of the scene's training views."""
+    """Cameras, up frame, local origin and scale of the scene's training views.
+
+    The reference distance (the scale's numerator) is the median distance from
+    the cameras to the point their axes converge on when they converge
+    (:func:`mvs.converging_target`: orbits). Nearly parallel axes (a nadir
+    mapping grid) meet nowhere in particular, so there it is provisional: the
+    cameras' depth ranges, else a guess from their spacing
+    (:func:`_overlap_distance`), until :func:`sfm_reference` replaces it with
+    the depth of the SfM points. ``ref_source`` says which.
+    """
     views = list(scene.train_views())
     if not views:
         raise InputError(getattr(scene, "root", None), "the scene has no training views")
     cams = [v.camera for v in views]
     up, conf = estimate_up(cams)
-    target = look_at_target(cams)
     centers = np.stack([c.center for c in cams])
-    dist = np.linalg.norm(centers - target, axis=1)
-    if not np.all(np.isfinite(dist)) or np.median(dist) <= 0:
-        dist = np.array([np.mean(c.depth_range) if c.depth_range else 1.0 for c in cams])
-    ref = float(np.median(dist))
-    origin = target if np.all(np.isfinite(target)) else centers.mean(0)
+    target = converging_target(cams)
+    ranges = [c.depth_range for c in cams if c.depth_range and 0 < c.depth_range[0] < c.depth_range[1]]
+    if target is not None:
+        ref, source = float(np.median(np.linalg.norm(centers - target, axis=1))), "look-at"
+        origin = target
+    else:
+        if ranges:
+            ref, source = float(np.median([np.sqrt(a * b) for a, b in ranges])), "depth-range"
+        else:
+            ref, source = _overlap_distance(cams), "camera-spacing"
+        # A point ``ref`` in front of the cameras' centroid: the ground below them, roughly.
+        origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
     scale = float(config.scale) if config.scale else ref / LEVIR_REFERENCE_DEPTH
     return SceneGeometry(cams, [np.asarray(v.image, np.float32) for v in views], [v.depth for v in views],
-                         up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale, ref)
+                         up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale, ref, source)
+
+
+def _overlap_distance(cams: Sequence[Camera]) -> float:
+    """Distance to the scene if neighbouring photos overlapped by half (last resort, no SfM, no depth ranges):
+    the median nearest-neighbour camera spacing is then half the footprint, ``d * mean(W, H) / f``."""
+    C = np.stack([c.center for c in cams])
+    if len(C) < 2:
+        return 1.0
+    D = np.linalg.norm(C[:, None] - C[None], axis=2) + np.diag(np.full(len(C), np.inf))
+    spacing = float(np.median(D.min(1)))
+    c0 = cams[0]
+    size = 0.5 * (c0.width + c0.height)
+    f = 0.5 * (c0.fx + c0.fy)
+    d = 2.0 * spacing * f / max(size, 1.0)
+    return d if np.isfinite(d) and d > 0 else 1.0
+
+
+def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, report: Report) -> None:
+    """Replace a provisional reference distance (see :func:`scene_geometry`) by the median z-depth of the
+    SfM points in the training views, and the origin by their median; the scale follows (unless
+    ``config.scale`` is set)."""
+    if geo.ref_source == "look-at" or len(sparse) < config.min_sfm_points:
+        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
+                      f"{'point the cameras converge on' if geo.ref_source == 'look-at' else geo.ref_source}",
+                      source=geo.ref_source, ref_distance=geo.ref_distance, scale=geo.scale)
+        return
+    depths = []
+    for c in geo.cameras:
+        uv, z = c.project(sparse.points)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        depths.append(z[ok])
+    z = np.concatenate(depths)
+    if len(z) < config.min_sfm_points:
+        return
+    old, old_source = geo.ref_distance, geo.ref_source
+    geo.ref_distance = float(np.median(z))
+    geo.origin = np.median(sparse.points, axis=0)
+    geo.ref_source = "sfm"
+    if not config.scale:
+        geo.scale = geo.ref_distance / LEVIR_REFERENCE_DEPTH
+    report.decide(STAGE, "scene_scale", True, f"the cameras' axes do not converge (parallel views): reference "
+                  f"distance {geo.ref_distance:.4g} = median SfM point depth (provisional {old:.4g} from the "
+                  f"{old_source})", source="sfm", ref_distance=geo.ref_distance, scale=geo.scale)
 
 
 def run_sparse(geo: SceneGeometry, config: InitConfig, report: Report) -> SparseCloud:
@@ -213,19 +299,25 @@ def overlap_applicable(geo: SceneGeometry, config: InitConfig) -> tuple[bool, st
     return near_nadir(geo.up_confidence, geo.nadir_deg, config)
 
 
-def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse the views' depths with the chosen refinement. Returns dense (points, colors), not downsampled."""
+def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report,
+                 confidence: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse the views' depths with the chosen refinement.
+
+    Returns the dense (points, colors, confidence), not downsampled; the
+    confidence of a point is its pixel's in ``confidence`` (HxW maps, one per
+    view; 1 everywhere when None).
+    """
     if refine == "reproject":
         depths = reproject_max_depth(geo.cameras, depths)
     pts, cols, _ = backproject_views(geo.cameras, depths, geo.images)
+    conf = _pixel_values(depths, confidence)
     report.values["dense_points"] = len(pts)
     if refine != "no-ovlp":
         report.decide(STAGE, "overlap_removal", False, f"refinement '{refine}' chosen")
-        return pts, cols
+        return pts, cols, conf
     ok, why = overlap_applicable(geo, config)
     if not report.decide(STAGE, "overlap_removal", ok, why):
-        return pts, cols
+        return pts, cols, conf
     s = geo.scale
     local = to_frame(pts, geo.frame, geo.origin)
     t = time.time()
@@ -236,11 +328,129 @@ def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray
                   + ("" if dip.n_multimodal else ": no overlap to remove"),
                   cells=dip.n_cells, tested=dip.n_tested, multimodal=dip.n_multimodal)
     if dip.n_multimodal == 0:
-        return pts, cols
+        return pts, cols, conf
     drop = overlap_pairs_drop(local, dip.in_multimodal, config.dip_cell * s, config.eps_xy * s, config.eps_z * s)
     report.values["overlap_dropped"] = int(drop.sum())
     log.info("overlap removal: dropped %d of %d points", drop.sum(), len(pts))
-    return pts[~drop], cols[~drop]
+    return pts[~drop], cols[~drop], conf[~drop]
+
+
+def _pixel_values(depths: list[np.ndarray], maps: list[np.ndarray] | None) -> np.ndarray:
+    """Per back-projected point (the order of :func:`fusion.backproject_views`), its pixel's value in ``maps``."""
+    out = []
+    for i, d in enumerate(depths):
+        d = np.asarray(d, np.float64).reshape(-1)
+        ok = np.isfinite(d) & (d > 0)
+        out.append(np.ones(int(ok.sum())) if maps is None else np.asarray(maps[i], np.float64).reshape(-1)[ok])
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def measured_confidence(prior_confidence: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """Point confidence of measured depth: ``0.5 + 0.5 c`` for the prior's per-pixel confidence ``c`` in
+    [0, 1] (plane sweep: its peak ratio), 1 for a prior without one. Completed depth stays below 0.5."""
+    if prior_confidence is None:
+        return np.ones(shape)
+    c = np.nan_to_num(np.asarray(prior_confidence, np.float64), nan=0.0)
+    return 0.5 + 0.5 * np.clip(c, 0.0, 1.0)
+
+
+def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], confidence: list[np.ndarray],
+                    sparse_points: np.ndarray, report: Report) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Fill the pixels the prior left without depth from a 2.5D surface of what it measured (near-nadir scenes).
+
+    The SfM points and the measured depths become a height field (one surface
+    height per horizontal cell, holes filled from their rim:
+    :class:`surface.HeightField`); each training pixel without depth gets the
+    depth at which its ray meets that surface, with confidence
+    ``config.completion_confidence`` (below every measured point's). Skipped,
+    with the reason in the report, when the scene is not near-nadir, when
+    ``config.complete`` is ``off``, or with too few measured points.
+    """
+    holes = sum(int((~(np.isfinite(d) & (np.asarray(d) > 0))).sum()) for d in depths)
+    if config.complete == "off":
+        report.decide(STAGE, "completion", False, "switched off")
+        return depths, confidence
+    ok, why = near_nadir(geo.up_confidence, geo.nadir_deg, config)
+    if not ok and config.complete == "auto":
+        report.decide(STAGE, "completion", False, f"a height field does not describe this scene: {why}")
+        return depths, confidence
+    if holes == 0:
+        report.decide(STAGE, "completion", False, "every training pixel already has a depth")
+        return depths, confidence
+    pts, _, _ = backproject_views(geo.cameras, depths, [np.zeros((c.height, c.width, 3)) for c in geo.cameras])
+    pts = np.concatenate([pts, np.asarray(sparse_points, np.float64).reshape(-1, 3)])
+    if len(pts) < config.min_sfm_points:
+        report.decide(STAGE, "completion", False, f"only {len(pts)} measured points to build a surface from")
+        return depths, confidence
+    t = time.time()
+    f = float(np.median([0.5 * (c.fx + c.fy) for c in geo.cameras]))
+    cell = config.completion_cell_px * geo.ref_distance / f
+    ground = float(np.median(to_frame(pts, geo.frame, geo.origin)[:, 2]))
+    field = completion_field(pts, geo.frame, geo.origin, cell, _footprints(geo, ground))
+    out_d, out_c, filled = [], [], 0
+    for cam, d, c in zip(geo.cameras, depths, confidence):
+        d = np.asarray(d, np.float64)
+        hole = ~(np.isfinite(d) & (d > 0))
+        surf = field.depth(cam).astype(np.float64) if hole.any() else np.zeros_like(d)
+        fill = hole & (surf > 0)
+        filled += int(fill.sum())
+        out_d.append(np.where(fill, surf, d))
+        out_c.append(np.where(fill, config.completion_confidence, c))
+    report.values["completion_s"] = time.time() - t
+    n_pix = geo.n_pixels
+    report.decide(STAGE, "completion", True,
+                  f"{why}: {100.0 * filled / n_pix:.1f} % of the training pixels completed from a height field of "
+                  f"{len(pts)} measured points ({100.0 * (n_pix - holes) / n_pix:.1f} % measured), confidence "
+                  f"{config.completion_confidence}", measured=(n_pix - holes) / n_pix, completed=filled / n_pix,
+                  cell=field.cell)
+    return out_d, out_c
+
+
+def _footprints(geo: SceneGeometry, height: float) -> np.ndarray:
+    """Local horizontal (e1, e2) points where the training views' image borders meet the plane at local
+    ``height`` (rays that do not descend are left out)."""
+    out = []
+    for c in geo.cameras:
+        u = np.linspace(0, c.width, 9)
+        v = np.linspace(0, c.height, 9)
+        border = np.concatenate([np.stack([u, np.zeros_like(u)], 1), np.stack([u, np.full_like(u, c.height)], 1),
+                                 np.stack([np.zeros_like(v), v], 1), np.stack([np.full_like(v, c.width), v], 1)])
+        rays = np.c_[border, np.ones(len(border))] @ np.linalg.inv(c.K).T @ c.R  # world, camera-z 1
+        dl = rays @ geo.frame.T
+        cl = geo.frame @ (c.center - geo.origin)
+        down = dl[:, 2] < -1e-12 * np.linalg.norm(dl, axis=1)
+        t = (height - cl[2]) / np.where(down, dl[:, 2], -1.0)
+        ok = down & (t > 0)
+        out.append(cl[:2] + t[ok, None] * dl[ok, :2])
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def voxel_confident(points: np.ndarray, colors: np.ndarray, confidence: np.ndarray, voxel: float,
+                    origin: np.ndarray, split: float = 0.5, completed_factor: float = 1.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel-downsample measured points (confidence >= ``split``) and completed ones separately (mean
+    position, colour and confidence per voxel; completed ones in voxels ``completed_factor`` times larger)
+    and keep a completed voxel only where no measured point lies: completion fills holes, it never blends
+    into what was measured."""
+    if not voxel or voxel <= 0:
+        return points, colors, confidence
+    meas = confidence >= split
+    Pm, Cm, Km = voxel_downsample_values(points[meas], colors[meas], confidence[meas], voxel, origin)
+    big = voxel * max(completed_factor, 1.0)
+    Pc, Cc, Kc = voxel_downsample_values(points[~meas], colors[~meas], confidence[~meas], big, origin)
+    keep = ~_rows_in(voxel_keys(Pc, big, origin), voxel_keys(points[meas], big, origin))
+    return np.concatenate([Pm, Pc[keep]]), np.concatenate([Cm, Cc[keep]]), np.concatenate([Km, Kc[keep]])
+
+
+def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each row of integer array ``a`` (N,3), whether it occurs in ``b`` (M,3)."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(len(a), bool)
+    both = np.concatenate([a, b])
+    lo = both.min(0)
+    span = both.max(0) - lo + 1
+    enc = lambda k: ((k[:, 0] - lo[0]) * span[1] + (k[:, 1] - lo[1])) * span[2] + (k[:, 2] - lo[2])  # noqa: E731
+    return np.isin(enc(a), enc(b))
 
 
 def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None) -> InitResult:
@@ -250,33 +460,47 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     report = Report()
     t0 = time.time()
     geo = scene_geometry(scene, cfg)
-    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, scale=geo.scale,
-                         origin=geo.origin, ref_distance=geo.ref_distance, config=_config_dict(cfg))
+    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, config=_config_dict(cfg))
     sparse = run_sparse(geo, cfg, report)
+    sfm_reference(geo, sparse, cfg, report)
+    report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)
     density = len(sparse) / max(geo.n_pixels, 1)
     use_prior = density < cfg.dense_sfm_ratio
     report.decide(STAGE, "depth_prior", use_prior,
                   f"SfM gives {density:.4f} points per training pixel "
                   + (f"< {cfg.dense_sfm_ratio}: densify with a prior" if use_prior else f">= {cfg.dense_sfm_ratio}: already dense"))
-    pts, cols = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    pts, cols, conf = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0)
     if use_prior:
-        depths = prior_depths(geo, cfg, sparse.points, report)
-        pts, cols = refine_cloud(geo, cfg, depths, cfg.refine, report)
-    dense_pts, dense_cols = pts, cols
+        name = cfg.depth_prior if cfg.depth_prior != "auto" else ("depth-anything-v2" if cfg.depth_model else "mvs")
+        t = time.time()
+        prior = compute_prior(name, geo.cameras, geo.images, geo.gt_depths, sparse.points, geo.ref_distance,
+                              cfg.depth_model, cfg.mvs)
+        report.values["prior_s"] = time.time() - t
+        depths = prior_depths(geo, cfg, sparse.points, report, prior=prior)
+        confs = [measured_confidence(None if prior.confidence is None else prior.confidence[i], d.shape)
+                 for i, d in enumerate(depths)]
+        _record_coverage(geo, depths, report)
+        depths, confs = complete_depths(geo, cfg, depths, confs, sparse.points, report)
+        pts, cols, conf = refine_cloud(geo, cfg, depths, cfg.refine, report, confs)
+    dense_pts, dense_conf = pts, conf
     if len(pts):
-        pts, cols = voxel_downsample(pts, cols, cfg.voxel * geo.scale, geo.origin)
+        pts, cols, conf = voxel_confident(pts, cols, conf, cfg.voxel * geo.scale, geo.origin,
+                                          completed_factor=cfg.completion_voxel)
     report.values["voxel_points"] = len(pts)
     pts = np.concatenate([pts, sparse.points])
     cols = np.concatenate([cols, sparse.colors])
+    conf = np.concatenate([conf, np.ones(len(sparse))])  # triangulated: measured
     if len(pts) == 0:
         # Nothing triangulated nor matched: a plane through the look-at point keeps training possible.
         pts, cols = _plane_fallback(geo)
-        dense_pts, dense_cols = pts, cols
+        conf = np.zeros(len(pts))  # a guess, not a measurement
+        dense_pts, dense_conf = pts, conf
         report.decide(STAGE, "plane_fallback", True, "no SfM points and no prior depth: a plane at the cameras' "
                       "look-at point stands in for the scene")
     finite = np.isfinite(pts).all(1)
-    pts, cols = pts[finite], cols[finite]
+    pts, cols, conf = pts[finite], cols[finite], conf[finite]
     report.values["points"] = len(pts)
+    report.values["points_completed"] = int((conf < 0.5).sum())
 
     hm = None
     ok, why = overlap_applicable(geo, cfg)
@@ -286,14 +510,21 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
                              cfg.height_relax, cfg.height_margin * geo.scale)
     report.values["init_s"] = time.time() - t0 - float(report.values.get("model_load_s", 0.0))
 
-    write_ply(out / "points.ply", pts, cols)
+    write_ply(out / "points.ply", pts, cols, conf)
     hm_path = out / "height_map.npz"
     if hm is not None:
         hm.save(hm_path)
     elif hm_path.exists():
         hm_path.unlink()  # a stale map from an earlier run must not be picked up
     report.save(out / "init_report.json")
-    return InitResult(pts, cols, hm, report)
+    return InitResult(pts, cols, hm, report, conf, dense_pts, dense_conf)
+
+
+def _record_coverage(geo: SceneGeometry, depths: list[np.ndarray], report: Report) -> None:
+    """Share of each training view's pixels the prior gave a depth (report value ``prior_coverage``)."""
+    cov = {c.name: float((np.isfinite(d) & (np.asarray(d) > 0)).mean()) for c, d in zip(geo.cameras, depths)}
+    report.values["prior_coverage"] = cov
+    log.info("prior depth on %s of the training pixels", ", ".join(f"{100 * v:.1f} %" for v in cov.values()))
 
 
 def _plane_fallback(geo: SceneGeometry, n: int = 32) -> tuple[np.ndarray, np.ndarray]:
