@@ -210,6 +210,9 @@ def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, r
         depths.append(z[ok])
     z = np.concatenate(depths)
     if len(z) < config.min_sfm_points:
+        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
+                      f"{geo.ref_source}: only {len(z)} SfM points in the views", source=geo.ref_source,
+                      ref_distance=geo.ref_distance, scale=geo.scale)
         return
     old, old_source = geo.ref_distance, geo.ref_source
     geo.ref_distance = float(np.median(z))
@@ -358,13 +361,15 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
                     sparse_points: np.ndarray, report: Report) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Fill the pixels the prior left without depth from a 2.5D surface of what it measured (near-nadir scenes).
 
-    The SfM points and the measured depths become a height field (one surface
-    height per horizontal cell, holes filled from their rim:
-    :class:`surface.HeightField`); each training pixel without depth gets the
-    depth at which its ray meets that surface, with confidence
-    ``config.completion_confidence`` (below every measured point's). Skipped,
-    with the reason in the report, when the scene is not near-nadir, when
-    ``config.complete`` is ``off``, or with too few measured points.
+    The SfM points and the measured depths become a height field
+    (:func:`height_map.completion_field`: the median height per cell of
+    ``config.completion_cell_px`` pixels, the ground's low percentile and
+    slope where nothing was measured, reaching over the training views'
+    footprints); each training pixel without depth gets the depth at which its
+    ray meets that surface, with confidence ``config.completion_confidence``
+    (below every measured point's). Skipped, with the reason in the report,
+    when the scene is not near-nadir (``auto``), when ``config.complete`` is
+    ``off``, or with too few measured points.
     """
     holes = sum(int((~(np.isfinite(d) & (np.asarray(d) > 0))).sum()) for d in depths)
     if config.complete == "off":
@@ -391,7 +396,7 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
     for cam, d, c in zip(geo.cameras, depths, confidence):
         d = np.asarray(d, np.float64)
         hole = ~(np.isfinite(d) & (d > 0))
-        surf = field.depth(cam).astype(np.float64) if hole.any() else np.zeros_like(d)
+        surf = _surface_depth(field, cam, config.mvs.max_size) if hole.any() else np.zeros_like(d)
         fill = hole & (surf > 0)
         filled += int(fill.sum())
         out_d.append(np.where(fill, surf, d))
@@ -399,11 +404,32 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
     report.values["completion_s"] = time.time() - t
     n_pix = geo.n_pixels
     report.decide(STAGE, "completion", True,
-                  f"{why}: {100.0 * filled / n_pix:.1f} % of the training pixels completed from a height field of "
+                  f"{why if ok else 'switched on'}: {100.0 * filled / n_pix:.1f} % of the training pixels completed from a height field of "
                   f"{len(pts)} measured points ({100.0 * (n_pix - holes) / n_pix:.1f} % measured), confidence "
                   f"{config.completion_confidence}", measured=(n_pix - holes) / n_pix, completed=filled / n_pix,
                   cell=field.cell)
     return out_d, out_c
+
+
+def _surface_depth(field, cam: Camera, max_size: int) -> np.ndarray:
+    """Depth (H,W) float64 of ``field`` seen by ``cam`` (0 = no surface), ray-cast at most ``max_size``
+    pixels on the long side and upsampled: the surface is coarser than that, and casting every pixel of a
+    large photo took a minute."""
+    import torch
+    import torch.nn.functional as F
+
+    longest = max(cam.width, cam.height)
+    if not max_size or longest <= max_size:
+        return field.depth(cam).astype(np.float64)
+    small = cam.scaled(max_size / longest)
+    d = torch.from_numpy(field.depth(small).astype(np.float64))[None, None]
+    valid = (d > 0).double()
+    size = (cam.height, cam.width)
+    lin = F.interpolate(d, size=size, mode="bilinear", align_corners=False)[0, 0]
+    full = F.interpolate(valid, size=size, mode="bilinear", align_corners=False)[0, 0]
+    near = F.interpolate(d, size=size, mode="nearest-exact")[0, 0]
+    # Bilinear where all four neighbours hit the surface, nearest along its edge.
+    return torch.where(full > 1 - 1e-9, lin, near).numpy()
 
 
 def _footprints(geo: SceneGeometry, height: float) -> np.ndarray:

@@ -9,6 +9,16 @@ winner-take-all picks the best plane, a parabola through its neighbours
 refines it below one plane, and the confidence comes from the cost curve: how much lower the best
 minimum is than the best one away from it (peak ratio).
 
+Photographs and mapping flights: zero-mean NCC ignores gain and offset
+between photos (exposure, vignetting over a window), the texture test is
+relative to the image's own contrast, a pixel only one other view sees is
+matched against that view alone, and the consistency check asks for one
+confirming view. Near-nadir sweeps use horizontal planes around the ground;
+on a mapping grid the camera axes are nearly parallel and do not define a
+ground point, so the SfM points do (:func:`scene_ground`). Small isolated
+patches of depth (tree crowns, water, moving cars) are dropped
+(:func:`speckle_mask`): two views can agree on a false match, a third rarely.
+
 Depths are z-depths in world units along the reference camera's +z axis.
 """
 from __future__ import annotations

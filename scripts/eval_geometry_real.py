@@ -99,11 +99,13 @@ def nearest_point_index(cam, points: np.ndarray) -> np.ndarray:
     u = np.floor(uv[:, 0]).astype(np.int64)
     v = np.floor(uv[:, 1]).astype(np.int64)
     ok = np.flatnonzero((z > 0) & np.isfinite(z) & (u >= 0) & (u < W) & (v >= 0) & (v < H))
+    out = np.full(H * W, -1, np.int64)
+    if len(ok) == 0:
+        return out.reshape(H, W)
     pix = v[ok] * W + u[ok]
     order = np.lexsort((z[ok], pix))
     pix, idx = pix[order], ok[order]
     first = np.r_[True, pix[1:] != pix[:-1]]
-    out = np.full(H * W, -1, np.int64)
     out[pix[first]] = idx[first]
     return out.reshape(H, W)
 
