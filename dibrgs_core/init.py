@@ -24,7 +24,7 @@ import numpy as np
 from .cameras import Camera, estimate_up, nadir_angle_deg, up_frame
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
 from .errors import InputError
-from .fusion import (backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame,
+from .fusion import (_flat_keys, backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame,
                      voxel_downsample_values, voxel_keys, write_ply)
 from .height_map import HeightMap, completion_field
 from .mvs import MvsConfig, converging_target
@@ -472,11 +472,8 @@ def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """For each row of integer array ``a`` (N,3), whether it occurs in ``b`` (M,3)."""
     if len(a) == 0 or len(b) == 0:
         return np.zeros(len(a), bool)
-    both = np.concatenate([a, b])
-    lo = both.min(0)
-    span = both.max(0) - lo + 1
-    enc = lambda k: ((k[:, 0] - lo[0]) * span[1] + (k[:, 1] - lo[1])) * span[2] + (k[:, 2] - lo[2])  # noqa: E731
-    return np.isin(enc(a), enc(b))
+    flat = _flat_keys(np.concatenate([a, b]))
+    return np.isin(flat[:len(a)], flat[len(a):])
 
 
 def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None) -> InitResult:
