@@ -154,8 +154,51 @@ def evaluate_cloud(cams, points: np.ndarray, confidence: np.ndarray | None, refe
             "ref_samples": int(cat.size), "ref_samples_matched": int(catm.size), "views": per_view}
 
 
+def plot_views(path: Path, views, points: np.ndarray, confidence: np.ndarray | None, reference: np.ndarray) -> None:
+    """PNG, one column per training view: the cloud's depth (z-buffer), and the photo with the completed
+    pixels greyed and the reference points coloured by relative depth error (green 0 to red >= 5 %)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dibrgs_core.fileio import atomic_path
+
+    conf = np.ones(len(points)) if confidence is None else np.asarray(confidence)
+    n = len(views)
+    aspect = views[0].camera.height / views[0].camera.width
+    fig, ax = plt.subplots(2, n, figsize=(4.2 * n + 1.5, 2 * 4.2 * aspect + 0.8), squeeze=False, layout="constrained")
+    depths = []
+    for v in views:
+        idx = nearest_point_index(v.camera, points)
+        d = np.full(idx.shape, np.nan)
+        d[idx >= 0] = v.camera.world_to_cam(points[idx[idx >= 0]])[:, 2]
+        depths.append((idx, d))
+    lo, hi = np.nanpercentile(np.concatenate([d.ravel() for _, d in depths]), [1, 99])
+    for k, (v, (idx, d)) in enumerate(zip(views, depths)):
+        im = ax[0, k].imshow(d, cmap="turbo", vmin=lo, vmax=hi)
+        ax[0, k].set_title(f"{v.name}: cloud depth", fontsize=9)
+        completed = (idx >= 0) & (conf[np.maximum(idx, 0)] < 0.5)
+        ax[1, k].imshow(np.clip(v.image, 0, 1))
+        ax[1, k].imshow(np.where(completed, 1.0, np.nan), cmap="gray", alpha=0.45, vmin=0, vmax=1)
+        uv, z = v.camera.project(reference)
+        u, w = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (z > 0) & (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        dz = d[w[ok], u[ok]]
+        rel = np.abs(dz - z[ok]) / z[ok]
+        sc = ax[1, k].scatter(u[ok], w[ok], c=np.nan_to_num(rel, nan=1.0), s=2, cmap="RdYlGn_r", vmin=0, vmax=0.05)
+        ax[1, k].set_title("completed (grey), reference points by error", fontsize=9)
+        for a in ax[:, k]:
+            a.axis("off")
+    fig.colorbar(im, ax=ax[0].tolist(), shrink=0.8, label="z-depth (scene units)")
+    fig.colorbar(sc, ax=ax[1].tolist(), shrink=0.8, label="relative depth error")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+
+
 def run(scene_dir: Path, train: list[str] | None, long_side: int | None, scale: float = 1.0,
-        work: Path | None = None, config=None) -> dict:
+        work: Path | None = None, config=None, png: Path | None = None) -> dict:
     """Geometry stage on the scene and its evaluation (a dict of figures)."""
     from dibrgs_core.init import InitConfig, initialise
     from dibrgs_core.io_levir import read_any_scene
@@ -174,6 +217,8 @@ def run(scene_dir: Path, train: list[str] | None, long_side: int | None, scale: 
         wall = time.time() - t
     cams = [v.camera for v in scene.train_views()]
     out = evaluate_cloud(cams, res.dense_points, res.dense_confidence, reference)
+    if png:
+        plot_views(png, scene.train_views(), res.dense_points, res.dense_confidence, reference)
     v = res.report.values
     out.update(scene=str(scene_dir), train=train, size=[cams[0].width, cams[0].height], scale=scale,
                init_s=wall, sfm_s=v.get("sfm_s"), prior_s=v.get("prior_s"), completion_s=v.get("completion_s"),
@@ -190,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale", type=float, default=1.0, help="multiply world coordinates (units check)")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
     ap.add_argument("--work", type=Path, default=None, help="keep the init outputs here (default: a temp folder)")
+    ap.add_argument("--png", type=Path, default=None, help="write a figure of the views' depth and errors here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import pycolmap
@@ -201,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         res = run(args.scene, args.train.split(",") if args.train else None, args.long_side or None, args.scale,
-                  args.work)
+                  args.work, png=args.png)
     except (ValueError, OSError) as e:
         print(f"eval_geometry_real: {e}", file=sys.stderr)
         return 2
