@@ -193,7 +193,7 @@ def plot_views(path: Path, views, points: np.ndarray, confidence: np.ndarray | N
     fig.colorbar(im, ax=ax[0].tolist(), shrink=0.8, label="z-depth (scene units)")
     fig.colorbar(sc, ax=ax[1].tolist(), shrink=0.8, label="relative depth error")
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=80)
+        fig.savefig(tmp, dpi=60)
     plt.close(fig)
 
 
