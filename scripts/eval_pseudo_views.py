@@ -36,7 +36,8 @@ def evaluate(scene_dir: Path, prior: str, work: Path, mvs: dict | None = None, s
 
     import torch
 
-    from dibrgs_core.geometry.pipeline import InitConfig, initialise
+    from dibrgs_core.geometry.config import InitConfig
+    from dibrgs_core.geometry.pipeline import initialise
     from dibrgs_core.data.levir import read_scene
     from dibrgs_core.training.losses import psnr
     from dibrgs_core.training.pseudo_views import build_pseudo_views

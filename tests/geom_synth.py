@@ -155,3 +155,43 @@ def make_synthetic_scene(size: int = 64, n_views: int = 3, seed: int = 0, radius
     names = sorted(views)
     scene = Scene(root=Path("/nonexistent"), views=views, track=[], train=names, test=[])
     return scene, hf
+
+
+def make_grid_scene(size: int = 96, n_views: int = 3, spacing: float = 40.0, height: float = 110.0,
+                    tilt_deg: float = 1.0, seed: int = 0, fov_deg: float = 50.0, world_scale: float = 1.0,
+                    hf: HeightField | None = None):
+    """A nadir mapping strip: ``n_views`` cameras ``spacing`` apart along x at ``height``, looking
+    straight down up to random tilts of about ``tilt_deg`` (so their axes are nearly parallel and
+    meet nowhere in particular, as on a drone's mapping grid). No depth range on the cameras (COLMAP
+    scenes have none). ``world_scale`` multiplies every world length (units check)."""
+    hf = hf or city_heightfield(seed)
+    rng = np.random.default_rng(seed + 1)
+    f = size / 2 / np.tan(np.radians(fov_deg) / 2)
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    views = {}
+    for i in range(n_views):
+        eye = np.array([(i - (n_views - 1) / 2) * spacing, 0.0, height])
+        tilt = np.radians(tilt_deg) * rng.normal(size=2)
+        target = eye + np.array([np.tan(tilt[0]), np.tan(tilt[1]), -1.0]) * height
+        cam_local = Camera(K, look_at(eye, target, [0, 1, 0]), size, size, name=f"{i:03d}")
+        img, depth = render(hf, cam_local)
+        w2c = cam_local.w2c.copy()
+        w2c[:3, 3] *= world_scale
+        views[f"{i:03d}"] = View(camera=Camera(K, w2c, size, size, name=f"{i:03d}"), image=img,
+                                 depth=depth * world_scale)
+    names = sorted(views)
+    return Scene(root=Path("/nonexistent"), views=views, track=[], train=names, test=[]), hf
+
+
+def scaled_scene(scene, factor: float):
+    """The same scene with every world length (camera positions, depth ranges, depths) times ``factor``."""
+    from dataclasses import replace
+
+    views = {}
+    for k, v in scene.views.items():
+        w2c = v.camera.w2c.copy()
+        w2c[:3, 3] *= factor
+        dr = v.camera.depth_range
+        cam = replace(v.camera, w2c=w2c, depth_range=None if dr is None else (dr[0] * factor, dr[1] * factor))
+        views[k] = View(camera=cam, image=v.image, depth=None if v.depth is None else v.depth * factor)
+    return Scene(root=scene.root, views=views, track=list(scene.track), train=list(scene.train), test=list(scene.test))

@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ..geometry.pipeline import InitConfig, initialise
+    from ..geometry.config import InitConfig
+    from ..geometry.pipeline import initialise
     from ..data.load import read_any_scene
 
     torch.set_num_threads(min(2, torch.get_num_threads()))

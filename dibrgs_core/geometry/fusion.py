@@ -149,5 +149,3 @@ def overlap_pairs_drop(local: np.ndarray, candidates: np.ndarray, cell: float, e
     higher = np.where(sub[i, 2] > sub[j, 2], i, j)
     drop[idx[np.unique(higher)]] = True
     return drop
-
-

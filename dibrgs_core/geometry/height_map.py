@@ -147,3 +147,120 @@ class HeightMap:
                            float(z["relax"]), float(z["margin"]), float(z["percentile"]))
         except (OSError, KeyError, ValueError) as e:
             raise InputError(path, f"not a DIBR-GS height map ({e})") from None
+
+
+def completion_field(points: np.ndarray, frame: np.ndarray, origin: np.ndarray, cell: float,
+                     cover: np.ndarray | None = None, ground_cells: int = 8, ground_percentile: float = 25.0,
+                     smooth: int = 3):
+    """A 2.5D surface (:class:`surface.HeightField`) of measured ``points`` for completing depth maps.
+
+    Heights are along the up axis of ``frame`` (rows e1, e2, up) relative to
+    ``origin``; ``cell`` is the cell side (world units). A cell holding points
+    takes their median height (robust to the stray matches a cell collects). An
+    empty cell takes the *ground* there: the ``ground_percentile``-th height
+    per block of ``ground_cells`` x ``ground_cells`` cells, as a least-squares
+    plane (the terrain's slope) plus its residuals spread smoothly into the
+    blocks without points (normalised Gaussian convolution, widening until every
+    block has a value). Unmatched regions of aerial photos are mostly ground
+    (lawn, road, water, streets hidden between buildings) or objects on it; the
+    low percentile puts them on the ground, and the plane carries a sloping
+    terrain past the cloud's edge. ``cover`` (M,2) local horizontal points the
+    grid must reach (the training views' footprints), besides the cloud. Last,
+    a ``smooth`` x ``smooth`` median filter (1 = none) removes single-cell spikes.
+    """
+    from scipy import ndimage
+
+    from .surface import HeightField
+
+    F = np.asarray(frame, np.float64)
+    o = np.asarray(origin, np.float64)
+    loc = (np.asarray(points, np.float64).reshape(-1, 3) - o) @ F.T
+    loc = loc[np.isfinite(loc).all(1)]
+    if len(loc) < 3:
+        raise ValueError("completion_field: fewer than 3 finite points")
+    if not cell > 0:
+        raise ValueError(f"completion_field: cell must be positive, got {cell}")
+    if len(loc) >= 20:  # stray points far off would stretch the grid
+        q1, q99 = np.percentile(loc, [1.0, 99.0], axis=0)
+        wide = 0.5 * (q99 - q1) + 1e-9 * (1.0 + np.abs(q1))
+        loc = loc[((loc >= q1 - wide) & (loc <= q99 + wide)).all(1)]
+    xy = loc[:, :2]
+    lo, hi = xy.min(0), xy.max(0)
+    if cover is not None and len(cover):
+        c = np.asarray(cover, np.float64).reshape(-1, 2)
+        c = c[np.isfinite(c).all(1)]
+        if len(c):
+            lo, hi = np.minimum(lo, c.min(0)), np.maximum(hi, c.max(0))
+    block = max(int(ground_cells), 1)
+    lo = lo - 2 * cell
+    n = (np.ceil((hi + 2 * cell - lo) / cell).astype(np.int64) + 1)
+    n = ((n + block - 1) // block * block).clip(block, 4096)
+    cell = max(cell, float(((hi - lo) / (n - 1)).max()))  # a grid capped at 4096 cells gets coarser
+    ij = np.clip(np.floor((xy - lo) / cell).astype(np.int64), 0, n - 1)
+    h = loc[:, 2]
+    surf = _cell_quantile(ij, h, n, 50.0)
+    # Ground per block: a low percentile, then plane + smoothly spread residuals.
+    # Per block, a low percentile of its cells' heights (each cell one vote, so a dense patch of
+    # stray matches weighs no more than its area); a block counts when a quarter of its cells hold
+    # points (a few stray matches do not make a surface).
+    mi, mj = np.nonzero(np.isfinite(surf))
+    ground = _cell_quantile(np.stack([mi, mj], 1) // block, surf[mi, mj], n // block, ground_percentile)
+    filled_cells = np.isfinite(surf).reshape(n[0] // block, block, n[1] // block, block).sum(axis=(1, 3))
+    gm = np.isfinite(ground) & (filled_cells >= block * block / 4)
+    # The terrain's trend: a plane through the blocks, blocks off it by > 3 robust sigmas (tree
+    # stands, buildings) left out of the fit but not of the surface.
+    fit = gm.copy()
+    coef = np.array([0.0, 0.0, float(np.median(h))])
+    for _ in range(5):
+        gi, gj = np.nonzero(fit)
+        if len(gi) < 3:
+            break
+        A = np.stack([gi, gj, np.ones_like(gi)], 1).astype(np.float64)
+        coef = np.linalg.lstsq(A, ground[fit], rcond=None)[0]
+        r = ground[fit] - A @ coef
+        s = 1.4826 * np.median(np.abs(r - np.median(r)))
+        off = np.abs(r) > 3 * s + 1e-12 * (1.0 + np.abs(coef[2]))
+        if not off.any() or off.all():
+            break
+        fit[gi[off], gj[off]] = False
+    bi, bj = np.meshgrid(np.arange(ground.shape[0]), np.arange(ground.shape[1]), indexing="ij")
+    plane = coef[0] * bi + coef[1] * bj + coef[2]
+    res = np.where(gm, ground - plane, 0.0)
+    filled = np.where(gm, res, np.nan)
+    sigma = 1.0
+    while np.isnan(filled).any() and sigma < 4 * max(ground.shape):
+        num = ndimage.gaussian_filter(res, sigma, mode="nearest")
+        den = ndimage.gaussian_filter(gm.astype(np.float64), sigma, mode="nearest")
+        fill = np.isnan(filled) & (den > 1e-3)
+        filled[fill] = num[fill] / den[fill]
+        sigma *= 2
+    # Away from the blocks with points the residual fades into the plane (e-folding: one block), so
+    # the terrain's trend, not the nearest block, carries the surface past the cloud's edge.
+    dist = ndimage.distance_transform_edt(~gm) if gm.any() else np.full(gm.shape, np.inf)
+    filled = np.nan_to_num(filled, nan=0.0) * np.exp(-dist) + plane
+    # Blocks -> cells (bilinear between block centres).
+    ci = (np.arange(n[0]) + 0.5) / block - 0.5
+    cj = (np.arange(n[1]) + 0.5) / block - 0.5
+    CI, CJ = np.meshgrid(ci, cj, indexing="ij")
+    ground_fine = ndimage.map_coordinates(filled, [CI, CJ], order=1, mode="nearest")
+    measured = np.isfinite(surf)
+    heights = np.where(measured, surf, ground_fine)
+    if smooth > 1:
+        heights = ndimage.median_filter(heights, size=int(smooth), mode="nearest")
+    return HeightField(F, o, lo, float(cell), heights, measured)
+
+
+def _cell_quantile(ij: np.ndarray, values: np.ndarray, shape, q: float) -> np.ndarray:
+    """Per grid cell (``ij`` (N,2) indices into ``shape``) the ``q``-th percentile of ``values``; NaN where empty."""
+    ny = int(shape[1])
+    flat = ij[:, 0] * ny + ij[:, 1]
+    order = np.lexsort((values, flat))
+    fs, vs = flat[order], values[order]
+    starts = np.flatnonzero(np.r_[True, fs[1:] != fs[:-1]])
+    ends = np.r_[starts[1:], len(fs)]
+    pos = starts + q / 100.0 * (ends - starts - 1)
+    a = np.floor(pos).astype(np.int64)
+    b = np.minimum(a + 1, ends - 1)
+    out = np.full(int(shape[0]) * ny, np.nan)
+    out[fs[starts]] = vs[a] + (vs[b] - vs[a]) * (pos - a)
+    return out.reshape(int(shape[0]), ny)

@@ -9,94 +9,33 @@ winner-take-all picks the best plane, a parabola through its neighbours
 refines it below one plane, and the confidence comes from the cost curve: how much lower the best
 minimum is than the best one away from it (peak ratio).
 
+Photographs and mapping flights: zero-mean NCC ignores gain and offset
+between photos (exposure, vignetting over a window), the texture test is
+relative to the image's own contrast, a pixel only one other view sees is
+matched against that view alone, and the consistency check asks for one
+confirming view. Near-nadir sweeps use horizontal planes around the ground;
+on a mapping grid the camera axes are nearly parallel and do not define a
+ground point, so the SfM points do (:func:`scene_ground`). Small isolated
+patches of depth (tree crowns, water, moving cars) are dropped
+(:func:`speckle_mask`): two views can agree on a false match, a third rarely.
+
 Depths are z-depths in world units along the reference camera's +z axis.
 """
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
-from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE
-from ..common.modes import SweepPlanes
 from ..camera.pinhole import Camera
+from .config import MvsConfig
+from .depth_filters import MvsResult, consistency_filter, speckle_mask
+from .sgm import semi_global
+from .sweep_range import depth_range_for, scene_heights, sweep_up
 
 log = logging.getLogger("dibrgs.mvs")
-
-
-@dataclass
-class MvsConfig:
-    """Plane-sweep options.
-
-    Attributes:
-        num_depths: depth planes between near and far (uniform in 1/depth).
-        window: NCC window side in pixels (odd).
-        min_ncc: pixels whose best NCC is lower are marked invalid.
-        min_confidence: pixels whose peak-ratio confidence is lower are invalid.
-        min_texture: minimum reference-window standard deviation (image
-            units in [0,1]) for NCC to be meaningful.
-        consistency_tol: geometric check between views: a depth is kept when
-            it agrees, within this relative tolerance, with the depth another
-            view estimated at its reprojection.
-        min_consistent_views: how many other views must agree (0 disables
-            the check).
-        max_reproj_px: forward-backward reprojection error (pixels of the
-            swept resolution) allowed by the consistency check.
-        max_size: views whose longer side exceeds this are swept at a
-            reduced resolution (speed on CPU) and the depth is upsampled
-            (nearest) to the full size; 0 = always full size.
-        plane_chunk: planes evaluated per batch (memory / speed trade-off).
-        planes: ``height`` (horizontal planes in the up frame the cameras give),
-            ``fronto`` (fronto-parallel) or ``auto`` (height planes for
-            near-nadir cameras, see :func:`sweep_up`).
-        prefilter: 3x3 box blur of the images before matching (anti-aliasing;
-            wide baselines see fine ground texture at very different scales).
-        height_below, height_above: height planes span from ``height_below``
-            below to ``height_above`` above the ground (the cameras' look-at
-            point), in units of the flying height above it (0 = the range the
-            cameras' depth ranges allow).
-        max_nadir_deg, min_up_confidence: ``auto`` uses height planes when the
-            cameras are near-nadir by these thresholds (:func:`~dibrgs_core.camera.frame.near_nadir`).
-        sgm_paths: semi-global aggregation of the cost volume along 4 or 8
-            image directions before the winner-take-all (0 = off; other
-            values are refused); see
-            :func:`semi_global`. On the generated 128x128 LEVIR-like city it
-            lifts DIBR-GS held-out PSNR by 0.7 dB over the plain sweep.
-        sgm_p1, sgm_p2: its penalties (in 1 - NCC units) for moving to a
-            neighbouring plane and for jumping to any plane.
-    """
-
-    num_depths: int = 96
-    window: int = 7
-    min_ncc: float = 0.6
-    min_confidence: float = 0.1
-    min_texture: float = 0.01
-    plane_chunk: int = 8
-    consistency_tol: float = 0.02
-    min_consistent_views: int = 1
-    max_reproj_px: float = 1.0
-    max_size: int = 256
-    planes: SweepPlanes = "auto"
-    height_below: float = 0.1
-    height_above: float = 0.6
-    prefilter: bool = True
-    max_nadir_deg: float = MAX_NADIR_DEG
-    min_up_confidence: float = MIN_UP_CONFIDENCE
-    sgm_paths: int = 4
-    sgm_p1: float = 0.1
-    sgm_p2: float = 1.0
-
-
-@dataclass
-class MvsResult:
-    """Per-view depth (HxW float32, NaN where invalid) and confidence (HxW float32 in [0,1])."""
-
-    depth: np.ndarray
-    confidence: np.ndarray
-    ncc: np.ndarray
 
 
 def _gray(img: np.ndarray):
@@ -238,101 +177,12 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         c2 = torch.where(away, cost, torch.full_like(cost, 2.0)).min(0).values
         conf = ((c2 - c1) / c2.clamp_min(1e-6)).clamp(0, 1)
         ncc_best = 1 - raw.gather(0, k1[None])[0]
-        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture)
+        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture_rel * sd_r.median())
         valid &= torch.isfinite(depth) & (c1 < 2) & (depth >= near * 0.99) & (depth <= far * 1.01)
         depth = torch.where(valid, depth, torch.full_like(depth, float("nan")))
         conf = torch.where(valid, conf, torch.zeros_like(conf))
     return MvsResult(depth.numpy().astype(np.float32), conf.numpy().astype(np.float32),
                      ncc_best.clamp(-1, 1).numpy().astype(np.float32))
-
-
-def semi_global(cost, p1: float, p2: float, paths: int = 4):
-    """Semi-global aggregation of a (D,H,W) plane-sweep cost along ``paths`` (4 or 8) image directions.
-
-    Each path adds, per pixel and plane, the cost plus the cheapest way to arrive from the
-    previous pixel on the path: the same plane for free, a neighbouring plane for ``p1``, any
-    plane for ``p2`` (costs are 1 - NCC, in [0, 2]). With height planes "the same plane" means
-    the same height, so flat roofs and ground are favoured and height jumps at walls stay
-    possible. The per-path minimum is subtracted at every step, so values stay bounded.
-    Returns the sum over the paths (D,H,W).
-    """
-    import torch
-
-    if paths not in (4, 8):
-        raise ValueError(f"semi_global: paths must be 4 or 8, got {paths}")
-    D, H, W = cost.shape
-    total = torch.zeros_like(cost)
-    inf = torch.tensor(float("inf"))
-
-    def run(c):  # c: (D, N, L), aggregate along the last axis, all N lines at once
-        out = torch.empty_like(c)
-        prev = c[:, :, 0]
-        out[:, :, 0] = prev
-        pad = inf.expand(1, c.shape[1])
-        for x in range(1, c.shape[2]):
-            m = prev.min(0).values
-            step = torch.minimum(torch.cat([pad, prev[:-1]]), torch.cat([prev[1:], pad])) + p1
-            best = torch.minimum(torch.minimum(prev, step), (m + p2)[None])
-            prev = c[:, :, x] + best - m[None]
-            out[:, :, x] = prev
-        return out
-
-    # Horizontal and vertical paths, both ways.
-    total += run(cost)
-    total += run(cost.flip(2)).flip(2)
-    total += run(cost.transpose(1, 2)).transpose(1, 2)
-    total += run(cost.transpose(1, 2).flip(2)).flip(2).transpose(1, 2)
-    if paths == 8:
-        # Diagonals: shear the volume so that diagonals become rows, aggregate, shear back.
-        for flip in (False, True):
-            c = cost.flip(2) if flip else cost
-            sheared, idx = _shear(c)
-            for rev in (False, True):
-                a = run(sheared.flip(2)).flip(2) if rev else run(sheared)
-                back = _unshear(a, idx, H, W)
-                total += back.flip(2) if flip else back
-    return total
-
-
-def _shear(c):
-    """(D,H,W) -> (D, H+W-1, min(H,W)-ish) lines along the main diagonals, padded with the max cost."""
-    import torch
-
-    D, H, W = c.shape
-    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    diag = (xs - ys + H - 1).reshape(-1)  # which diagonal
-    pos = torch.minimum(ys, xs).reshape(-1)  # position along it
-    L = min(H, W)
-    out = torch.full((D, H + W - 1, L), 2.0, dtype=c.dtype)
-    out[:, diag, pos] = c.reshape(D, -1)
-    return out, (diag, pos)
-
-
-def _unshear(a, idx, H: int, W: int):
-    diag, pos = idx
-    return a[:, diag, pos].reshape(a.shape[0], H, W)
-
-
-def depth_range_for(cam: Camera, sparse_points: np.ndarray | None, fallback_distance: float,
-                    margin: float = 1.25) -> tuple[float, float]:
-    """Plane-sweep range for ``cam``: SfM point depths (2nd-98th percentile, widened by ``margin``)
-    when at least 10 project in front of it, else the camera's ``depth_range``, else
-    ``[d/2, 2d]`` around ``fallback_distance`` (distance to the scene's look-at point)."""
-    if sparse_points is not None and len(sparse_points) >= 10:
-        uv, z = cam.project(sparse_points)
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        if ok.sum() >= 10:
-            lo, hi = np.percentile(z[ok], [2, 98])
-            near, far = lo / margin, hi * margin
-            if cam.depth_range is not None:  # the camera's range is a hard bound when given
-                near = max(near, cam.depth_range[0])
-                far = min(far, cam.depth_range[1])
-            if 0 < near < far:
-                return float(near), float(far)
-    if cam.depth_range is not None and 0 < cam.depth_range[0] < cam.depth_range[1]:
-        return float(cam.depth_range[0]), float(cam.depth_range[1])
-    d = max(float(fallback_distance), 1e-6)
-    return d / 2, d * 2
 
 
 def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_points: np.ndarray | None,
@@ -359,7 +209,9 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     ranges = [depth_range_for(c, pts, fallback_distance) for c in cams]
     heights = None
     if up is not None and cfg.height_above > 0:
-        heights = _scene_heights(cams, up, cfg)
+        heights = scene_heights(cams, up, cfg, pts)
+        log.info("MVS height planes: %s", "every height the depth ranges allow (ground unknown)" if heights is None
+                 else f"{cfg.height_below:g} below to {cfg.height_above:g} above the ground, in flying heights")
     out = []
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
         near, far = ranges[i]
@@ -368,56 +220,15 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
         log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid", cams[i].name, near, far,
                  "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean())
         out.append(res)
+    if cfg.speckle_px > 0:
+        out = [MvsResult(*(np.where(keep, a, np.nan if k == 0 else 0).astype(np.float32) if k < 2 else a
+                           for k, a in enumerate((r.depth, r.confidence, r.ncc))))
+               for r in out for keep in [speckle_mask(r.depth, cfg.speckle_tol, cfg.speckle_px)]]
     if cfg.min_consistent_views > 0 and len(cams) > 1:
-        out = _consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px)
+        out = consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px)
     if f < 1.0:
         out = [MvsResult(*(_upsample(a, c) for a in (r.depth, r.confidence, r.ncc))) for r, c in zip(out, full)]
     return out
-
-
-def _scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig) -> tuple[float, float] | None:
-    """Heights to sweep: from ``height_below`` to ``height_above`` times the flying height above the
-    point the cameras look at (taken as ground level).
-
-    The cameras' depth ranges allow every height from far below the ground up
-    to the cameras; sweeping all of it spreads the planes thin and, on
-    repetitive texture (street grids), finds spurious matches far from the
-    scene. None (full range) when the look-at point is undefined or not below the cameras.
-    """
-    from ..camera.frame import look_at_target
-
-    n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    target = look_at_target(cams)
-    if not np.all(np.isfinite(target)):
-        return None
-    ground = float(n_up @ target)
-    alt = float(np.median([n_up @ c.center for c in cams])) - ground
-    if not alt > 0:
-        return None
-    return ground - cfg.height_below * alt, ground + cfg.height_above * alt
-
-
-def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:
-    """The up axis for horizontal (height) planes, or None for fronto-parallel planes.
-
-    ``planes="auto"`` sweeps heights when the cameras look down (mean view
-    direction within ``max_nadir_deg`` of the up axis estimated from them, with
-    an unambiguous up): ground and roofs are then planes of the sweep, so the
-    NCC windows match exactly even across wide baselines, where a fronto-parallel
-    plane cuts the tilted ground at one depth only.
-    """
-    from ..camera.frame import estimate_up, near_nadir
-
-    if config.planes == "fronto":
-        return None
-    up, conf = estimate_up(cams)
-    if config.planes == "height":
-        return up
-    if config.planes != "auto":
-        raise ValueError(f"unknown MVS plane family {config.planes!r} (auto, height, fronto)")
-    if not near_nadir(cams, config.max_nadir_deg, config.min_up_confidence)[0]:
-        return None
-    return up
 
 
 def _resize(img: np.ndarray, cam: Camera) -> np.ndarray:
@@ -435,58 +246,6 @@ def _upsample(a: np.ndarray, cam: Camera) -> np.ndarray:
     rows = np.minimum((np.arange(cam.height) + 0.5) * h / cam.height, h - 1).astype(np.int64)
     cols = np.minimum((np.arange(cam.width) + 0.5) * w / cam.width, w - 1).astype(np.int64)
     return a[rows][:, cols]
-
-
-def _consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int,
-                        max_reproj_px: float = 1.0) -> list[MvsResult]:
-    """Keep depths that at least ``min_views`` other views confirm (forward-backward check).
-
-    A pixel's 3D point is projected into view j, lifted again with j's own
-    depth there and projected back: j confirms it when that round trip lands
-    within ``max_reproj_px`` pixels of where it started and the two depths
-    agree within the relative tolerance ``tol``. Comparing depths alone lets
-    chance agreements between two wrong depth maps through (depth differences
-    along j's ray are insensitive to sideways errors). A point that lies in
-    front of the surface some other view sees along the same line of sight
-    (a free-space violation) is dropped as well: two views matching each other
-    on repetitive texture agree with each other, but such a floating point
-    contradicts the third.
-    """
-    filtered = []
-    for i, (ci, ri) in enumerate(zip(cams, results)):
-        d = ri.depth.reshape(-1)
-        ok = np.isfinite(d)
-        X = ci.backproject(np.where(ok, d, 1.0).reshape(ci.height, ci.width))
-        uv0, _ = ci.project(X)
-        votes = np.zeros(d.size, np.int32)
-        blocks = np.zeros(d.size, bool)
-        for j, (cj, rj) in enumerate(zip(cams, results)):
-            if j == i:
-                continue
-            uv, z = cj.project(X)
-            u = np.floor(uv[:, 0]).astype(np.int64)
-            v = np.floor(uv[:, 1]).astype(np.int64)
-            inside = ok & (z > 0) & (u >= 0) & (u < cj.width) & (v >= 0) & (v < cj.height)
-            idx = np.flatnonzero(inside)
-            dj = rj.depth[v[idx], u[idx]].astype(np.float64)
-            good = np.isfinite(dj)
-            idx, dj = idx[good], dj[good]
-            # Free-space violation: the point would float in front of the surface j sees there.
-            blocks[idx[z[idx] < dj * (1.0 - 2.0 * tol)]] = True
-            if not len(idx):
-                continue
-            # Lift j's depth at the pixel (sub-pixel position kept) and project it back into i.
-            rays = np.stack([uv[idx, 0], uv[idx, 1], np.ones(len(idx))], 1) @ np.linalg.inv(cj.K).T
-            Xj = (rays * dj[:, None] - cj.t) @ cj.R  # camera j -> world
-            uvb, zb = ci.project(Xj)
-            err = np.linalg.norm(uvb - uv0[idx], axis=1)
-            agree = (err <= max_reproj_px) & (np.abs(zb - d[idx]) <= tol * np.abs(d[idx]))
-            votes[idx[agree]] += 1
-        keep = (ok & (votes >= min_views) & ~blocks).reshape(ci.height, ci.width)
-        filtered.append(MvsResult(np.where(keep, ri.depth, np.nan).astype(np.float32),
-                                  np.where(keep, ri.confidence, 0).astype(np.float32), ri.ncc))
-        log.info("MVS view %s: %.1f%% pass the %d-view consistency check", ci.name, 100.0 * keep.mean(), min_views)
-    return filtered
 
 
 def _recentred(cam: Camera, origin: np.ndarray) -> Camera:

@@ -1,142 +1,64 @@
-"""Geometry initialisation: sparse SfM, an aligned dense depth prior, an overlap-free fused cloud, the height map.
+"""Geometry initialisation: sparse SfM, an aligned dense depth prior (completed where it failed),
+an overlap-free fused cloud with per-point confidence, the height map.
 
-Paper sections "Initialization with Dense Depth Priors", "Height-constrained
-Anchor Growth" and "Implementation Details". Every step decides from the
-scene whether it applies and records the decision in the report.
-
-Units. The paper's thresholds (eps_xy 0.1, eps_z 1.0, voxel 1.0, height-map
-cell 10) are in LEVIR-NVS units, where the training cameras are about
-``LEVIR_REFERENCE_DEPTH`` = 115 units from the scene (the paper's MAE / Abs
-Rel ratio, 3.16 / 0.0273). ``InitConfig.scale = None`` scales them by
-``median camera-to-look-at distance / 115`` so a scene in other units (or a
-generated one) gets the same relative thresholds; a number overrides it.
+Paper sections "Initialization with Dense Depth Priors", "Height-constrained Anchor Growth" and
+"Implementation Details". Every step decides from the scene whether it applies and records the
+decision in the report. Options and units: :mod:`.config`.
 """
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..camera.pinhole import Camera
-from ..camera.frame import MAX_NADIR_DEG, MIN_UP_CONFIDENCE, estimate_up, look_at_target, nadir_angle_deg, near_nadir, up_frame
-from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
+from ..camera.frame import near_nadir
 from ..common.errors import InputError
-from ..common.modes import DepthMap, DepthPrior, Refine
-from .fusion import backproject_views, dip_cells, overlap_pairs_drop, reproject_max_depth, to_frame
-from .pointcloud import voxel_downsample
-from ..data.ply import read_ply, write_ply
-from .height_map import HeightMap
-from .mvs import MvsConfig
 from ..common.report import Report
-from .sfm import SfmConfig, SparseCloud, triangulate_known_poses
+from ..data.ply import read_ply, write_ply
+from .completion import complete_depths, measured_confidence
+from .config import STAGE, InitConfig
+from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
+from .fusion import (
+    backproject_views,
+    dip_cells,
+    overlap_pairs_drop,
+    reproject_max_depth,
+    to_frame,
+)
+from .height_map import HeightMap
+from .pointcloud import voxel_confident
+from .scene_geometry import SceneGeometry, scene_geometry, sfm_reference
+from .sfm import SparseCloud, triangulate_known_poses
 
 log = logging.getLogger("dibrgs.init")
 
-LEVIR_REFERENCE_DEPTH = 115.0
-STAGE = "init"
-
-
-@dataclass
-class InitConfig:
-    """Initialisation options; lengths are in paper (LEVIR-NVS) units, multiplied by the scene scale.
-
-    Attributes:
-        depth_prior: ``auto`` (depth-anything-v2 when ``depth_model`` is given, else ``mvs``),
-            ``mvs``, ``depth-anything-v2`` or ``gt``.
-        depth_model: local folder of Depth Anything V2 weights.
-        depth_map: ``inv`` (depth = 1/disparity, the paper's choice) or ``neg``.
-        refine: ``no-ovlp`` (ours), ``reproject`` or ``none``.
-        scale: world units per paper unit; None = auto (see module docstring).
-        dip_cell: side of the dip-test cells.
-        dip_alpha: significance of the dip test (p < alpha = multimodal).
-        dip_min_points: cells with fewer points are not tested.
-        eps_xy, eps_z: overlap thresholds (horizontal, vertical).
-        voxel: voxel-downsampling size (0 disables).
-        height_cell: height-map cell size.
-        height_percentile: per-cell height percentile.
-        height_relax: factor on the height above ground (see height_map).
-        height_margin: added to every bound.
-        max_nadir_deg: mean view direction farther than this from straight down = not near-nadir.
-        min_up_confidence: ``estimate_up`` confidence below this = ambiguous up axis.
-        min_sfm_points: fewer SfM points = SfM is not usable for alignment/ranges.
-        dense_sfm_ratio: SfM points per training pixel at or above which the cloud
-            already counts as dense and no depth prior is run.
-    """
-
-    depth_prior: DepthPrior = "auto"
-    depth_model: str | None = None
-    depth_map: DepthMap = "inv"
-    refine: Refine = "no-ovlp"
-    scale: float | None = None
-    dip_cell: float = 2.0
-    dip_alpha: float = 0.05
-    dip_min_points: int = 8
-    eps_xy: float = 0.1
-    eps_z: float = 1.0
-    voxel: float = 1.0
-    height_cell: float = 10.0
-    height_percentile: float = 95.0
-    height_relax: float = 1.1
-    height_margin: float = 1.0
-    max_nadir_deg: float = MAX_NADIR_DEG
-    min_up_confidence: float = MIN_UP_CONFIDENCE
-    min_sfm_points: int = 20
-    dense_sfm_ratio: float = 0.05
-    sfm: SfmConfig = field(default_factory=SfmConfig)
-    mvs: MvsConfig = field(default_factory=MvsConfig)
 
 
 @dataclass
 class InitResult:
-    """Initial point cloud (world float64, uint8 colours), height map (or None) and report."""
+    """Initial point cloud (world float64, uint8 colours), height map (or None) and report.
+
+    ``confidence`` (N,) in [0, 1] says how each point was obtained: 1 for SfM
+    points; ``0.5 + 0.5 c`` for depth the prior measured (``c`` is the plane
+    sweep's per-pixel confidence, 1 for a prior without one); below 0.5
+    (``InitConfig.completion_confidence``) for depth completed from the height
+    field; 0 for the plane fallback. ``points.ply`` stores it as a vertex
+    property (:func:`fusion.read_ply_confidence`). ``dense_points`` /
+    ``dense_confidence`` are the fused cloud before voxel downsampling (what the
+    evaluation reprojects).
+    """
 
     points: np.ndarray
     colors: np.ndarray
     height_map: HeightMap | None
     report: Report
-
-
-@dataclass
-class SceneGeometry:
-    """What the stages share: training cameras and images, the up frame and the scale."""
-
-    cameras: list[Camera]
-    images: list[np.ndarray]
-    gt_depths: list[np.ndarray | None]
-    up: np.ndarray
-    up_confidence: float
-    frame: np.ndarray
-    origin: np.ndarray
-    nadir_deg: float
-    scale: float
-    ref_distance: float
-
-    @property
-    def n_pixels(self) -> int:
-        return int(sum(c.width * c.height for c in self.cameras))
-
-
-def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
-    """Cameras, up frame, local origin and scale of the scene's training views."""
-    views = list(scene.train_views())
-    if not views:
-        raise InputError(getattr(scene, "root", None), "the scene has no training views")
-    cams = [v.camera for v in views]
-    up, conf = estimate_up(cams)
-    target = look_at_target(cams)
-    centers = np.stack([c.center for c in cams])
-    dist = np.linalg.norm(centers - target, axis=1)
-    if not np.all(np.isfinite(dist)) or np.median(dist) <= 0:
-        dist = np.array([np.mean(c.depth_range) if c.depth_range else 1.0 for c in cams])
-    ref = float(np.median(dist))
-    origin = target if np.all(np.isfinite(target)) else centers.mean(0)
-    scale = float(config.scale) if config.scale else ref / LEVIR_REFERENCE_DEPTH
-    return SceneGeometry(cams, [np.asarray(v.image, np.float32) for v in views], [v.depth for v in views],
-                         up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale, ref)
+    confidence: np.ndarray | None = None
+    dense_points: np.ndarray | None = None
+    dense_confidence: np.ndarray | None = None
 
 
 def run_sparse(geo: SceneGeometry, config: InitConfig, report: Report) -> SparseCloud:
@@ -206,19 +128,25 @@ def overlap_applicable(geo: SceneGeometry, config: InitConfig) -> tuple[bool, st
     return near_nadir(geo.cameras, config.max_nadir_deg, config.min_up_confidence)
 
 
-def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse the views' depths with the chosen refinement. Returns dense (points, colors), not downsampled."""
+def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray], refine: str, report: Report,
+                 confidence: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse the views' depths with the chosen refinement.
+
+    Returns the dense (points, colors, confidence), not downsampled; the
+    confidence of a point is its pixel's in ``confidence`` (HxW maps, one per
+    view; 1 everywhere when None).
+    """
     if refine == "reproject":
         depths = reproject_max_depth(geo.cameras, depths)
     pts, cols, _ = backproject_views(geo.cameras, depths, geo.images)
+    conf = _pixel_values(depths, confidence)
     report.values["dense_points"] = len(pts)
     if refine != "no-ovlp":
         report.decide(STAGE, "overlap_removal", False, f"refinement '{refine}' chosen")
-        return pts, cols
+        return pts, cols, conf
     ok, why = overlap_applicable(geo, config)
     if not report.decide(STAGE, "overlap_removal", ok, why):
-        return pts, cols
+        return pts, cols, conf
     s = geo.scale
     local = to_frame(pts, geo.frame, geo.origin)
     t = time.time()
@@ -229,11 +157,21 @@ def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray
                   + ("" if dip.n_multimodal else ": no overlap to remove"),
                   cells=dip.n_cells, tested=dip.n_tested, multimodal=dip.n_multimodal)
     if dip.n_multimodal == 0:
-        return pts, cols
+        return pts, cols, conf
     drop = overlap_pairs_drop(local, dip.in_multimodal, config.dip_cell * s, config.eps_xy * s, config.eps_z * s)
     report.values["overlap_dropped"] = int(drop.sum())
     log.info("overlap removal: dropped %d of %d points", drop.sum(), len(pts))
-    return pts[~drop], cols[~drop]
+    return pts[~drop], cols[~drop], conf[~drop]
+
+
+def _pixel_values(depths: list[np.ndarray], maps: list[np.ndarray] | None) -> np.ndarray:
+    """Per back-projected point (the order of :func:`fusion.backproject_views`), its pixel's value in ``maps``."""
+    out = []
+    for i, d in enumerate(depths):
+        d = np.asarray(d, np.float64).reshape(-1)
+        ok = np.isfinite(d) & (d > 0)
+        out.append(np.ones(int(ok.sum())) if maps is None else np.asarray(maps[i], np.float64).reshape(-1)[ok])
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None) -> InitResult:
@@ -243,33 +181,47 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     report = Report()
     t0 = time.time()
     geo = scene_geometry(scene, cfg)
-    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, scale=geo.scale,
-                         origin=geo.origin, ref_distance=geo.ref_distance, config=_config_dict(cfg))
+    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, config=_config_dict(cfg))
     sparse = run_sparse(geo, cfg, report)
+    sfm_reference(geo, sparse, cfg, report)
+    report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)
     density = len(sparse) / max(geo.n_pixels, 1)
     use_prior = density < cfg.dense_sfm_ratio
     report.decide(STAGE, "depth_prior", use_prior,
                   f"SfM gives {density:.4f} points per training pixel "
                   + (f"< {cfg.dense_sfm_ratio}: densify with a prior" if use_prior else f">= {cfg.dense_sfm_ratio}: already dense"))
-    pts, cols = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    pts, cols, conf = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0)
     if use_prior:
-        depths = prior_depths(geo, cfg, sparse.points, report)
-        pts, cols = refine_cloud(geo, cfg, depths, cfg.refine, report)
-    dense_pts = pts
+        name = cfg.depth_prior if cfg.depth_prior != "auto" else ("depth-anything-v2" if cfg.depth_model else "mvs")
+        t = time.time()
+        prior = compute_prior(name, geo.cameras, geo.images, geo.gt_depths, sparse.points, geo.ref_distance,
+                              cfg.depth_model, cfg.mvs)
+        report.values["prior_s"] = time.time() - t
+        depths = prior_depths(geo, cfg, sparse.points, report, prior=prior)
+        confs = [measured_confidence(None if prior.confidence is None else prior.confidence[i], d.shape)
+                 for i, d in enumerate(depths)]
+        _record_coverage(geo, depths, report)
+        depths, confs = complete_depths(geo, cfg, depths, confs, sparse.points, report)
+        pts, cols, conf = refine_cloud(geo, cfg, depths, cfg.refine, report, confs)
+    dense_pts, dense_conf = pts, conf
     if len(pts):
-        pts, cols = voxel_downsample(pts, cols, cfg.voxel * geo.scale, geo.origin)
+        pts, cols, conf = voxel_confident(pts, cols, conf, cfg.voxel * geo.scale, geo.origin,
+                                          completed_factor=cfg.completion_voxel)
     report.values["voxel_points"] = len(pts)
     pts = np.concatenate([pts, sparse.points])
     cols = np.concatenate([cols, sparse.colors])
+    conf = np.concatenate([conf, np.ones(len(sparse))])  # triangulated: measured
     if len(pts) == 0:
         # Nothing triangulated nor matched: a plane through the look-at point keeps training possible.
         pts, cols = _plane_fallback(geo)
-        dense_pts = pts
+        conf = np.zeros(len(pts))  # a guess, not a measurement
+        dense_pts, dense_conf = pts, conf
         report.decide(STAGE, "plane_fallback", True, "no SfM points and no prior depth: a plane at the cameras' "
                       "look-at point stands in for the scene")
     finite = np.isfinite(pts).all(1)
-    pts, cols = pts[finite], cols[finite]
+    pts, cols, conf = pts[finite], cols[finite], conf[finite]
     report.values["points"] = len(pts)
+    report.values["points_completed"] = int((conf < 0.5).sum())
 
     hm = None
     ok, why = overlap_applicable(geo, cfg)
@@ -279,14 +231,21 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
                              cfg.height_relax, cfg.height_margin * geo.scale)
     report.values["init_s"] = time.time() - t0 - float(report.values.get("model_load_s", 0.0))
 
-    write_ply(out / "points.ply", pts, cols)
+    write_ply(out / "points.ply", pts, cols, conf)
     hm_path = out / "height_map.npz"
     if hm is not None:
         hm.save(hm_path)
     elif hm_path.exists():
         hm_path.unlink()  # a stale map from an earlier run must not be picked up
     report.save(out / "init_report.json")
-    return InitResult(pts, cols, hm, report)
+    return InitResult(pts, cols, hm, report, conf, dense_pts, dense_conf)
+
+
+def _record_coverage(geo: SceneGeometry, depths: list[np.ndarray], report: Report) -> None:
+    """Share of each training view's pixels the prior gave a depth (report value ``prior_coverage``)."""
+    cov = {c.name: float((np.isfinite(d) & (np.asarray(d) > 0)).mean()) for c, d in zip(geo.cameras, depths)}
+    report.values["prior_coverage"] = cov
+    log.info("prior depth on %s of the training pixels", ", ".join(f"{100 * v:.1f} %" for v in cov.values()))
 
 
 def load_result(out_dir: str | Path, config: InitConfig) -> InitResult | None:

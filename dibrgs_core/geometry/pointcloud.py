@@ -44,24 +44,49 @@ def zbuffer(cam: Camera, points: np.ndarray, farthest: bool = False, footprint: 
     return np.where(np.isfinite(acc), acc, empty).reshape(H, W)
 
 
+def voxel_keys(points: np.ndarray, voxel: float, origin: np.ndarray | None = None) -> np.ndarray:
+    """(N,3) int64 index of the voxel of side ``voxel`` (world axes, relative to ``origin``) holding each point."""
+    origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+    return np.floor((np.asarray(points, np.float64) - origin) / voxel).astype(np.int64)
+
+
+def flat_voxel_keys(keys: np.ndarray) -> np.ndarray:
+    """(N,3) int64 voxel keys as one sortable key per row, in the rows' lexicographic order (a 1-D
+    ``np.unique`` is several times faster than ``axis=0``); rows themselves when the span overflows int64."""
+    k = keys - keys.min(0)
+    span = k.max(0).astype(np.float64) + 1
+    if span.prod() >= 2.0 ** 62:
+        return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1)
+    s1, s2 = int(span[1]), int(span[2])
+    return (k[:, 0] * s1 + k[:, 1]) * s2 + k[:, 2]
+
+
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float, origin: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Mean position and colour per occupied voxel of side ``voxel`` (world axes, relative to ``origin``)."""
+    P, C, _ = voxel_downsample_values(points, colors, None, voxel, origin)
+    return P, C
+
+
+def voxel_downsample_values(points: np.ndarray, colors: np.ndarray, values: np.ndarray | None, voxel: float,
+                            origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`voxel_downsample`, also averaging per-point ``values`` (N,) such as a confidence (None: none)."""
+    vals = None if values is None else np.asarray(values, np.float64).reshape(-1)
     if len(points) == 0 or not voxel or voxel <= 0:
-        return np.asarray(points, np.float64), np.asarray(colors, np.uint8)
+        return np.asarray(points, np.float64), np.asarray(colors, np.uint8), vals
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     rel = np.asarray(points, np.float64) - origin
-    keys = np.floor(rel / voxel).astype(np.int64)
-    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    keys = voxel_keys(points, voxel, origin)
+    _, inv, cnt = np.unique(flat_voxel_keys(keys), return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
     m = len(cnt)
-    P = np.zeros((m, 3))
-    C = np.zeros((m, 3))
-    np.add.at(P, inv, rel)
-    np.add.at(C, inv, np.asarray(colors, np.float64))
-    P /= cnt[:, None]
-    C /= cnt[:, None]
-    return P + origin, np.clip(C.round(), 0, 255).astype(np.uint8)
+    cols = np.asarray(colors, np.float64)
+    P = np.stack([np.bincount(inv, weights=rel[:, i], minlength=m) for i in range(3)], 1) / cnt[:, None]
+    C = np.stack([np.bincount(inv, weights=cols[:, i], minlength=m) for i in range(3)], 1) / cnt[:, None]
+    V = None
+    if vals is not None:
+        V = np.bincount(inv, weights=vals, minlength=m) / cnt
+    return P + origin, np.clip(C.round(), 0, 255).astype(np.uint8), V
 
 
 def point_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> float:
@@ -80,3 +105,28 @@ def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
     """Unique voxel centres ``round(p / voxel) * voxel`` of ``points`` (N,3), as float32."""
     keys = np.unique(np.round(np.asarray(points, np.float64) / voxel).astype(np.int64), axis=0)
     return (keys * voxel).astype(np.float32)
+
+
+def voxel_confident(points: np.ndarray, colors: np.ndarray, confidence: np.ndarray, voxel: float,
+                    origin: np.ndarray, split: float = 0.5, completed_factor: float = 1.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel-downsample measured points (confidence >= ``split``) and completed ones separately (mean
+    position, colour and confidence per voxel; completed ones in voxels ``completed_factor`` times larger)
+    and keep a completed voxel only where no measured point lies: completion fills holes, it never blends
+    into what was measured."""
+    if not voxel or voxel <= 0:
+        return points, colors, confidence
+    meas = confidence >= split
+    Pm, Cm, Km = voxel_downsample_values(points[meas], colors[meas], confidence[meas], voxel, origin)
+    big = voxel * max(completed_factor, 1.0)
+    Pc, Cc, Kc = voxel_downsample_values(points[~meas], colors[~meas], confidence[~meas], big, origin)
+    keep = ~_rows_in(voxel_keys(Pc, big, origin), voxel_keys(points[meas], big, origin))
+    return np.concatenate([Pm, Pc[keep]]), np.concatenate([Cm, Cc[keep]]), np.concatenate([Km, Kc[keep]])
+
+
+def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each row of integer array ``a`` (N,3), whether it occurs in ``b`` (M,3)."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(len(a), bool)
+    flat = flat_voxel_keys(np.concatenate([a, b]))
+    return np.isin(flat[:len(a)], flat[len(a):])

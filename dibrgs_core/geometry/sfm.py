@@ -4,7 +4,9 @@ SIFT features of the training views, exhaustive matching with geometric
 verification, then triangulation with the given cameras held fixed: no pose
 or intrinsics re-estimation. Coordinates are handed to COLMAP relative to a
 local origin (georeferenced scenes have coordinates around 1e5, where float
-precision inside COLMAP's solvers would suffer) and moved back afterwards.
+precision inside COLMAP's solvers would suffer) and in units of the cameras'
+spread around it (COLMAP's solvers have absolute tolerances: the same views in
+millimetres or kilometres triangulated differently), and moved back afterwards.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..data.images import to_uint8
+from .config import SfmConfig
 
 log = logging.getLogger("dibrgs.sfm")
 
@@ -47,26 +50,6 @@ class SparseCloud:
         return len(self.points)
 
 
-@dataclass
-class SfmConfig:
-    """Options of the sparse reconstruction.
-
-    Attributes:
-        max_num_features: SIFT features per image.
-        keep_two_view_tracks: keep points seen by only two views (with three
-            sparse views most tracks have length two).
-        min_angle_deg: minimum triangulation angle.
-        max_reproj_error: reprojection error (px) above which points are dropped.
-        num_threads: CPU threads for pycolmap.
-    """
-
-    max_num_features: int = 8192
-    keep_two_view_tracks: bool = True
-    min_angle_deg: float = 1.5
-    max_reproj_error: float = 4.0
-    num_threads: int = 2
-
-
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
                             config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
     """Sparse points from images with known cameras.
@@ -93,6 +76,8 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
     if len(cams) < 2:
         return SparseCloud.empty()
     origin = np.mean([c.center for c in cams], axis=0) if origin is None else np.asarray(origin, np.float64)
+    spread = float(np.median([np.linalg.norm(c.center - origin) for c in cams]))
+    unit = spread if np.isfinite(spread) and spread > 0 else 1.0  # world units per COLMAP unit
     own_tmp = work_dir is None
     root = Path(tempfile.mkdtemp(prefix="dibrgs_sfm_")) if own_tmp else Path(work_dir)
     try:
@@ -136,9 +121,9 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
             rec.add_image(im)
         for im in db_images:
             cam = by_name[im.name]
-            # Local frame: X_local = X - origin, so t_local = t + R @ origin.
+            # Local frame: X_local = (X - origin) / unit, so t_local = (t + R @ origin) / unit.
             w2c = cam.w2c[:3].copy()
-            w2c[:, 3] = cam.t + cam.R @ origin
+            w2c[:, 3] = (cam.t + cam.R @ origin) / unit
             rec.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(w2c)
             rec.register_frame(im.frame_id)
         if n_pairs == 0:
@@ -156,7 +141,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         pts = list(res.points3D.values())
         if not pts:
             return SparseCloud.empty()
-        P = np.array([p.xyz for p in pts], np.float64) + origin
+        P = np.array([p.xyz for p in pts], np.float64) * unit + origin
         col = np.array([p.color for p in pts], np.uint8).reshape(-1, 3)
         tl = np.array([p.track.length() for p in pts], np.int64)
         err = np.array([p.error for p in pts], np.float64)

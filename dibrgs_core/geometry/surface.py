@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..camera.pinhole import Camera
 from ..camera.frame import estimate_up, near_nadir, up_frame
+from ..camera.pinhole import Camera
 from .pointcloud import point_spacing
 
 

@@ -111,7 +111,8 @@ def build_3dgs(ctx: SetupContext) -> Setup:
 
 def init_geometry(ctx: SetupContext) -> Any:
     """The geometry initialisation of ``WORK/init`` (reused when made with the same options)."""
-    from ..geometry.pipeline import InitConfig, initialise, load_result
+    from ..geometry.config import InitConfig
+    from ..geometry.pipeline import initialise, load_result
 
     icfg = InitConfig()
     if ctx.cfg.depth_prior != "auto":
@@ -139,7 +140,8 @@ def build_dibrgs(ctx: SetupContext) -> Setup:
     res = init_geometry(ctx)
     scale = res.report.values.get("scale")
     if not scale:
-        from ..geometry.pipeline import InitConfig, scene_geometry
+        from ..geometry.config import InitConfig
+        from ..geometry.scene_geometry import scene_geometry
 
         scale = scene_geometry(ctx.scene, InitConfig()).scale
     if cfg.dense_init:

@@ -4,7 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from geom_synth import make_synthetic_scene
 
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.geometry.config import MvsConfig
 from dibrgs_core.geometry.depth_prior import (
     align_view,
     compute_prior,
@@ -13,9 +16,7 @@ from dibrgs_core.geometry.depth_prior import (
     predict_disparity,
     robust_affine,
 )
-from dibrgs_core.common.errors import InputError
-from dibrgs_core.geometry.mvs import MvsConfig, mvs_depths
-from geom_synth import make_synthetic_scene
+from dibrgs_core.geometry.mvs import mvs_depths
 
 torch.set_num_threads(2)
 
@@ -26,7 +27,12 @@ def scene128():
 
 
 def test_depth_anything_tiny_model_roundtrip(tmp_path):
-    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config, DPTImageProcessor
+    from transformers import (
+        DepthAnythingConfig,
+        DepthAnythingForDepthEstimation,
+        Dinov2Config,
+        DPTImageProcessor,
+    )
 
     backbone = Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
                             patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],
@@ -157,23 +163,23 @@ def test_mvs_reduced_resolution_path(scene128):
 def test_consistency_drops_floating_and_keeps_confirmed_depths(scene128):
     """The cross-view check keeps ground-truth depths that another view confirms and drops a depth
     map that floats 10% in front of the surfaces (each pair of such maps agrees with nothing)."""
-    from dibrgs_core.geometry.mvs import MvsResult, _consistency_filter
+    from dibrgs_core.geometry.depth_filters import MvsResult, consistency_filter
 
     vs = scene128.train_views()
     cams = [v.camera for v in vs]
     z = np.zeros_like(vs[0].depth)
     true = [MvsResult(v.depth.astype(np.float32), z + 1, z + 1) for v in vs]
-    out = _consistency_filter(cams, true, 0.02, 1)
+    out = consistency_filter(cams, true, 0.02, 1)
     assert all(np.isfinite(r.depth).mean() > 0.3 for r in out)
     floating = [MvsResult((0.9 * vs[0].depth).astype(np.float32), z + 1, z + 1)] + true[1:]
-    out = _consistency_filter(cams, floating, 0.02, 1)
+    out = consistency_filter(cams, floating, 0.02, 1)
     assert np.isfinite(out[0].depth).mean() < 0.01
     assert np.isfinite(out[1].depth).mean() > 0.2
 
 
 def test_height_planes_chosen_for_nadir_views(scene128):
     """``planes="auto"`` sweeps horizontal planes for these downward-looking cameras, ``fronto`` does not."""
-    from dibrgs_core.geometry.mvs import sweep_up
+    from dibrgs_core.geometry.sweep_range import sweep_up
 
     cams = [v.camera for v in scene128.train_views()]
     up = sweep_up(cams, MvsConfig())
@@ -188,7 +194,7 @@ def test_semi_global_aggregation_recovers_planes_that_winner_take_all_misses():
     only 0.3 cheaper than the others under noise of 0.15: winner-take-all on the raw cost is right
     at under half the pixels, semi-global aggregation (4 and 8 paths) at most of them on both sides
     of the step."""
-    from dibrgs_core.geometry.mvs import semi_global
+    from dibrgs_core.geometry.sgm import semi_global
 
     g = torch.Generator().manual_seed(0)
     D, H, W = 40, 48, 64
@@ -210,7 +216,7 @@ def test_semi_global_aggregation_recovers_planes_that_winner_take_all_misses():
 @pytest.mark.parametrize("shape", [(1, 1, 1), (3, 1, 50), (3, 50, 1), (5, 2, 3)])
 def test_semi_global_degenerate_shapes_and_flat_costs(shape):
     """One plane, one-pixel lines and a constant cost volume stay finite and keep the cost's shape."""
-    from dibrgs_core.geometry.mvs import semi_global
+    from dibrgs_core.geometry.sgm import semi_global
 
     for cost in (torch.full(shape, 2.0), torch.zeros(shape)):
         for paths in (4, 8):
@@ -232,7 +238,7 @@ def test_mvs_with_semi_global_is_at_least_as_complete(scene128):
 
 
 def test_semi_global_refuses_other_path_counts():
-    from dibrgs_core.geometry.mvs import semi_global
+    from dibrgs_core.geometry.sgm import semi_global
 
     with pytest.raises(ValueError, match="4 or 8"):
         semi_global(torch.zeros(3, 4, 4), 0.1, 1.0, paths=2)

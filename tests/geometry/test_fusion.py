@@ -1,12 +1,12 @@
 """Fusion: back-projection, dip test, overlap removal (keep lower), reprojection, voxels, PLY."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-import numpy as np
-
-from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.camera.frame import up_frame
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.data.ply import read_ply, write_ply
 from dibrgs_core.geometry.fusion import (
     backproject_views,
     dip_cells,
@@ -14,7 +14,6 @@ from dibrgs_core.geometry.fusion import (
     reproject_max_depth,
     to_frame,
 )
-from dibrgs_core.data.ply import read_ply, write_ply
 from dibrgs_core.geometry.pointcloud import voxel_downsample, zbuffer
 
 
@@ -135,3 +134,26 @@ def test_voxel_downsample_and_ply_roundtrip(tmp_path):
     assert not list(tmp_path.glob(".*tmp*"))  # atomic write leaves no temporary behind
     P0, _ = voxel_downsample(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), 1.0)
     assert P0.shape == (0, 3)
+
+
+def test_voxel_values_and_ply_confidence_roundtrip(tmp_path):
+    """A per-point confidence is averaged per voxel and stored as a PLY vertex property that plain
+    readers (read_ply, trimesh) ignore; a PLY without one reads as None."""
+    from dibrgs_core.data.ply import read_ply_confidence
+    from dibrgs_core.geometry.pointcloud import voxel_downsample_values
+
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.2, 0.4], [1.5, 0.1, 0.1]])
+    cols = np.array([[0, 0, 0], [100, 200, 50], [9, 9, 9]], np.uint8)
+    P, C, K = voxel_downsample_values(pts, cols, np.array([1.0, 0.5, 0.25]), 1.0)
+    assert sorted(K.tolist()) == [0.25, 0.75]
+    P1, C1 = voxel_downsample(pts, cols, 1.0)
+    assert np.allclose(P, P1) and (C == C1).all()
+    write_ply(tmp_path / "c.ply", P, C, K)
+    P2, C2 = read_ply(tmp_path / "c.ply")
+    assert np.allclose(P2, P, atol=1e-6) and (C2 == C).all()
+    assert np.allclose(read_ply_confidence(tmp_path / "c.ply"), K)
+    write_ply(tmp_path / "plain.ply", P, C)
+    assert read_ply_confidence(tmp_path / "plain.ply") is None
+    with pytest.raises(ValueError, match="confidences"):
+        write_ply(tmp_path / "bad.ply", P, C, K[:1])
+    assert not (tmp_path / "bad.ply").exists()

@@ -71,3 +71,32 @@ def test_bad_inputs(tmp_path):
     (tmp_path / "x.npz").write_bytes(b"not an npz")
     with pytest.raises(InputError):
         HeightMap.load(tmp_path / "x.npz")
+
+
+def test_completion_field_fills_holes_on_the_ground_and_follows_the_slope():
+    """Completion surface: cells with points keep their median (a stray high point does not lift it),
+    a hole inside the cloud takes the ground around it, and past the cloud's edge the surface continues
+    the terrain's slope (the footprint ``cover`` reaches beyond the points)."""
+    from dibrgs_core.geometry.height_map import completion_field
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 40, (40000, 2))
+    ground = 0.1 * xy[:, 0]  # a slope: 1 unit up per 10 across
+    box = (xy[:, 0] > 10) & (xy[:, 0] < 16) & (xy[:, 1] > 10) & (xy[:, 1] < 16)
+    h = ground + np.where(box, 5.0, 0.0)
+    hole = (xy[:, 0] > 25) & (xy[:, 0] < 31) & (xy[:, 1] > 25) & (xy[:, 1] < 31)
+    P = np.column_stack([xy, h])[~hole]
+    P = np.vstack([P, [[20.2, 20.2, 40.0]]])  # one stray match far above
+    F = up_frame(np.array([0.0, 0.0, 1.0]))
+    loc = lambda x, y: (F @ np.array([x, y, 0.0]))[:2]  # noqa: E731  (world -> local horizontal)
+    field = completion_field(P, F, np.zeros(3), 0.5, cover=np.array([loc(-10.0, 0.0), loc(50.0, 40.0)]))
+    hgt = lambda x, y: float(field.height(loc(x, y)))  # noqa: E731
+    assert abs(hgt(13, 13) - 6.3) < 0.3  # the box roof
+    assert abs(hgt(20.2, 20.2) - 2.02) < 0.3  # the stray point does not make a spike
+    assert abs(hgt(28, 28) - 2.8) < 0.4  # the hole lies on the ground around it
+    assert abs(hgt(47, 20) - 4.7) < 0.6 and abs(hgt(-7, 20) + 0.7) < 0.6  # the slope continues
+    assert field.measured.any() and not field.measured.all()
+    with pytest.raises(ValueError):
+        completion_field(P[:2], F, np.zeros(3), 0.5)
+    with pytest.raises(ValueError):
+        completion_field(P, F, np.zeros(3), 0.0)

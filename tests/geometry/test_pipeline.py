@@ -6,12 +6,13 @@ import json
 import numpy as np
 import pytest
 import torch
+from geom_synth import make_synthetic_scene
 
 from dibrgs_core.data.ply import read_ply
-from dibrgs_core.geometry.pointcloud import zbuffer
+from dibrgs_core.geometry.config import InitConfig
 from dibrgs_core.geometry.height_map import HeightMap
-from dibrgs_core.geometry.pipeline import InitConfig, initialise
-from geom_synth import make_synthetic_scene
+from dibrgs_core.geometry.pipeline import initialise
+from dibrgs_core.geometry.pointcloud import zbuffer
 
 torch.set_num_threads(2)
 
@@ -118,3 +119,75 @@ def test_cli_on_tiny_scene(tiny_scene, tmp_path):
     rc = main(["init", str(tiny_scene), "--out", str(tmp_path / "w2"), "--depth-prior", "depth-anything-v2",
                "--depth-model", "depth-anything/Depth-Anything-V2-Small-hf"])
     assert rc == 2
+
+
+@pytest.fixture(scope="module")
+def grid_scene():
+    """A 96x96 nadir strip whose cameras' axes meet 259 units below the ground (no depth ranges)."""
+    from geom_synth import make_grid_scene
+
+    return make_grid_scene(96, seed=3)[0]
+
+
+def _relative_figures(scene, res):
+    """Scale-free figures of a geometry result: dense coverage and Abs Rel (all / measured), point counts."""
+    from dibrgs_core.geometry.pointcloud import zbuffer
+
+    out = {"points": len(res.points), "completed": int((res.confidence < 0.5).sum())}
+    for name, keep in (("all", np.ones(len(res.dense_points), bool)), ("measured", res.dense_confidence >= 0.5)):
+        cov, rel = [], []
+        for v in scene.train_views():
+            d = zbuffer(v.camera, res.dense_points[keep])
+            ok = np.isfinite(d)
+            cov.append(ok.mean())
+            rel.append(np.abs(d[ok] - v.depth[ok]) / v.depth[ok])
+        out[f"cov_{name}"] = float(np.mean(cov))
+        out[f"absrel_{name}"] = float(np.mean(np.concatenate(rel)))
+    return out
+
+
+def test_mapping_grid_scale_completion_and_confidence(grid_scene, tmp_path):
+    """Parallel nadir cameras: the scene's scale comes from the SfM depths (not the meaningless look-at
+    point), unmatched pixels are completed from a height field at confidence < 0.5, and the confidence
+    reaches points.ply."""
+    from dibrgs_core.data.ply import read_ply_confidence
+
+    res = initialise(grid_scene, tmp_path, InitConfig(depth_prior="mvs"))
+    dec, vals = _decisions(tmp_path)
+    assert vals["ref_source"] == "sfm" and 95 < vals["ref_distance"] < 115  # cameras 110 above the ground
+    assert dec["completion"]["applied"] and dec["completion"]["details"]["completed"] > 0.05
+    conf = res.confidence
+    assert conf.shape == (len(res.points),) and ((conf >= 0) & (conf <= 1)).all()
+    assert (conf < 0.5).any() and (conf >= 0.5).any()
+    stored = read_ply_confidence(tmp_path / "points.ply")
+    assert np.allclose(stored, conf, atol=1e-6)
+    fig = _relative_figures(grid_scene, res)
+    assert fig["cov_all"] > 0.95 > fig["cov_measured"]
+    assert fig["absrel_measured"] < 0.02 and fig["absrel_all"] < 0.04
+    # Switched off: only measured points, nothing below 0.5.
+    off = initialise(grid_scene, tmp_path / "off", InitConfig(depth_prior="mvs", complete="off"))
+    assert (off.confidence >= 0.5).all()
+    assert not _decisions(tmp_path / "off")[0]["completion"]["applied"]
+
+
+@pytest.mark.stability
+def test_geometry_does_not_depend_on_units(grid_scene, tmp_path):
+    """The same mapping strip in units x0.001, x1 and x1000 (the real flight is 5.3 units high, generated
+    scenes 210 m): the same relative figures (coverage, relative error, point counts)."""
+    from geom_synth import scaled_scene
+
+    figs = {}
+    for f in (1e-3, 1.0, 1e3):
+        sc = scaled_scene(grid_scene, f)
+        res = initialise(sc, tmp_path / f"s{f:g}", InitConfig(depth_prior="mvs"))
+        assert np.isfinite(res.points).all()
+        figs[f] = _relative_figures(sc, res)
+        assert abs(_decisions(tmp_path / f"s{f:g}")[1]["ref_distance"] / f - 105) < 10
+    base = figs[1.0]
+    for f in (1e-3, 1e3):
+        for k in ("cov_all", "cov_measured"):
+            assert abs(figs[f][k] - base[k]) < 0.005, (f, k, figs[f][k], base[k])
+        for k in ("absrel_all", "absrel_measured"):
+            assert abs(figs[f][k] - base[k]) < 0.02 * base[k] + 1e-4, (f, k, figs[f][k], base[k])
+        for k in ("points", "completed"):
+            assert abs(figs[f][k] - base[k]) <= 0.01 * base[k] + 5, (f, k, figs[f][k], base[k])

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from geom_synth import make_synthetic_scene
 
 from dibrgs_core.geometry.sfm import SparseCloud, triangulate_known_poses
-from geom_synth import make_synthetic_scene
 
 
 def _depth_errors(scene, pts):
@@ -44,3 +44,22 @@ def test_textureless_views_give_empty_cloud():
     sc = triangulate_known_poses([v.camera for v in vs], blank)
     assert isinstance(sc, SparseCloud) and len(sc) == 0
     assert sc.points.shape == (0, 3)
+
+
+@pytest.mark.stability
+def test_triangulation_does_not_depend_on_units():
+    """The same mapping strip in units x0.001 and x1000 triangulates the same points (scaled): COLMAP's
+    solvers have absolute tolerances, so coordinates go in at the cameras' own spread (at x0.001 the
+    points used to move by 0.3 % of the scene)."""
+    from geom_synth import make_grid_scene, scaled_scene
+
+    base, _ = make_grid_scene(96, seed=3)
+    clouds = {}
+    for f in (1e-3, 1.0, 1e3):
+        vs = scaled_scene(base, f).train_views()
+        clouds[f] = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs])
+    ref = clouds[1.0].points
+    assert len(ref) >= 50
+    for f in (1e-3, 1e3):
+        assert len(clouds[f]) == len(ref)
+        assert np.abs(clouds[f].points / f - ref).max() < 1e-6 * 110  # the strip flies 110 units high

@@ -180,7 +180,10 @@ def test_rays_that_do_not_descend_get_no_depth():
 
 def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
     from dibrgs_core.data.scene import View
-    from dibrgs_core.training.pseudo_views import build_pseudo_views, source_disagreement
+    from dibrgs_core.training.pseudo_views import (
+        build_pseudo_views,
+        source_disagreement,
+    )
 
     def img(c: Camera, shift: float = 0.0) -> np.ndarray:
         o, d = c.pixel_rays()
@@ -237,8 +240,8 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     p = o + ref.ravel()[:, None] * d
     street = ((p[:, 0] > -30) & (p[:, 0] < -16) & (p[:, 1] > -30) & (p[:, 1] < -16)).reshape(ref.shape)
     assert street.sum() > 30
-    from dibrgs_core.training.pseudo_views import complete_depth, zbuffer_depth
     from dibrgs_core.geometry.pointcloud import point_spacing
+    from dibrgs_core.training.pseudo_views import complete_depth, zbuffer_depth
 
     cloud_only = complete_depth(zbuffer_depth(dirty, tgt[0], point_spacing(dirty)),
                                 fill=HeightField.build(dirty, CAMS).depth(tgt[0]))

@@ -1,0 +1,118 @@
+"""What the geometry stages share: the training cameras and images, the up frame, a local origin
+and the scene's scale (scene units per paper unit), with the scale taken from the SfM points
+when the cameras' axes do not converge (a mapping grid)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..camera.frame import estimate_up, nadir_angle_deg, up_frame
+from ..camera.pinhole import Camera
+from ..common.errors import InputError
+from ..common.report import Report
+from .config import LEVIR_REFERENCE_DEPTH, STAGE, InitConfig
+from .sfm import SparseCloud
+from .sweep_range import converging_target
+
+
+@dataclass
+class SceneGeometry:
+    """What the stages share: training cameras and images, the up frame and the scale."""
+
+    cameras: list[Camera]
+    images: list[np.ndarray]
+    gt_depths: list[np.ndarray | None]
+    up: np.ndarray
+    up_confidence: float
+    frame: np.ndarray
+    origin: np.ndarray
+    nadir_deg: float
+    scale: float
+    ref_distance: float
+    ref_source: str = "look-at"
+
+    @property
+    def n_pixels(self) -> int:
+        return int(sum(c.width * c.height for c in self.cameras))
+
+
+def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
+    """Cameras, up frame, local origin and scale of the scene's training views.
+
+    The reference distance (the scale's numerator) is the median distance from
+    the cameras to the point their axes converge on when they converge
+    (:func:`mvs.converging_target`: orbits). Nearly parallel axes (a nadir
+    mapping grid) meet nowhere in particular, so there it is provisional: the
+    cameras' depth ranges, else a guess from their spacing
+    (:func:`_overlap_distance`), until :func:`sfm_reference` replaces it with
+    the depth of the SfM points. ``ref_source`` says which.
+    """
+    views = list(scene.train_views())
+    if not views:
+        raise InputError(getattr(scene, "root", None), "the scene has no training views")
+    cams = [v.camera for v in views]
+    up, conf = estimate_up(cams)
+    centers = np.stack([c.center for c in cams])
+    target = converging_target(cams)
+    ranges = [c.depth_range for c in cams if c.depth_range and 0 < c.depth_range[0] < c.depth_range[1]]
+    if target is not None:
+        ref, source = float(np.median(np.linalg.norm(centers - target, axis=1))), "look-at"
+        origin = target
+    else:
+        if ranges:
+            ref, source = float(np.median([np.sqrt(a * b) for a, b in ranges])), "depth-range"
+        else:
+            ref, source = _overlap_distance(cams), "camera-spacing"
+        # A point ``ref`` in front of the cameras' centroid: the ground below them, roughly.
+        origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
+    scale = float(config.scale) if config.scale else ref / LEVIR_REFERENCE_DEPTH
+    return SceneGeometry(cams, [np.asarray(v.image, np.float32) for v in views], [v.depth for v in views],
+                         up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale, ref, source)
+
+
+def _overlap_distance(cams: Sequence[Camera]) -> float:
+    """Distance to the scene if neighbouring photos overlapped by half (last resort, no SfM, no depth ranges):
+    the median nearest-neighbour camera spacing is then half the footprint, ``d * mean(W, H) / f``."""
+    C = np.stack([c.center for c in cams])
+    if len(C) < 2:
+        return 1.0
+    D = np.linalg.norm(C[:, None] - C[None], axis=2) + np.diag(np.full(len(C), np.inf))
+    spacing = float(np.median(D.min(1)))
+    c0 = cams[0]
+    size = 0.5 * (c0.width + c0.height)
+    f = 0.5 * (c0.fx + c0.fy)
+    d = 2.0 * spacing * f / max(size, 1.0)
+    return d if np.isfinite(d) and d > 0 else 1.0
+
+
+def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, report: Report) -> None:
+    """Replace a provisional reference distance (see :func:`scene_geometry`) by the median z-depth of the
+    SfM points in the training views, and the origin by their median; the scale follows (unless
+    ``config.scale`` is set)."""
+    if geo.ref_source == "look-at" or len(sparse) < config.min_sfm_points:
+        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
+                      f"{'point the cameras converge on' if geo.ref_source == 'look-at' else geo.ref_source}",
+                      source=geo.ref_source, ref_distance=geo.ref_distance, scale=geo.scale)
+        return
+    depths = []
+    for c in geo.cameras:
+        uv, z = c.project(sparse.points)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        depths.append(z[ok])
+    z = np.concatenate(depths)
+    if len(z) < config.min_sfm_points:
+        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
+                      f"{geo.ref_source}: only {len(z)} SfM points in the views", source=geo.ref_source,
+                      ref_distance=geo.ref_distance, scale=geo.scale)
+        return
+    old, old_source = geo.ref_distance, geo.ref_source
+    geo.ref_distance = float(np.median(z))
+    geo.origin = np.median(sparse.points, axis=0)
+    geo.ref_source = "sfm"
+    if not config.scale:
+        geo.scale = geo.ref_distance / LEVIR_REFERENCE_DEPTH
+    report.decide(STAGE, "scene_scale", True, f"the cameras' axes do not converge (parallel views): reference "
+                  f"distance {geo.ref_distance:.4g} = median SfM point depth (provisional {old:.4g} from the "
+                  f"{old_source})", source="sfm", ref_distance=geo.ref_distance, scale=geo.scale)
