@@ -91,16 +91,16 @@ def config_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from ..training.methods import TrainingFailed
-    from ..training.trainer import Trainer
-
     if args.force_config and not args.resume:
         from ..common.errors import InputError
 
         raise InputError(None, "--force-config only applies with --resume")
-    apply_threads(args)
-    cfg = config_from_args(args)
-    with locked(args.out, "train"):
+    with locked(args.out, "train"):  # before torch is imported: a second writer hears at once
+        apply_threads(args)
+        from ..training.methods import TrainingFailed
+        from ..training.trainer import Trainer
+
+        cfg = config_from_args(args)
         tr = Trainer(args.scene, args.out, cfg, resume=args.resume, progress_json=args.progress_json,
                      depth_model=args.depth_model, train_ids=args.train, test_ids=args.test,
                      force_config=args.force_config)

@@ -79,8 +79,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.chmod(tmp_path, mode)
         os.replace(tmp_path, target)
     except OSError as e:
-        # the user knows the target, not the temporary name
-        raise _naming(e, target) if e.filename in (tmp, str(tmp_path)) else e from None
+        # the user knows the target, not the temporary name (writers to file objects name none)
+        raise _naming(e, target) if e.filename in (None, tmp, str(tmp_path)) else e from None
     finally:
         with contextlib.suppress(OSError):
             tmp_path.unlink()

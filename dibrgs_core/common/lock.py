@@ -27,7 +27,7 @@ log = logging.getLogger("dibrgs")
 
 LOCK_NAME = ".dibrgs.lock"
 
-_held: dict[str, tuple[int, int]] = {}   # resolved folder -> (fd, depth) held by this process
+_held: dict[str, tuple[int, int, bool]] = {}   # resolved folder -> (fd, depth, created it) held by this process
 _guard = threading.Lock()
 
 
@@ -65,10 +65,14 @@ def describe(info: dict | None) -> str:
     return f"pid {info.get('pid')} on {info.get('host')} ({info.get('command', '?')}, since {when})"
 
 
-def _prepare(folder: Path) -> None:
+def _prepare(folder: Path) -> bool:
+    """Make ``folder`` when missing; returns whether it did."""
     if folder.exists() and not folder.is_dir():
-        raise InputError(folder, "is a file, not a folder; give a folder for the run's outputs")
+        raise InputError(folder, "is a file, not a folder; give a folder for the outputs")
+    if folder.is_dir():
+        return False
     folder.mkdir(parents=True, exist_ok=True)
+    return True
 
 
 def acquire(folder: str | Path, command: str) -> int:
@@ -78,12 +82,12 @@ def acquire(folder: str | Path, command: str) -> int:
     is a file, ``OSError`` when the folder cannot be created or written.
     """
     folder = Path(folder)
-    _prepare(folder)
+    created = _prepare(folder)
     key = os.path.realpath(folder)
     with _guard:
         if key in _held:
-            fd, depth = _held[key]
-            _held[key] = (fd, depth + 1)
+            fd, depth, made = _held[key]
+            _held[key] = (fd, depth + 1, made)
             return fd
         path = Path(key) / LOCK_NAME
         for _ in range(20):
@@ -112,25 +116,29 @@ def acquire(folder: str | Path, command: str) -> int:
         os.lseek(fd, 0, os.SEEK_SET)
         os.ftruncate(fd, 0)
         os.write(fd, (json.dumps(info) + "\n").encode())
-        _held[key] = (fd, 1)
+        _held[key] = (fd, 1, created)
         return fd
 
 
 def release(folder: str | Path) -> None:
-    """Release one hold of ``folder``'s lock; the last one removes the lock file."""
+    """Release one hold of ``folder``'s lock; the last one removes the lock file (and the folder,
+    when :func:`acquire` made it and nothing was written into it)."""
     key = os.path.realpath(folder)
     with _guard:
         if key not in _held:
             return
-        fd, depth = _held[key]
+        fd, depth, created = _held[key]
         if depth > 1:
-            _held[key] = (fd, depth - 1)
+            _held[key] = (fd, depth - 1, created)
             return
         del _held[key]
         # Unlink while still locked, so a waiting process never locks a file that is gone.
         with contextlib.suppress(OSError):
             os.unlink(Path(key) / LOCK_NAME)
         os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(key)  # only when empty
 
 
 @contextlib.contextmanager

@@ -184,11 +184,13 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
     if (train is None or test is None) and split_file.is_file():
         f_train, f_test = read_split_file(split_file)
         used = False
+        # An explicit part wins over the file's other part; the file's own two parts must not overlap.
         if train is None and f_train is not None:
             train = [i for i in match_names(f_train, ids, split_file, "train") if i not in (test or [])]
             used = True
         if test is None and f_test is not None:
-            test = [i for i in match_names(f_test, ids, split_file, "test") if i not in train]
+            test = [i for i in match_names(f_test, ids, split_file, "test")
+                    if train_ids is None or i not in train]
             used = True
         if used:
             src.append(str(split_file))
@@ -204,8 +206,9 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
                    else "default (3 evenly spaced views in name order)")
     both = sorted(set(train) & set(test))
     if both:
-        raise InputError(root if "--train" not in src else None,
-                         f"views {both} are in both the training and the test set")
+        where = None if train_ids is not None and test_ids is not None else (
+            split_file if str(split_file) in src else root)
+        raise InputError(where, f"views {both} are in both the training and the test set")
     if not train:
         raise InputError(root, "the split leaves no training view")
     return train, test, " + ".join(src)

@@ -31,9 +31,11 @@ MODEL = "model.pt"
 
 
 def save_torch(path: Path, obj: dict[str, Any]) -> None:
-    """``torch.save`` to a temporary name, then rename (readers never see half a file)."""
+    """``torch.save`` to a temporary name, then rename (readers never see half a file). Through a
+    Python file object, so a full disk is an ``OSError`` (torch's own writer raises a bare RuntimeError)."""
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
 
 
 def save_model(path: Path, method: TrainingMethod, cfg: TrainConfig, scene_root: Path,
