@@ -30,13 +30,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..common.errors import InputError
     from ..common.fileio import dumps
-    from ..evaluation.evaluate import evaluate
 
     if not args.work.is_dir():
         raise InputError(args.work, "no trained model here (no such folder); run `dibrgs train` first"
                          if not args.work.exists() else "is a file, not a run folder")
-    apply_threads(args)
-    with locked(args.work, "eval"):
+    with locked(args.work, "eval"):  # before torch is imported: a second writer hears at once
+        apply_threads(args)
+        from ..evaluation.evaluate import evaluate
+
         m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)
     summary = {k: m[k] for k in ("psnr", "ssim", "lpips", "avge", "fps", "views")}
     print(dumps(summary, indent=None))

@@ -41,14 +41,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..data.load import load_scene
     from ..data.scene import require_train_views
-    from ..geometry.pipeline import InitConfig, initialise
-    from ..training.run_folder import replace_earlier_run
 
-    apply_threads(args)
-    with locked(args.out, "init"):
+    with locked(args.out, "init"):  # before torch is imported: a second writer hears at once
+        apply_threads(args)
         scene = load_scene(args.scene, args.train, args.test, load_depth=args.depth_prior == "gt")
         require_train_views(scene)
         print(f"training views {', '.join(scene.train)} (split: {scene.split_source})")
+        from ..geometry.pipeline import InitConfig, initialise
+        from ..training.run_folder import replace_earlier_run
+
         replace_earlier_run(args.out, scene.digest(), (scene.train, scene.test), "init")
         import pycolmap
 

@@ -28,19 +28,20 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..common.errors import InputError
-    from ..data.images import write_depth_exr, write_png
-    from ..data.levir import read_cameras
-    from ..evaluation.evaluate import load_trained
 
-    apply_threads(args)
-    tr = load_trained(args.work)
-    cams = read_cameras(args.cameras)
-    if not cams:
-        raise InputError(args.cameras, "no cameras found")
-    names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]
-    if len(set(names)) != len(names):
-        names = [f"{i:03d}_{n}" for i, n in enumerate(names)]
     with locked(args.out, "render"):
+        apply_threads(args)
+        from ..data.images import write_depth_exr, write_png
+        from ..data.levir import read_cameras
+        from ..evaluation.evaluate import load_trained
+
+        tr = load_trained(args.work)
+        cams = read_cameras(args.cameras)
+        if not cams:
+            raise InputError(args.cameras, "no cameras found")
+        names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]
+        if len(set(names)) != len(names):
+            names = [f"{i:03d}_{n}" for i, n in enumerate(names)]
         for cam, name in tqdm(list(zip(cams, names)), desc="render", unit="view", disable=None):
             img, depth = tr.render(cam)
             write_png(args.out / f"{name}.png", img)

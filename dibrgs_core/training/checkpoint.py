@@ -31,11 +31,35 @@ MODEL = "model.pt"
 
 
 def save_torch(path: Path, obj: dict[str, Any]) -> None:
-    """``torch.save`` to a temporary name, then rename (readers never see half a file). Through a
-    Python file object, so a full disk is an ``OSError`` (torch's own writer raises a bare RuntimeError)."""
+    """``torch.save`` to a temporary name, then rename (readers never see half a file). A failed
+    write (a full disk) is the operating system's ``OSError``, not torch's bare RuntimeError."""
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            torch.save(obj, f)
+            out = _Writes(f)
+            try:
+                torch.save(obj, out)
+            except RuntimeError:
+                if out.error is not None:
+                    raise out.error from None
+                raise
+
+
+class _Writes:
+    """A file's ``write`` that keeps the ``OSError`` it raised (torch's writer turns it into a RuntimeError)."""
+
+    def __init__(self, f: Any) -> None:
+        self.f = f
+        self.error: OSError | None = None
+
+    def write(self, b: Any) -> int:
+        try:
+            return self.f.write(b)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
 
 
 def save_model(path: Path, method: TrainingMethod, cfg: TrainConfig, scene_root: Path,

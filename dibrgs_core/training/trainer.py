@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import logging.handlers
 import math
 import random
 import resource
@@ -230,9 +231,18 @@ class Trainer:
         if self.work.exists() and not self.work.is_dir():
             raise InputError(self.work, "is a file, not a folder; give --out a folder for the run")
         with run_folder_lock(self.work, "train"):
-            self._prepared = self._prepare()  # an earlier run's train.log is gone before logging starts
+            # What _prepare says (resume changes, a replaced run) is held back until an earlier
+            # run's train.log is gone, then written first into this run's.
+            held = logging.handlers.MemoryHandler(capacity=1 << 16, flushLevel=logging.CRITICAL + 1)
+            logging.getLogger("dibrgs").addHandler(held)
+            try:
+                self._prepared = self._prepare()
+            finally:
+                logging.getLogger("dibrgs").removeHandler(held)
             log_handler = logging.FileHandler(self.work / "train.log")
             log_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+            held.setTarget(log_handler)
+            held.close()  # flushes into train.log
             logging.getLogger("dibrgs").addHandler(log_handler)
             try:
                 ckpt = self.setup()

@@ -321,3 +321,463 @@ def test_threads_default_to_the_available_cores():
             assert apply_threads(args) == 1 and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(n)
+
+
+# =============================================================================================
+# C. The run folder: one writer, caches that know their inputs, resume that checks its flags
+# =============================================================================================
+def _config(work: Path) -> dict:
+    return strict_json(work / "config.json")
+
+
+def _model_cfg(work: Path) -> dict:
+    return torch.load(work / MODEL, map_location="cpu", weights_only=False)["config"]
+
+
+def test_two_writers_one_gets_the_lock_error(scene24, finished_run, tmp_path):
+    """Two real `dibrgs train` processes into one folder: the second exits 75 naming the first (pid, host);
+    the first finishes, and config.json and model.pt both hold its seed."""
+    work = copy_run(finished_run, tmp_path / "w")
+    first = subprocess.Popen([sys.executable, "-m", "dibrgs_core", "train", str(scene24), "--out", str(work), *QUICK,
+                              "--iterations", "6", "--seed", "0"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    try:
+        lock = work / LOCK_NAME
+        t0 = time.monotonic()
+        while not (lock.exists() and str(first.pid) in lock.read_text()):
+            assert first.poll() is None and time.monotonic() - t0 < 120, "the first writer never took the lock"
+            time.sleep(0.05)
+        os.kill(first.pid, signal.SIGSTOP)  # hold it inside the run, whatever the machine's speed
+        try:
+            r = dibrgs_subprocess("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--seed", "1")
+        finally:
+            os.kill(first.pid, signal.SIGCONT)
+        line = one_line(r.stderr)
+        assert r.returncode == 75, r.stderr
+        assert f"in use by pid {first.pid} on {socket.gethostname()} (train" in line and str(work) in line
+        assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert _config(work)["config"]["seed"] == 0 and _model_cfg(work)["seed"] == 0
+    assert "seed 1" not in (work / "train.log").read_text() and not lock.exists()
+
+
+def test_a_stale_lock_is_taken_over(scene24, finished_run, tmp_path, caplog):
+    """A writer killed with SIGKILL leaves its lock file; the next writer takes it over and says whose it was."""
+    work = copy_run(finished_run, tmp_path / "w")
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from dibrgs_core.common.lock import acquire; "
+                               "acquire(sys.argv[1], 'train'); print('locked', flush=True); time.sleep(600)",
+                               str(work)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    assert holder.stdout.readline().strip() == "locked"
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 75 and f"pid {holder.pid}" in one_line(err)
+    holder.kill()
+    holder.wait()
+    assert str(holder.pid) in (work / LOCK_NAME).read_text()  # left behind
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0, err
+    assert f"taking over the stale lock of pid {holder.pid}" in caplog.text
+    assert not (work / LOCK_NAME).exists()
+
+
+def test_render_into_a_busy_folder_and_init_into_a_busy_run(scene24, finished_run, tmp_path):
+    """The lock covers init, eval and render too (the add-on's jobs run these commands)."""
+    from dibrgs_core.common.lock import run_folder_lock
+
+    work = copy_run(finished_run, tmp_path / "w")
+    out = tmp_path / "renders"
+    with run_folder_lock(out, "render"):
+        r = dibrgs_subprocess("render", work, "--cameras", scene24 / "Cams" / "002.txt", "--out", out)
+        assert r.returncode == 75 and "in use by pid" in one_line(r.stderr)
+    with run_folder_lock(work, "train"):
+        r = dibrgs_subprocess("init", scene24, "--out", work)
+        assert r.returncode == 75 and "in use by pid" in one_line(r.stderr)
+    assert not list(out.glob("*.png"))
+
+
+def test_another_scene_replaces_the_run_and_its_caches(other_scene24, finished_run, tmp_path, caplog):
+    """`train OTHER --out W` over an earlier run: reported and replaced; the geometry, SfM points and pseudo
+    views are made again from OTHER (never "reusing the geometry initialisation")."""
+    from dibrgs_core.data.load import load_scene
+    from dibrgs_core.geometry.pipeline import InitConfig, init_inputs
+
+    work = copy_run(finished_run, tmp_path / "w")
+    old_pseudo = strict_json(work / "pseudo" / "manifest.json")["hash"]
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", other_scene24, "--out", work, *QUICK, "--iterations", "2")
+    assert rc == 0, err
+    assert "held a run of another scene" in caplog.text and "reusing the geometry" not in caplog.text
+    other = load_scene(other_scene24)
+    assert _config(work)["run"]["digest"] == other.digest()
+    assert strict_json(work / "init" / "init_report.json")["values"]["inputs"] == init_inputs(other, InitConfig())
+    assert strict_json(work / "pseudo" / "manifest.json")["hash"] != old_pseudo
+    assert _model_cfg(work)["iterations"] == 2
+
+
+def test_resume_refuses_another_scenes_run(other_scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    before = (work / CHECKPOINT).read_bytes()
+    rc, err = dibrgs("train", other_scene24, "--out", work, *QUICK, "--iterations", "8", "--resume")
+    line = one_line(err)
+    assert rc == 2 and "run here is of another scene" in line and "drop --resume to replace it" in line
+    assert (work / CHECKPOINT).read_bytes() == before and (work / MODEL).exists()
+
+
+def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
+    """`init --train 002,009` then `train` with the default split: the initialisation is made again
+    from 001/008/015 (and the split is in report.json and the log)."""
+    work = tmp_path / "w"
+    rc, err = dibrgs("init", scene24, "--out", work, "--train", "2,9", "--threads", "1")
+    assert rc == 0, err
+    assert strict_json(work / "init" / "init_report.json")["values"]["train"] == ["002", "009"]
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "2", "--no-pseudo")
+    assert rc == 0, err
+    assert "made from other training views; initialising again" in caplog.text
+    assert strict_json(work / "init" / "init_report.json")["values"]["train"] == ["001", "008", "015"]
+    scene = strict_json(work / "report.json")["values"]["scene"]
+    assert scene["train"] == ["001", "008", "015"] and scene["split_source"] == "default (LEVIR-NVS 3-view protocol)"
+    assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
+
+
+RESUME_REFUSED = [
+    ("preset", ["--preset", "cpu"], "preset: 'test' -> 'cpu'"),
+    ("seed", ["--seed", "1"], "seed: 0 -> 1"),
+    ("no-pseudo", ["--no-pseudo"], "pseudo.mode: 'auto' -> 'off'"),
+    ("resolution", ["--resolution-scale", "0.5"], "resolution_scale: 1.0 -> 0.5"),
+]
+
+
+@pytest.mark.parametrize("flags,lists", [c[1:] for c in RESUME_REFUSED], ids=[c[0] for c in RESUME_REFUSED])
+def test_resume_refuses_changed_options(scene24, finished_run, tmp_path, flags, lists):
+    work = copy_run(finished_run, tmp_path / "w")
+    before = {p.name: p.read_bytes() for p in (work / CHECKPOINT, work / MODEL, work / "config.json")}
+    preset = flags[1] if flags[0] == "--preset" else "test"
+    flags = [] if flags[0] == "--preset" else flags
+    rc, err = dibrgs("train", scene24, "--out", work, "--preset", preset, "--threads", "1", "--iterations", "6",
+                     "--resume", *flags)
+    line = one_line(err)
+    assert rc == 2 and lists in line and "--force-config" in line and str(work / CHECKPOINT) in line, err
+    assert {n: (work / n).read_bytes() for n in before} == before
+
+
+@pytest.mark.parametrize("flags,lists", [(["--ibr", "none"], "ibr: 'auto' -> 'none'"),
+                                         (["--iterations", "3"], "iterations: 6 -> 3"),
+                                         (["--method", "3dgs"], "method: 'dibrgs' -> '3dgs'")],
+                         ids=["ibr", "fewer-iterations", "method"])
+def test_resume_changes_no_checkpoint_can_follow(scene24, finished_run, tmp_path, flags, lists):
+    """Changes of the model's make-up, or fewer iterations than done, are refused even with --force-config."""
+    work = copy_run(finished_run, tmp_path / "w")
+    argv = ["train", scene24, "--out", work, *QUICK, "--resume", "--force-config"]
+    if "--iterations" not in flags:
+        argv += ["--iterations", "6"]
+    rc, err = dibrgs(*argv, *flags)
+    line = one_line(err)
+    assert rc == 2 and "cannot resume with" in line and lists in line, err
+    assert _model_cfg(work)["iterations"] == 6
+
+
+def test_resume_with_more_iterations_goes_on(scene24, finished_run, tmp_path, caplog):
+    work = copy_run(finished_run, tmp_path / "w")
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--resume")
+    assert rc == 0, err
+    assert _model_cfg(work)["iterations"] == 8 and _config(work)["config"]["iterations"] == 8
+    rep = strict_json(work / "report.json")["values"]
+    assert rep["resumed_from"] == 6 and rep["iteration"] == 8 and rep["resume_changes"] == [["iterations", 6, 8]]
+    assert "resuming with changed iterations: 6 -> 8" in (work / "train.log").read_text()
+
+
+def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--seed", "3", "--resume",
+                     "--force-config")
+    assert rc == 0, err
+    assert _model_cfg(work)["seed"] == 3
+    forced = strict_json(work / "report.json")["values"]["forced_config"]
+    assert forced == [{"iteration": 6, "changes": [["seed", 0, 3]]}]
+    assert _config(work)["forced_config"] == forced
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--force-config")
+    assert rc == 2 and "--force-config only applies with --resume" in one_line(err)
+
+
+def test_resume_refuses_another_split(scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--resume", "--train", "1,8")
+    line = one_line(err)
+    assert rc == 2 and "another split" in line and "train ['001', '008', '015'] -> ['001', '008']" in line
+
+
+def test_a_fresh_run_replaces_the_earlier_runs_outputs(scene24, finished_run, tmp_path, caplog):
+    """Without --resume the earlier run's outputs go first (no mix of two runs); its caches stay."""
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0 and (work / "metrics.json").exists() and (work / "renders").is_dir()
+    keep = work / "notes.txt"
+    keep.write_text("the user's own file")
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "3")
+    assert rc == 0, err
+    assert "starting afresh (no --resume)" in (work / "train.log").read_text()
+    assert not (work / "metrics.json").exists() and not (work / "renders").exists()
+    assert _model_cfg(work)["iterations"] == 3 and keep.read_text() == "the user's own file"
+    assert (work / "init" / "points.ply").exists()
+    assert "train.log" in [p.name for p in work.iterdir()] and "iteration 6" not in (work / "train.log").read_text()
+
+
+# =============================================================================================
+# D. The operating system says no: one line naming the path and what to do, exit 1 (2 for input)
+# =============================================================================================
+@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "foreign"])
+def test_unreadable_checkpoint(scene24, finished_run, tmp_path, what):
+    work = copy_run(finished_run, tmp_path / "w")
+    ck = work / CHECKPOINT
+    data = ck.read_bytes()
+    ck.write_bytes({"empty": b"", "truncated": data[: len(data) // 2], "corrupt": os.urandom(4096),
+                    "foreign": b""}[what])
+    if what == "foreign":
+        torch.save([1, 2, 3], ck)
+    before = ck.read_bytes()
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--resume")
+    line = one_line(err)
+    assert rc == 2 and str(ck) in line and "delete it to start afresh" in line, err
+    assert ck.read_bytes() == before and (work / MODEL).exists()
+
+
+@pytest.mark.parametrize("what", ["empty", "truncated"])
+def test_unreadable_model_file(finished_run, tmp_path, what):
+    work = copy_run(finished_run, tmp_path / "w")
+    m = work / MODEL
+    m.write_bytes(b"" if what == "empty" else m.read_bytes()[:1000])
+    for argv in (["eval", work], ["export", work, "--ply", tmp_path / "g.ply"],
+                 ["render", work, "--cameras", work / "x.json", "--out", tmp_path / "r"]):
+        rc, err = dibrgs(*argv, "--threads", "1")
+        line = one_line(err)
+        assert rc == 2 and str(m) in line and ("empty" in line or "unreadable trained model" in line), err
+    assert not (tmp_path / "g.ply").exists() and not (work / "metrics.json").exists()
+
+
+def test_out_is_a_file_or_under_a_file(scene24, finished_run, tmp_path):
+    f = tmp_path / "file"
+    f.write_text("keep me")
+    rc, err = dibrgs("train", scene24, "--out", f, *QUICK)
+    assert rc == 2 and f"{f}: is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("train", scene24, "--out", f / "sub", *QUICK)
+    assert rc == 1 and "a part of this path is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("render", finished_run, "--cameras", scene24 / "Cams" / "002.txt", "--out", f, "--threads", "1")
+    assert rc == 2 and f"{f}: is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("init", scene24, "--out", f, "--threads", "1")
+    assert rc == 2 and "is a file" in one_line(err)
+    assert f.read_text() == "keep me"
+
+
+def test_export_targets(finished_run, tmp_path):
+    """--ply a folder or a FIFO: refused, left as they are; a symbolic link: the file it points to is
+    written and the link stays; new files get the umask's mode, replaced files keep theirs."""
+    d = tmp_path / "folder"
+    d.mkdir()
+    rc, err = dibrgs("export", finished_run, "--ply", d, "--threads", "1")
+    assert rc == 2 and f"{d}: is a folder, not a regular file" in one_line(err) and d.is_dir()
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    rc, err = dibrgs("export", finished_run, "--ply", fifo, "--threads", "1")
+    assert rc == 2 and "is a FIFO (named pipe), not a regular file" in one_line(err)
+    assert stat_kind(fifo) == "fifo"
+    target = tmp_path / "real" / "g.ply"
+    target.parent.mkdir()
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    link = tmp_path / "link.ply"
+    link.symlink_to(target)
+    rc, err = dibrgs("export", finished_run, "--ply", link, "--threads", "1")
+    assert rc == 0, err
+    assert link.is_symlink() and target.read_bytes().startswith(b"ply\n")
+    assert (target.stat().st_mode & 0o777) == 0o640
+    no_temp_files(tmp_path)
+    old = os.umask(0o027)
+    try:
+        rc, err = dibrgs("export", finished_run, "--ply", tmp_path / "new.ply", "--threads", "1")
+    finally:
+        os.umask(old)
+    assert rc == 0 and ((tmp_path / "new.ply").stat().st_mode & 0o777) == 0o640
+
+
+def stat_kind(p: Path) -> str:
+    import stat
+
+    m = os.lstat(p).st_mode
+    return "fifo" if stat.S_ISFIFO(m) else "dir" if stat.S_ISDIR(m) else "file" if stat.S_ISREG(m) else "other"
+
+
+def test_outputs_are_readable_by_others_under_the_usual_umask(scene24, finished_run, tmp_path):
+    """Renders, scenes and run files are created 0o644 under umask 022 (the old writer made every file 0o600)."""
+    old = os.umask(0o022)
+    try:
+        rc, err = dibrgs("render", finished_run, "--cameras", scene24 / "Cams" / "002.txt", "--out",
+                         tmp_path / "r", "--threads", "1")
+        assert rc == 0, err
+        work = copy_run(finished_run, tmp_path / "w")
+        rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+        assert rc == 0, err
+    finally:
+        os.umask(old)
+    for p in [tmp_path / "r" / "002.png", tmp_path / "r" / "002_depth.exr", work / "metrics.json",
+              *(work / "renders").glob("*.png")]:
+        assert (p.stat().st_mode & 0o777) == 0o644, p
+
+
+def test_corrupt_depth_anything_weights(scene24, tmp_path):
+    pytest.importorskip("transformers")
+    model = tmp_path / "da"
+    model.mkdir()
+    (model / "config.json").write_text('{"model_type": "depth_anything"}')
+    (model / "model.safetensors").write_bytes(b"garbage" * 100)
+    rc, err = dibrgs("init", scene24, "--out", tmp_path / "w", "--depth-model", model, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and str(model) in line and "cannot load the Depth Anything model" in line, err
+    assert not (tmp_path / "w" / "init" / "points.ply").exists()
+
+
+def test_metrics_are_strict_json_when_psnr_is_infinite(tmp_path):
+    """A model that renders exactly the held-out images (black, with every Gaussian transparent):
+    PSNR is infinite, so metrics.json holds null with the reason, and parses as strict JSON."""
+    from dibrgs_core.data.levir import read_scene, write_scene
+    from dibrgs_core.data.scene import View
+    from train_synth import make_synth_scene
+
+    src = read_scene(make_synth_scene(tmp_path / "src", resolution=16))
+    black = write_scene(tmp_path / "black", {k: View(v.camera, np.zeros_like(v.image)) for k, v in src.views.items()})
+    work = tmp_path / "w"
+    rc, err = dibrgs("train", black, "--out", work, *QUICK, "--iterations", "2", "--method", "3dgs")
+    assert rc == 0, err
+    st = torch.load(work / MODEL, weights_only=False)
+    st["model"]["opacity"] = torch.full_like(st["model"]["opacity"], -60.0)
+    torch.save(st, work / MODEL)
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0, err
+    m = strict_json(work / "metrics.json")
+    assert m["psnr"] is None and "infinite" in m["undefined"]["psnr"] and m["ssim"] == pytest.approx(1.0)
+    assert all(v["psnr"] is None for v in m["per_view"].values())
+
+
+
+# -- what needs another user's rights or another file system ------------------------------------
+def _without_root_rights() -> tuple[str, ...]:
+    """A command prefix under which file permissions apply (root keeps its uid, loses the override)."""
+    if os.geteuid() != 0:
+        return ()
+    if shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: permissions cannot be tested")
+    return ("setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner")
+
+
+def test_a_folder_the_user_cannot_write(scene24, tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    os.chmod(locked, 0o555)
+    try:
+        r = dibrgs_subprocess("train", scene24, "--out", locked / "run", *QUICK, prefix=_without_root_rights())
+        line = one_line(r.stderr)
+        assert r.returncode == 1 and str(locked / "run") in line and "permission denied" in line, r.stderr
+        assert "choose a folder you can write" in line and not list(locked.iterdir())
+        r = dibrgs_subprocess("train", scene24, "--out", locked, *QUICK, prefix=_without_root_rights())
+        assert r.returncode == 1 and "permission denied" in one_line(r.stderr)
+    finally:
+        os.chmod(locked, 0o755)
+
+
+class _Mount:
+    """A tmpfs at ``path`` for the test (root or CAP_SYS_ADMIN needed; skipped with the reason otherwise)."""
+
+    def __init__(self, path: Path, options: str):
+        path.mkdir(parents=True, exist_ok=True)
+        if shutil.which("mount") is None:
+            pytest.skip("no mount command: cannot make a small or read-only file system here")
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(path)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode}): needs root or CAP_SYS_ADMIN")
+        self.path = path
+
+    def umount(self) -> None:
+        subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
+
+
+@pytest.fixture()
+def tmpfs(tmp_path):
+    mounts: list[_Mount] = []
+
+    def make(name: str, options: str) -> Path:
+        m = _Mount(tmp_path / name, options)
+        mounts.append(m)
+        return m.path
+    yield make
+    for m in mounts:
+        m.umount()
+
+
+def test_read_only_file_system(scene24, finished_run, tmp_path, tmpfs):
+    ro = tmpfs("ro", "ro,size=1m")
+    rc, err = dibrgs("train", scene24, "--out", ro / "run", *QUICK)
+    line = one_line(err)
+    assert rc == 1 and str(ro / "run") in line and "read-only file system" in line, err
+    rc, err = dibrgs("export", finished_run, "--ply", ro / "g.ply", "--threads", "1")
+    assert rc == 1 and "read-only file system" in one_line(err) and str(ro / "g.ply") in one_line(err)
+
+
+def test_disk_full_during_training(scene24, finished_run, tmp_path, tmpfs):
+    """A run folder on a 192 KiB file system: the run stops with one line naming the file it could not
+    write; no temporary file is left and every file there is whole."""
+    small = tmpfs("small", "size=192k")
+    work = small / "run"
+    for sub in ("init", "pseudo"):  # the caches fit; the checkpoint does not
+        shutil.copytree(finished_run / sub, work / sub)
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "4")
+    line = one_line(err)
+    assert rc == 1 and "no space left on the device" in line and str(work) in line, err
+    assert "free some space" in line
+    no_temp_files(small)
+    for p in work.rglob("*.json"):
+        strict_json(p)
+    assert not (work / MODEL).exists()
+    if (work / CHECKPOINT).exists():
+        torch.load(work / CHECKPOINT, weights_only=False)
+
+
+def test_disk_full_during_export(finished_run, tmp_path, tmpfs):
+    small = tmpfs("small", "size=64k")
+    ply = small / "g.ply"
+    ply.write_text("the previous export")
+    rc, err = dibrgs("export", finished_run, "--ply", ply, "--threads", "1")
+    line = one_line(err)
+    assert rc == 1 and f"{ply}: no space left on the device" in line, err
+    assert ply.read_text() == "the previous export"
+    no_temp_files(small)
+
+
+# -- kill -9 / SIGINT / SIGTERM: resume to identical parameters ----------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
+def test_signals_resume_to_identical_parameters(scene24, finished_run, tmp_path, sig):
+    """A CLI run stopped by a signal at iteration >= 10 and resumed ends bit-identical to an uninterrupted one."""
+    args = ("train", scene24, *QUICK, "--iterations", "40", "--progress-json")
+    a = copy_run(finished_run, tmp_path / "a")
+    b = copy_run(finished_run, tmp_path / "b")
+    rc, err = dibrgs(args[0], args[1], "--out", a, *args[2:])
+    assert rc == 0, err
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    p = subprocess.Popen([sys.executable, "-m", "dibrgs_core", args[0], str(args[1]), "--out", str(b),
+                          *map(str, args[2:])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    for line in p.stdout:
+        if '"iteration"' in line and json.loads(line)["iteration"] >= 10:
+            p.send_signal(sig)
+            break
+    p.wait(timeout=300)
+    assert p.returncode == (-9 if sig == signal.SIGKILL else 130), p.stderr.read()[-2000:]
+    rc, err = dibrgs(args[0], args[1], "--out", b, *args[2:], "--resume")
+    assert rc == 0, err
+    pa = torch.load(a / MODEL, weights_only=False)
+    pb = torch.load(b / MODEL, weights_only=False)
+    for k, v in pa["model"].items():
+        assert torch.equal(v, pb["model"][k]), k
