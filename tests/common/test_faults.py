@@ -781,3 +781,16 @@ def test_signals_resume_to_identical_parameters(scene24, finished_run, tmp_path,
     pb = torch.load(b / MODEL, weights_only=False)
     for k, v in pa["model"].items():
         assert torch.equal(v, pb["model"][k]), k
+
+
+def test_corrupt_lpips_backbone(finished_run, tmp_path):
+    """LPIPS heads with a damaged torchvision backbone file: one line naming the backbone, no metrics written."""
+    heads = {f"lin{k}.model.1.weight": torch.ones(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))}
+    torch.save(heads, tmp_path / "vgg.pth")
+    bb = tmp_path / "vgg16.pth"
+    bb.write_bytes(os.urandom(2048))
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("eval", work, "--lpips", tmp_path / "vgg.pth", "--lpips-backbone", bb, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and f"{bb}: not a torch state dict" in line, err
+    assert not (work / "metrics.json").exists()
