@@ -5,12 +5,15 @@ gets a one-line :class:`~.errors.RunFolderBusy` naming the holder. The lock itse
 operating-system lock on that file (``fcntl.flock``; ``msvcrt.locking`` on Windows), which the
 kernel drops when the holder exits, however it exits (``kill -9`` included). A lock file left
 behind by a dead process is therefore *stale* by construction: the next writer takes it over and
-logs whose it was. Locks are re-entrant within a process (the CLI and the trainer both take the
+logs whose it was. On a file system without locks the pid decides: a holder on this host that
+no longer runs is stale; one on another host cannot be checked and is reported with the file to
+delete. Locks are re-entrant within a process (the CLI and the trainer both take the
 run folder's lock). Standard library only.
 """
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -31,7 +34,9 @@ _held: dict[str, tuple[int, int, bool]] = {}   # resolved folder -> (fd, depth, 
 _guard = threading.Lock()
 
 
-def _try_lock(fd: int) -> bool:
+def _try_lock(fd: int) -> bool | None:
+    """Lock ``fd`` without waiting: True (locked), False (another process holds it), or None when
+    the file system has no locks (some network and FUSE file systems)."""
     if sys.platform == "win32":  # pragma: no cover - exercised on Windows only
         import msvcrt
 
@@ -47,6 +52,28 @@ def _try_lock(fd: int) -> bool:
         return True
     except BlockingIOError:
         return False
+    except OSError as e:
+        if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EINVAL, errno.ENOSYS):
+            return None
+        raise
+
+
+def _alive(info: dict | None) -> bool:
+    """Without file-system locks: whether the lock file's holder may still run (a process on another
+    host cannot be checked, so it counts as alive)."""
+    if not info or not isinstance(info.get("pid"), int):
+        return False
+    if info.get("host") != socket.gethostname():
+        return True
+    if info["pid"] == os.getpid():
+        return False
+    try:
+        os.kill(info["pid"], 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def holder(folder: str | Path) -> dict | None:
@@ -92,7 +119,16 @@ def acquire(folder: str | Path, command: str) -> int:
         path = Path(key) / LOCK_NAME
         for _ in range(20):
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-            if not _try_lock(fd):
+            got = _try_lock(fd)
+            if got is None:  # no file-system locks here: the pid in the file decides
+                info = holder(key)
+                got = not _alive(info)
+                if not got and info and info.get("host") != socket.gethostname():
+                    os.close(fd)
+                    raise RunFolderBusy(folder, f"in use by {describe(info)} (this file system has no locks, so "
+                                                f"it cannot be checked); if that process is gone, delete {path}")
+                log.warning("%s: the file system has no file locks; relying on the pid in %s", folder, LOCK_NAME)
+            if not got:
                 os.close(fd)
                 info = holder(key)
                 raise RunFolderBusy(folder, f"in use by {describe(info)}; wait for it to finish, stop it, "
