@@ -1,10 +1,14 @@
 """``dibrgs train SCENE --out WORK``: train DIBR-GS (or the 3DGS baseline) on a scene.
 
-Runs the geometry initialisation first when ``WORK/init`` does not hold one made
-with the same options. Progress is shown with tqdm; ``--progress-json`` also
-prints one JSON object per line on stdout (``iteration``, ``total``, ``loss``,
-``eta_s``, ``elapsed_s``; finally ``{"done": true, "work": ...}``). SIGINT / SIGTERM
-write a checkpoint and stop; ``--resume`` continues a stopped run to the same result.
+The training and held-out views are the scene's split: ``--train`` / ``--test``, else the scene's
+``split.json``, else the default (LEVIR-NVS: 001/008/015). Runs the geometry initialisation first
+unless ``WORK/init`` holds one made from the same training views with the same depth prior.
+Progress is shown with tqdm; ``--progress-json`` also prints one JSON object per line on stdout
+(``iteration``, ``total``, ``loss``, ``eta_s``, ``elapsed_s``; finally ``{"done": true, "work": ...}``).
+SIGINT / SIGTERM write a checkpoint and stop; ``--resume`` continues a stopped run to the same
+result when asked with the same options (more ``--iterations`` are fine; any other change is refused
+with the list of differences, or accepted with ``--force-config`` and recorded in report.json).
+Without ``--resume`` an earlier run in WORK is replaced. One process writes into WORK at a time.
 """
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """The scene model every reader fills: views (camera, image, optional depth), a render track and
-the train/test split; camera validation shared by the readers.
+the train/test split; the split itself (``split.json``, ``--train`` / ``--test``, the defaults);
+content digests; camera validation shared by the readers.
 
 Cameras are :class:`~dibrgs_core.camera.pinhole.Camera` (OpenCV axes, world-to-camera);
 images float32 RGB in [0, 1]; depth z-depth in world units (0 = unknown).
@@ -181,6 +182,8 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
     if test is not None:
         src.append("--test")
     split_file = root / SPLIT_FILE
+    if split_file.exists() and not split_file.is_file():
+        raise InputError(split_file, "is not a file; split.json must be a JSON file (or absent)")
     if (train is None or test is None) and split_file.is_file():
         f_train, f_test = read_split_file(split_file)
         used = False

@@ -76,6 +76,13 @@ def test_bad_split_json(tmp_path, content, says):
     assert e.value.path in (root / "split.json", root)
 
 
+def test_split_json_that_is_a_folder(tmp_path):
+    (tmp_path / "split.json").mkdir()
+    with pytest.raises(InputError, match="is not a file") as e:
+        make_split(tmp_path, LEVIR, None)
+    assert e.value.path == tmp_path / "split.json"
+
+
 def test_bad_command_line_names(tmp_path):
     with pytest.raises(InputError, match=r"--train: 'DJI_9999' not in the scene \(its views: DJI_0018") as e:
         make_split(tmp_path, PHOTOS, ["DJI_0019", "DJI_9999"])
