@@ -335,8 +335,8 @@ def _model_cfg(work: Path) -> dict:
 
 
 def test_two_writers_one_gets_the_lock_error(scene24, finished_run, tmp_path):
-    """Two real `dibrgs train` processes into one folder: the second exits 75 naming the first (pid, host);
-    the first finishes, and config.json and model.pt both hold its seed."""
+    """Two `dibrgs train` into one folder, in two processes: the second exits 75 naming the first (pid,
+    host) and writes nothing; the first finishes, and config.json and model.pt both hold its seed."""
     work = copy_run(finished_run, tmp_path / "w")
     first = subprocess.Popen([sys.executable, "-m", "dibrgs_core", "train", str(scene24), "--out", str(work), *QUICK,
                               "--iterations", "6", "--seed", "0"], stdout=subprocess.DEVNULL,
@@ -348,12 +348,12 @@ def test_two_writers_one_gets_the_lock_error(scene24, finished_run, tmp_path):
             assert first.poll() is None and time.monotonic() - t0 < 120, "the first writer never took the lock"
             time.sleep(0.05)
         os.kill(first.pid, signal.SIGSTOP)  # hold it inside the run, whatever the machine's speed
-        try:
-            r = dibrgs_subprocess("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--seed", "1")
+        try:  # the second writer: this test's own process, through the same command line
+            rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--seed", "1")
         finally:
             os.kill(first.pid, signal.SIGCONT)
-        line = one_line(r.stderr)
-        assert r.returncode == 75, r.stderr
+        line = one_line(err)
+        assert rc == 75, err
         assert f"in use by pid {first.pid} on {socket.gethostname()} (train" in line and str(work) in line
         assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
     finally:

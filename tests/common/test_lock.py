@@ -74,13 +74,16 @@ def test_a_file_is_not_a_run_folder(tmp_path):
 
 
 def test_many_processes_one_winner(tmp_path):
-    """Eight processes race for one folder: exactly one holds it."""
+    """Eight processes race for one folder: exactly one holds it (the winner holds on until all have tried)."""
     work = tmp_path / "w"
-    code = ("import sys, time; from dibrgs_core.common.lock import acquire\n"
-            "try:\n    acquire(sys.argv[1], 'x'); print('won', flush=True); time.sleep(3)\n"
+    code = ("import sys; from dibrgs_core.common.lock import acquire\n"
+            "try:\n    acquire(sys.argv[1], 'x'); print('won', flush=True); sys.stdin.read()\n"
             "except Exception as e:\n    print('lost', type(e).__name__, flush=True)\n")
-    procs = [subprocess.Popen([sys.executable, "-c", code, str(work)], stdout=subprocess.PIPE, text=True, cwd=REPO)
-             for _ in range(8)]
-    outs = [p.communicate(timeout=60)[0].split() for p in procs]
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(work)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True, cwd=REPO) for _ in range(8)]
+    outs = [p.stdout.readline().split() for p in procs]  # every process has tried before the winner lets go
+    for p in procs:
+        p.stdin.close()
+        p.wait(timeout=60)
     assert sum(o[0] == "won" for o in outs) == 1, outs
     assert all(o == ["lost", "RunFolderBusy"] for o in outs if o[0] != "won"), outs
