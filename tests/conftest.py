@@ -32,3 +32,31 @@ def tiny_scene(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("scenes") / "city64"
     make_scene(kind="city", resolution=64, seed=0, out=out)
     return out
+
+
+# -- run folders for the fault and resume tests (helpers in tests/run_synth.py) ------------
+@pytest.fixture(scope="session")
+def scene24(tmp_path_factory) -> Path:
+    """The 24x24 synthetic scene (21 views, LEVIR layout, depth maps)."""
+    from train_synth import make_synth_scene
+
+    return make_synth_scene(tmp_path_factory.mktemp("scenes") / "s24", resolution=24)
+
+
+@pytest.fixture(scope="session")
+def other_scene24(tmp_path_factory) -> Path:
+    """Another scene of the same layout and size (another seed)."""
+    from train_synth import make_synth_scene
+
+    return make_synth_scene(tmp_path_factory.mktemp("scenes") / "other24", resolution=24, seed=1)
+
+
+@pytest.fixture(scope="session")
+def finished_run(scene24, tmp_path_factory) -> Path:
+    """A run trained to the end through the command line (6 iterations), with its caches and model."""
+    from run_synth import QUICK, dibrgs
+
+    work = tmp_path_factory.mktemp("runs") / "done"
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6")
+    assert rc == 0, err
+    return work

@@ -13,7 +13,8 @@ import logging
 import time
 from pathlib import Path
 
-from ..common.modes import SceneKind, choices
+from ..common.modes import PresetName, SceneKind, choices
+from .options import add_threads, locked, positive_int, resolution, seed
 
 log = logging.getLogger("dibrgs.demo")
 
@@ -23,10 +24,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default runs/demo)")
     p.add_argument("--kind", default="city", choices=choices(SceneKind))
-    p.add_argument("--resolution", type=int, default=128, help="image size of the generated views")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--preset", default="cpu", help="training preset (cpu, paper, test)")
-    p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
+    p.add_argument("--resolution", type=resolution, default=128, help="image size of the generated views (>= 8)")
+    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--preset", default="cpu", choices=choices(PresetName), help="training preset")
+    p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
+    add_threads(p)
     p.set_defaults(func=run)
 
 
@@ -38,25 +40,27 @@ def run(args: argparse.Namespace) -> int:
     scene = out / "scene"
     work = out / "work"
     t0 = time.perf_counter()
-    if (scene / "Cams").is_dir() and (scene / "Images").is_dir():
-        log.info("scene already rendered at %s, reusing it", scene)
-    else:
-        log.info("rendering the default %s scene (%dx%d, seed %d) into %s", args.kind, args.resolution,
-                 args.resolution, args.seed, scene)
-        make_scene(kind=args.kind, resolution=args.resolution, seed=args.seed, out=scene)
-    steps: list[list[str]] = []
-    train = ["train", str(scene), "--out", str(work), "--preset", args.preset, "--resume"]
-    if args.iterations:
-        train += ["--iterations", str(args.iterations)]
-    steps.append(train)
-    steps.append(["eval", str(work)])
-    steps.append(["render", str(work), "--cameras", str(scene / "Track"), "--out", str(out / "track")])
-    for argv in steps:
-        log.info("dibrgs %s", " ".join(argv))
-        rc = dibrgs(argv)
-        if rc:
-            log.error("step 'dibrgs %s' failed with exit code %d", argv[0], rc)
-            return rc
+    threads = [] if args.threads is None else ["--threads", str(args.threads)]
+    with locked(out, "demo"):
+        if (scene / "Cams").is_dir() and (scene / "Images").is_dir():
+            log.info("scene already rendered at %s, reusing it", scene)
+        else:
+            log.info("rendering the default %s scene (%dx%d, seed %d) into %s", args.kind, args.resolution,
+                     args.resolution, args.seed, scene)
+            make_scene(kind=args.kind, resolution=args.resolution, seed=args.seed, out=scene)
+        steps: list[list[str]] = []
+        train = ["train", str(scene), "--out", str(work), "--preset", args.preset, "--resume", *threads]
+        if args.iterations:
+            train += ["--iterations", str(args.iterations)]
+        steps.append(train)
+        steps.append(["eval", str(work), *threads])
+        steps.append(["render", str(work), "--cameras", str(scene / "Track"), "--out", str(out / "track"), *threads])
+        for argv in steps:
+            log.info("dibrgs %s", " ".join(argv))
+            rc = dibrgs(argv)
+            if rc:
+                log.error("step 'dibrgs %s' failed with exit code %d", argv[0], rc)
+                return rc
     print(f"\nDIBR-GS demo finished in {time.perf_counter() - t0:.0f} s. Wrote:")
     for rel, what in [("scene", "generated LEVIR-NVS scene (Images, Cams, Depths, Track)"),
                       ("work/init/points.ply", "dense initial point cloud"),

@@ -1,13 +1,17 @@
 """``dibrgs eval WORK``: held-out PSNR / SSIM (scikit-image), LPIPS + AVGE with local weights, FPS.
 
-Writes ``WORK/metrics.json`` and the held-out renders to ``WORK/renders/``. Without
-``--lpips`` LPIPS and AVGE are reported as unavailable (null), never estimated.
+The held-out views are the run's own (recorded in ``WORK/config.json`` when it trained), so a
+split chosen with ``--train``/``--test`` or ``split.json`` is evaluated as trained. Writes
+``WORK/metrics.json`` (strict JSON: an undefined or infinite metric is ``null`` with the reason)
+and the held-out renders to ``WORK/renders/``. Without ``--lpips`` LPIPS and AVGE are reported as
+unavailable (null), never estimated.
 """
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from .options import add_threads, apply_threads, locked, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,19 +22,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="local LPIPS weights (lpips package layout: full LPIPS state dict, or the linear heads "
                         "weights/v0.1/vgg.pth with --lpips-backbone)")
     p.add_argument("--lpips-backbone", default=None, help="torchvision vgg16/alexnet state dict for the heads-only file")
-    p.add_argument("--fps-repeats", type=int, default=3, help="passes over the held-out views when timing")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: on a shared machine more threads stall on each other)")
+    p.add_argument("--fps-repeats", type=positive_int, default=3, help="passes over the held-out views when timing")
+    add_threads(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    from ..common.errors import InputError
+    from ..common.fileio import dumps
 
-    from ..evaluation.evaluate import evaluate
+    if not args.work.is_dir():
+        raise InputError(args.work, "no trained model here (no such folder); run `dibrgs train` first"
+                         if not args.work.exists() else "is a file, not a run folder")
+    with locked(args.work, "eval"):  # before torch is imported: a second writer hears at once
+        apply_threads(args)
+        from ..evaluation.evaluate import evaluate
 
-    torch.set_num_threads(max(1, args.threads))
-    m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)
+        m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)
     summary = {k: m[k] for k in ("psnr", "ssim", "lpips", "avge", "fps", "views")}
-    print(json.dumps(summary))
+    print(dumps(summary, indent=None))
     return 0

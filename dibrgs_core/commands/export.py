@@ -3,12 +3,15 @@
 x, y, z, normals (0), f_dc_0..2 (+ f_rest_* for the 3DGS baseline), opacity
 (logit), scale_0..2 (log) and rot_0..3 (w, x, y, z), readable by common
 Gaussian-splatting viewers. DIBR-GS's view-dependent neural Gaussians are decoded
-once from the most central training camera.
+once from the most central training camera. FILE is written atomically; a symbolic
+link is followed, and anything but a regular file (a folder, a FIFO, a device) is refused.
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from .options import add_threads, apply_threads
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -16,18 +19,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("work", type=Path, help="run folder of `dibrgs train`")
     p.add_argument("--ply", type=Path, required=True, help="output PLY file")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: on a shared machine more threads stall on each other)")
+    add_threads(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
+    from ..common.fileio import resolve_target
     from ..evaluation.export import export_ply
 
-    torch.set_num_threads(max(1, args.threads))
-
+    resolve_target(args.ply)  # refuse a folder or device before the model is read
+    apply_threads(args)
     n = export_ply(args.work, args.ply)
     print(f"wrote {n} Gaussians to {args.ply}")
     return 0

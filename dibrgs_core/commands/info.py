@@ -1,6 +1,7 @@
 """``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder or COLMAP model).
 
-Prints the number of views, resolution, train/test split, depth range, the
+Prints the number of views, resolution, train/test split and where it came from
+(``--train``/``--test``, ``split.json`` or the default), depth range, the
 up axis estimated from the cameras (with its confidence), the mean angle off
 nadir and the circular orbit fitted through the orbit views. Bad input exits
 with code 2 and a message naming the file.
@@ -8,17 +9,18 @@ with code 2 and a message naming the file.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+
+from .options import add_split
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a JSON summary of a scene", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS layout or COLMAP model)")
-    p.add_argument("--train", default=None, help="comma-separated training view ids (default 001,008,015)")
+    add_split(p)
     p.set_defaults(func=run)
 
 
@@ -37,6 +39,7 @@ def summarize(scene) -> dict:
         "resolution": [W, H],
         "train": scene.train,
         "test": scene.test,
+        "split_source": scene.split_source,
         "track_cameras": len(scene.track),
         "up": np.round(up, 6).tolist(),
         "up_confidence": round(float(conf), 6),
@@ -60,7 +63,8 @@ def summarize(scene) -> dict:
 def run(args: argparse.Namespace) -> int:
     from ..data.load import read_any_scene
 
-    train = [s.strip() for s in args.train.split(",") if s.strip()] if args.train else None
-    scene = read_any_scene(args.scene, train_ids=train)
-    print(json.dumps(summarize(scene), indent=2))
+    from ..common.fileio import dumps
+
+    scene = read_any_scene(args.scene, train_ids=args.train, test_ids=args.test)
+    print(dumps(summarize(scene)))
     return 0

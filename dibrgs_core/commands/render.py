@@ -3,11 +3,14 @@
 PATH is a LEVIR-NVS Cams file, a folder of them, or a JSON camera list. Each
 camera gives ``DIR/NAME.png`` (named after the camera, e.g. ``002.png`` for
 ``Cams/002.txt``) and its z-depth ``DIR/NAME_depth.exr`` (0 where nothing was hit).
+``DIR`` has one writer at a time (a second render into it is refused).
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from .options import add_threads, apply_threads, locked
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -17,32 +20,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", type=Path, required=True, help="Cams file, folder of Cams files or JSON list")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--no-depth", action="store_true", help="skip the depth EXR files")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: on a shared machine more threads stall on each other)")
+    add_threads(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
     from tqdm import tqdm
 
     from ..common.errors import InputError
-    from ..evaluation.evaluate import load_trained
-    from ..data.levir import read_cameras
-    from ..data.images import write_depth_exr, write_png
 
-    torch.set_num_threads(max(1, args.threads))
-    tr = load_trained(args.work)
-    cams = read_cameras(args.cameras)
-    if not cams:
-        raise InputError(args.cameras, "no cameras found")
-    names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]
-    if len(set(names)) != len(names):
-        names = [f"{i:03d}_{n}" for i, n in enumerate(names)]
-    for cam, name in tqdm(list(zip(cams, names)), desc="render", unit="view", disable=None):
-        img, depth = tr.render(cam)
-        write_png(args.out / f"{name}.png", img)
-        if not args.no_depth:
-            write_depth_exr(args.out / f"{name}_depth.exr", depth)
+    with locked(args.out, "render"):
+        apply_threads(args)
+        from ..data.images import write_depth_exr, write_png
+        from ..data.levir import read_cameras
+        from ..evaluation.evaluate import load_trained
+
+        tr = load_trained(args.work)
+        cams = read_cameras(args.cameras)
+        if not cams:
+            raise InputError(args.cameras, "no cameras found")
+        names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]
+        if len(set(names)) != len(names):
+            names = [f"{i:03d}_{n}" for i, n in enumerate(names)]
+        for cam, name in tqdm(list(zip(cams, names)), desc="render", unit="view", disable=None):
+            img, depth = tr.render(cam)
+            write_png(args.out / f"{name}.png", img)
+            if not args.no_depth:
+                write_depth_exr(args.out / f"{name}_depth.exr", depth)
     print(f"rendered {len(cams)} cameras to {args.out}")
     return 0

@@ -1,10 +1,14 @@
 """``dibrgs train SCENE --out WORK``: train DIBR-GS (or the 3DGS baseline) on a scene.
 
-Runs the geometry initialisation first when ``WORK/init`` does not hold one made
-with the same options. Progress is shown with tqdm; ``--progress-json`` also
-prints one JSON object per line on stdout (``iteration``, ``total``, ``loss``,
-``eta_s``, ``elapsed_s``; finally ``{"done": true, "work": ...}``). SIGINT / SIGTERM
-write a checkpoint and stop; ``--resume`` continues a stopped run to the same result.
+The training and held-out views are the scene's split: ``--train`` / ``--test``, else the scene's
+``split.json``, else the default (LEVIR-NVS: 001/008/015). Runs the geometry initialisation first
+unless ``WORK/init`` holds one made from the same training views with the same depth prior.
+Progress is shown with tqdm; ``--progress-json`` also prints one JSON object per line on stdout
+(``iteration``, ``total``, ``loss``, ``eta_s``, ``elapsed_s``; finally ``{"done": true, "work": ...}``).
+SIGINT / SIGTERM write a checkpoint and stop; ``--resume`` continues a stopped run to the same
+result when asked with the same options (more ``--iterations`` are fine; any other change is refused
+with the list of differences, or accepted with ``--force-config`` and recorded in report.json).
+Without ``--resume`` an earlier run in WORK is replaced. One process writes into WORK at a time.
 """
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ import logging
 from pathlib import Path
 
 from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
+from .options import (add_split, add_threads, apply_threads, locked, nonnegative_float, positive_int,
+                      resolution_scale, seed)
 
 log = logging.getLogger("dibrgs.train")
 
@@ -25,10 +31,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", default="cpu", choices=choices(PresetName),
                    help="numbers to use: the paper's (30k its), cpu (256x256 in < 20 min on 2 cores), test")
     p.add_argument("--method", default="dibrgs", choices=choices(MethodName))
-    p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
-    p.add_argument("--resolution-scale", type=float, default=None, help="resize the images by this factor")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--resume", action="store_true", help="continue from WORK/checkpoint.pt if present")
+    p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
+    p.add_argument("--resolution-scale", type=resolution_scale, default=None,
+                   help="resize the images by this factor, in (0, 4]")
+    p.add_argument("--seed", type=seed, default=None)
+    add_split(p)
+    p.add_argument("--resume", action="store_true",
+                   help="continue from WORK/checkpoint.pt if present: the same scene and split, and the same "
+                        "options (more --iterations are fine; other changes are refused with the list)")
+    p.add_argument("--force-config", action="store_true",
+                   help="with --resume: accept changed options (recorded in report.json)")
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of orbit samples (LEVIR Cams file/folder or JSON list)")
@@ -41,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pseudo views: auto (skip with >= 10 training views), on, off")
     g.add_argument("--pseudo-surface", default="auto", choices=choices(Switch),
                    help="fill pseudo-view depth holes from a height field of the cloud (auto: near-nadir views)")
-    g.add_argument("--pseudo-consistency", type=float, default=None, metavar="TOL",
+    g.add_argument("--pseudo-consistency", type=nonnegative_float, default=None, metavar="TOL",
                    help="leave out pseudo-view pixels two training views colour more than TOL apart "
                         "(mean |RGB| in [0,1]; 0 keeps all; default 0.1)")
     g.add_argument("--depth-prior", default="auto", choices=choices(DepthPrior),
@@ -50,8 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--dino-resnet", default=None, help="dino_resnet50_pretrain.pth")
     w.add_argument("--dino-vit", default=None, help="dino_vitbase8_pretrain.pth")
     w.add_argument("--depth-model", default=None, help="local Depth Anything V2 transformers folder")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: on a shared machine more threads stall on each other)")
+    add_threads(p)
     p.set_defaults(func=run)
 
 
@@ -62,10 +73,6 @@ def config_from_args(args: argparse.Namespace):
     cfg = preset(args.preset)
     cfg.method = args.method
     if args.iterations is not None:
-        if args.iterations < 1:
-            from ..common.errors import InputError
-
-            raise InputError(None, f"--iterations must be positive, got {args.iterations}")
         cfg.iterations = args.iterations
     if args.resolution_scale is not None:
         cfg.resolution_scale = args.resolution_scale
@@ -77,10 +84,6 @@ def config_from_args(args: argparse.Namespace):
     cfg.pseudo.mode = "off" if args.no_pseudo else (args.pseudo or "auto")
     cfg.pseudo.surface = args.pseudo_surface
     if args.pseudo_consistency is not None:
-        if not (args.pseudo_consistency >= 0.0):
-            from ..common.errors import InputError
-
-            raise InputError(None, f"--pseudo-consistency must be >= 0, got {args.pseudo_consistency}")
         cfg.pseudo.consistency_tol = args.pseudo_consistency
     cfg.depth_prior = args.depth_prior
     cfg.dino_resnet = args.dino_resnet
@@ -90,25 +93,30 @@ def config_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    import sys
 
-    from ..training.methods import TrainingFailed
-    from ..training.trainer import Trainer
+    if args.force_config and not args.resume:
+        from ..common.errors import InputError
 
-    torch.set_num_threads(max(1, args.threads))
-    cfg = config_from_args(args)
-    tr = Trainer(args.scene, args.out, cfg, resume=args.resume, progress_json=args.progress_json,
-                 depth_model=args.depth_model)
-    try:
-        res = tr.run()
-    except TrainingFailed as e:
-        log.error("training failed: %s", e)
-        print(f"dibrgs train: training failed: {e}", file=__import__("sys").stderr)
-        return 3
+        raise InputError(None, "--force-config only applies with --resume")
+    with locked(args.out, "train"):  # before torch is imported: a second writer hears at once
+        apply_threads(args)
+        from ..training.methods import TrainingFailed
+        from ..training.trainer import Trainer
+
+        cfg = config_from_args(args)
+        tr = Trainer(args.scene, args.out, cfg, resume=args.resume, progress_json=args.progress_json,
+                     depth_model=args.depth_model, train_ids=args.train, test_ids=args.test,
+                     force_config=args.force_config)
+        try:
+            res = tr.run()
+        except TrainingFailed as e:
+            log.error("training failed: %s", e)
+            print(f"dibrgs train: training failed: {e}", file=sys.stderr)
+            return 3
     if res.status != "done":
-        print(f"dibrgs train: stopped at iteration {res.iteration}; continue with --resume",
-              file=__import__("sys").stderr)
+        print(f"dibrgs train: stopped at iteration {res.iteration}; continue with --resume", file=sys.stderr)
         return 130
-    log.info("trained %s: %d iterations in %.0f s (%s); run folder %s", cfg.method, res.iteration, res.seconds,
+    log.info("trained %s: %d iterations in %.0f s (%s); run folder %s", tr.cfg.method, res.iteration, res.seconds,
              ", ".join(f"{k} {v}" for k, v in res.sizes.items()), res.work)
     return 0

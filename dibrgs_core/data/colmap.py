@@ -7,10 +7,21 @@ Accepted layouts (the first that holds ``cameras.bin`` or ``cameras.txt`` wins):
     ROOT/{cameras,images,points3D}.{bin,txt}            + ROOT/images/<name>
 
 COLMAP poses are world-to-camera with OpenCV axes and pixel centres at +0.5,
-the project's own convention, so they are taken over unchanged. Only
-undistorted pinhole cameras are accepted (distortion parameters all 0):
-run ``colmap image_undistorter`` first otherwise. View ids are the image file
-stems; the split follows :func:`~dibrgs_core.data.levir.default_split`.
+the project's own convention, so they are taken over unchanged. Pinhole
+cameras are used as they are; ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and
+``FULL_OPENCV`` cameras with distortion are undistorted on load
+(:mod:`.undistort`: pycolmap, cached); fisheye models are refused. When the
+undistorted photos of several cameras differ in size by a few pixels, all are
+cropped about their centres to the common size (the principal point moves with
+the crop, so the pinholes stay exact).
+
+Photos: JPEG, PNG or TIFF, any aspect ratio. COLMAP reconstructs from the
+stored pixel order and ignores EXIF orientation, so the stored order is used
+when it matches the camera's size; a photo that matches only when turned
+upright (a model made from rotated copies) is turned upright.
+
+View ids are the image file stems; the split comes from ``--train``/``--test``,
+``split.json`` or :func:`~dibrgs_core.data.scene.default_split`.
 """
 from __future__ import annotations
 
@@ -23,13 +34,10 @@ import numpy as np
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from .scene import Scene, View, make_split, validate_camera_arrays
-from .images import read_image
+from .images import image_size, read_image
+from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 
 log = logging.getLogger("dibrgs.io_colmap")
-
-_PINHOLE_LIKE = {"SIMPLE_PINHOLE", "PINHOLE"}
-# Perspective models that are pinholes when their distortion parameters are all 0.
-_DISTORTED_PINHOLE = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
 
 
 def find_colmap_model(root: str | Path) -> Path | None:
@@ -39,19 +47,6 @@ def find_colmap_model(root: str | Path) -> Path | None:
         if (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file():
             return d
     return None
-
-
-def _camera_K(cam, where: Path) -> np.ndarray:
-    """3x3 K of a pycolmap camera; InputError for fisheye models or non-zero distortion."""
-    model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
-    if model not in _PINHOLE_LIKE:
-        if model not in _DISTORTED_PINHOLE:
-            raise InputError(where, f"camera {cam.camera_id}: model {model} is not a pinhole model")
-        extra = np.asarray(cam.params, dtype=np.float64)[list(cam.extra_params_idxs())]
-        if np.any(extra != 0):
-            raise InputError(where, f"camera {cam.camera_id}: model {model} has distortion {extra.tolist()}; "
-                                    "undistort the images first (colmap image_undistorter)")
-    return np.asarray(cam.calibration_matrix(), dtype=np.float64)
 
 
 def read_colmap_cameras(root: str | Path) -> list[Camera]:
@@ -80,6 +75,7 @@ def _load(root: str | Path):
 
 
 def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:
+    """(camera as loaded - undistorted where the model has distortion -, image name) of every posed image."""
     out: list[tuple[Camera, str]] = []
     seen: dict[str, str] = {}
     for img in sorted(rec.images.values(), key=lambda im: im.name):
@@ -87,7 +83,9 @@ def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:
             log.warning("%s: image %s has no pose, skipped", model_dir, img.name)
             continue
         cam = rec.cameras[img.camera_id]
-        K = _camera_K(cam, model_dir)
+        if check_model(cam, model_dir):
+            cam = undistorted_camera(cam)
+        K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
         validate_camera_arrays(w2c, K, None, model_dir)
@@ -111,26 +109,71 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
     views: dict[str, View] = {}
+    by_name = {im.name: im for im in rec.images.values()}
+    undistorted = 0
     for cam, name in _cameras(rec, model_dir):
         path = img_dir / name
         if not path.is_file():
             raise InputError(path, "image file missing (listed in the COLMAP model)")
-        image = read_image(path)
+        ccam = rec.cameras[by_name[name].camera_id]
+        oriented = _orientation(path, ccam.width, ccam.height)
+        if check_model(ccam, model_dir):
+            u = undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented))
+            image = u.image
+            undistorted += 1
+        else:
+            image = read_image(path, orient=oriented)
         h, w = image.shape[:2]
         if (w, h) != (cam.width, cam.height):
             raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
         views[cam.name] = View(camera=cam, image=image)
+    if undistorted:
+        log.info("%s: %d photos undistorted (pycolmap; cache %s)", model_dir, undistorted, cache_dir())
     sizes = {(v.camera.width, v.camera.height) for v in views.values()}
+    if len(sizes) > 1 and undistorted:
+        views = _crop_to_common(views)
+        sizes = {(v.camera.width, v.camera.height) for v in views.values()}
     if len(sizes) > 1:
         raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
     ids = sorted(views)
     views = {k: views[k] for k in ids}
     try:
-        train, test = make_split(root, ids, train_ids, test_ids)
+        train, test, source = make_split(root, ids, train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    log.info("read COLMAP model %s: %d views, train %s", model_dir, len(views), train)
-    return Scene(root=root, views=views, track=[], train=train, test=test)
+    log.info("read COLMAP model %s: %d views, train %s (split: %s)", model_dir, len(views), train, source)
+    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source)
+
+
+def _orientation(path: Path, width: int, height: int) -> bool:
+    """Whether to apply the photo's EXIF orientation: only when the stored pixels do not match the
+    COLMAP camera's size and the upright photo does (COLMAP itself ignores EXIF orientation)."""
+    raw = image_size(path, orient=False)
+    if raw == (width, height):
+        return False
+    upright = image_size(path, orient=True)
+    if upright == (width, height):
+        log.info("%s: turned upright by its EXIF orientation to match its COLMAP camera", path.name)
+        return True
+    return False
+
+
+def _crop_to_common(views: dict[str, View]) -> dict[str, View]:
+    """Views cropped about their centres to the smallest width and height among them (the principal
+    point moves with the crop, so each camera stays exact)."""
+    W = min(v.camera.width for v in views.values())
+    H = min(v.camera.height for v in views.values())
+    out = {}
+    for k, v in views.items():
+        c = v.camera
+        x0, y0 = (c.width - W) // 2, (c.height - H) // 2
+        K = c.K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        cam = Camera(K=K, w2c=c.w2c, width=W, height=H, name=c.name, depth_range=c.depth_range)
+        out[k] = View(camera=cam, image=np.ascontiguousarray(v.image[y0:y0 + H, x0:x0 + W]))
+    log.info("undistorted photos cropped to a common %dx%d", W, H)
+    return out
 
 
 def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool = True,

@@ -1,8 +1,9 @@
 """Images and depth maps on disk: PNG/JPEG/TIFF images (Pillow), float32 depth as TIFF
 (tifffile) or EXR (OpenEXR). Writers are atomic. Never torch or bpy.
 
-Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded); depth maps
-float32 (H, W) z-depth in world units, 0 = no depth.
+Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded), turned upright by their
+EXIF orientation unless a reader asks for the stored pixel order (COLMAP); depth maps float32
+(H, W) z-depth in world units, 0 = no depth.
 """
 from __future__ import annotations
 
@@ -20,25 +21,45 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DEPTH_EXTS = (".tiff", ".tif", ".exr")
 
 
-def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) from the image header."""
+#: EXIF orientations (tag 274) that swap width and height (transposed / rotated by 90 degrees).
+_TRANSPOSING = {5, 6, 7, 8}
+
+
+def exif_orientation(im) -> int:
+    """EXIF orientation (1-8) of an open PIL image; 1 (as stored) when absent or invalid."""
+    try:
+        o = int(im.getexif().get(0x0112, 1))
+    except Exception:  # a malformed EXIF block must not make the photo unreadable
+        return 1
+    return o if 1 <= o <= 8 else 1
+
+
+def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
+    """(width, height) from the image header, as displayed (EXIF orientation applied) with ``orient``."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
-            return im.size
+            w, h = im.size
+            return (h, w) if orient and exif_orientation(im) in _TRANSPOSING else (w, h)
     except (OSError, UnidentifiedImageError) as e:
         raise InputError(path, f"unreadable image ({e})") from None
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Float32 (H, W, 3) RGB in [0, 1]; 16-bit images are scaled by 1/65535, alpha is dropped."""
-    from PIL import Image, UnidentifiedImageError
+def read_image(path: str | Path, orient: bool = True) -> np.ndarray:
+    """Float32 (H, W, 3) RGB in [0, 1]; 16-bit images are scaled by 1/65535, alpha is dropped.
+
+    With ``orient`` the EXIF orientation of a photo is applied (the image as a viewer shows it);
+    ``orient=False`` keeps the stored pixel order (what COLMAP reconstructs from).
+    """
+    from PIL import Image, ImageOps, UnidentifiedImageError
 
     path = Path(path)
     try:
         with Image.open(path) as im:
             im.load()  # decodes fully: truncated files fail here
+            if orient and exif_orientation(im) != 1:
+                im = ImageOps.exif_transpose(im)
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(im, dtype=np.float32) / 65535.0
                 return np.repeat(a[..., None], 3, axis=2)

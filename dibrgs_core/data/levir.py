@@ -9,9 +9,12 @@ Layout of a scene folder::
                      0 or non-finite = no depth). Depths/NNN.exr (channel "Z") also read.
     Track/NNN.txt    optional render-path cameras, same format as Cams/
 
+    split.json       optional {"train": [names], "test": [names]} (see data.scene.make_split)
+
 Views 001-020 form the orbit; view 000 (near nadir) is in neither split by
 default. The standard 3-view protocol trains on the orbit views at indices
-0, 7 and 14 (001, 008, 015) and evaluates on the other 17.
+0, 7 and 14 (001, 008, 015) and evaluates on the other 17; ``split.json`` or
+``--train`` / ``--test`` choose others.
 
 Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 This module needs numpy, Pillow, tifffile and OpenEXR, never torch or bpy.
@@ -210,12 +213,12 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
         track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
                  if not p.name.startswith(".")]
     try:
-        train, test = make_split(root, list(views), train_ids, test_ids)
+        train, test, source = make_split(root, list(views), train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    log.info("read %s: %d views %dx%d, train %s, %d test, %d track cameras%s", root, len(views), size[0],
-             size[1], train, len(test), len(track), ", with depth" if use_depth else "")
-    return Scene(root=root, views=views, track=track, train=train, test=test)
+    log.info("read %s: %d views %dx%d, train %s, %d test (split: %s), %d track cameras%s", root, len(views),
+             size[0], size[1], train, len(test), source, len(track), ", with depth" if use_depth else "")
+    return Scene(root=root, views=views, track=track, train=train, test=test, split_source=source)
 
 
 def write_scene(root: str | Path, views: dict[str, View] | Iterable[View], track: Iterable[Camera] = ()) -> Path:

@@ -25,9 +25,12 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
                            "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
 
 
-def load_scene(root: str | Path) -> Scene:
-    """Read a scene folder for a run (``InputError`` when it does not exist or is no scene)."""
+def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
+               test_ids: Iterable[str] | None = None, load_depth: bool = True) -> Scene:
+    """Read a scene folder for a run, with its split (``--train`` / ``--test``, else ``split.json``,
+    else the default; :func:`~dibrgs_core.data.scene.make_split`). ``InputError`` when it does not
+    exist or is no scene."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(root, "scene folder does not exist")
-    return read_any_scene(root)
+        raise InputError(root, "scene folder does not exist" if not root.exists() else "not a folder")
+    return read_any_scene(root, train_ids=train_ids, test_ids=test_ids, load_depth=load_depth)

@@ -1,5 +1,6 @@
 """The scene model every reader fills: views (camera, image, optional depth), a render track and
-the train/test split; camera validation shared by the readers.
+the train/test split; the split itself (``split.json``, ``--train`` / ``--test``, the defaults);
+content digests; camera validation shared by the readers.
 
 Cameras are :class:`~dibrgs_core.camera.pinhole.Camera` (OpenCV axes, world-to-camera);
 images float32 RGB in [0, 1]; depth z-depth in world units (0 = unknown).
@@ -14,7 +15,9 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..camera.pinhole import Camera
+from ..common.digest import Digest
 from ..common.errors import InputError
+from ..common.limits import MIN_TRAIN_VIEWS
 
 
 @dataclass
@@ -45,6 +48,7 @@ class Scene:
         views: view id -> :class:`View`, sorted by id.
         track: render-path cameras (may be empty).
         train, test: view ids of the split.
+        split_source: where the split came from (``--train``/``--test``, ``split.json``, the default).
     """
 
     root: Path
@@ -52,6 +56,7 @@ class Scene:
     track: list[Camera] = field(default_factory=list)
     train: list[str] = field(default_factory=list)
     test: list[str] = field(default_factory=list)
+    split_source: str = "default"
 
     def train_views(self) -> list[View]:
         return [self.views[i] for i in self.train]
@@ -70,6 +75,27 @@ class Scene:
         c = next(iter(self.views.values())).camera
         return c.width, c.height
 
+    def digest(self) -> str:
+        """Digest of the scene's content (every view's name, camera and image; not its path):
+        two runs of the same digest are runs of the same scene."""
+        return views_digest(self.views.values())
+
+
+def views_digest(views: Iterable[View], depth: bool = False) -> str:
+    """Digest of views' names, cameras (K, w2c, size) and images, and of their depth maps with
+    ``depth`` (see :mod:`dibrgs_core.common.digest`)."""
+    d = Digest("views/1")
+    for v in views:
+        c = v.camera
+        d.text(v.name).array(np.asarray(c.K, np.float64)).array(np.asarray(c.w2c, np.float64))
+        d.json([int(c.width), int(c.height)]).array(np.asarray(v.image, np.float32))
+        if depth:
+            d.array(np.zeros(0, np.float32) if v.depth is None else np.asarray(v.depth, np.float32))
+    return d.hex()
+
+
+SPLIT_FILE = "split.json"
+
 
 def orbit_ids(ids: Sequence[str]) -> list[str]:
     """The orbit views among ``ids``: all but the near-nadir view 000 of a 21-view LEVIR scene."""
@@ -80,42 +106,131 @@ def orbit_ids(ids: Sequence[str]) -> list[str]:
 
 
 def default_split(ids: Sequence[str], n_train: int = 3) -> tuple[list[str], list[str]]:
-    """LEVIR-NVS sparse-view protocol: ``n_train`` evenly spaced orbit views
-    (indices ceil(i * n / n_train): 0, 7, 14 of 20) train, the other orbit views test."""
+    """The split without ``split.json`` or ``--train``: ``n_train`` evenly spaced views (indices
+    ``ceil(i * n / n_train)`` in name order) train, the others test.
+
+    For a 21-view LEVIR-NVS scene the near-nadir view 000 is left out of both and the 20 orbit
+    views give the paper's protocol: train 001, 008, 015 (indices 0, 7, 14), test the other 17.
+    Any other scene (COLMAP, a folder of photos) uses all its views in name order: 9 photos give
+    training views 1, 4 and 7 (indices 0, 3, 6)."""
     orbit = orbit_ids(ids)
     if len(orbit) < 2:
-        raise ValueError("need at least 2 orbit views for a train/test split")
+        raise ValueError("need at least 2 views for a train/test split")
     n_train = min(n_train, len(orbit) - 1)
     idx = sorted({math.ceil(i * len(orbit) / n_train) for i in range(n_train)})
     train = [orbit[i] for i in idx]
     return train, [i for i in orbit if i not in train]
 
 
+def match_names(names: Iterable[str | int], ids: Sequence[str], where: str | Path | None, what: str) -> list[str]:
+    """View ids of ``names``: exact ids, file names (``DJI_0019.png`` for ``DJI_0019``) or LEVIR
+    numbers (``8`` for ``008``). ``InputError`` naming ``where`` lists any name not in the scene."""
+    from .images import IMAGE_EXTS
+
+    known = set(ids)
+    out, bad = [], []
+    for n in names:
+        s = str(n).strip()
+        p = Path(s)
+        cands = [s, p.stem if p.suffix.lower() in IMAGE_EXTS else s, _norm_id(s)]
+        hit = next((c for c in cands if c in known), None)
+        if hit is None:
+            bad.append(s)
+        elif hit not in out:
+            out.append(hit)
+    if bad:
+        shown = ", ".join(list(ids)[:12]) + (", ..." if len(ids) > 12 else "")
+        raise InputError(where, f"{what}: {', '.join(map(repr, bad))} not in the scene (its views: {shown})")
+    return out
+
+
+def read_split_file(path: Path) -> tuple[list | None, list | None]:
+    """The ``train`` / ``test`` name lists of a ``split.json`` (``InputError`` naming it when malformed)."""
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(path, f"unreadable split file ({e}); expected {{\"train\": [names], \"test\": [names]}}") from None
+    if not isinstance(data, dict) or not ({"train", "test"} & set(data)):
+        raise InputError(path, 'expected an object {"train": [names], "test": [names]}')
+    out = []
+    for key in ("train", "test"):
+        v = data.get(key)
+        if v is not None and (not isinstance(v, list) or not all(isinstance(x, (str, int)) for x in v)):
+            raise InputError(path, f'"{key}" must be a list of view names')
+        out.append(v)
+    return out[0], out[1]
+
+
 def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
-               test_ids: Iterable[str] | None = None) -> tuple[list[str], list[str]]:
-    """Train/test ids: the default protocol, or the given train ids (test = the other orbit views)."""
-    if train_ids is None:
-        if test_ids is not None:
-            raise ValueError("test_ids needs train_ids")
-        return default_split(ids)
-    train = [_norm_id(i) for i in train_ids]
-    missing = [i for i in train if i not in ids]
-    if missing:
-        raise InputError(root, f"train views {missing} not in the scene (views: {', '.join(ids)})")
-    if test_ids is None:
-        test = [i for i in orbit_ids(ids) if i not in train]
-    else:
-        test = [_norm_id(i) for i in test_ids]
-        missing = [i for i in test if i not in ids]
-        if missing:
-            raise InputError(root, f"test views {missing} not in the scene")
-    return train, test
+               test_ids: Iterable[str] | None = None) -> tuple[list[str], list[str], str]:
+    """Train and test ids of a scene, and where they came from.
+
+    In order: ``train_ids`` / ``test_ids`` (the ``--train`` / ``--test`` options; each overrides
+    its own part), then ``ROOT/split.json`` (``{"train": [...], "test": [...]}``, names with or
+    without extension), then :func:`default_split`. A part not given explicitly comes from the
+    next source, less the views the explicit part names. A name not in the scene is an
+    ``InputError``, as is a view in both parts.
+    """
+    root = Path(root)
+    src: list[str] = []
+    train = match_names(train_ids, ids, None, "--train") if train_ids is not None else None
+    test = match_names(test_ids, ids, None, "--test") if test_ids is not None else None
+    if train is not None:
+        src.append("--train")
+    if test is not None:
+        src.append("--test")
+    split_file = root / SPLIT_FILE
+    if split_file.exists() and not split_file.is_file():
+        raise InputError(split_file, "is not a file; split.json must be a JSON file (or absent)")
+    if (train is None or test is None) and split_file.is_file():
+        f_train, f_test = read_split_file(split_file)
+        used = False
+        # An explicit part wins over the file's other part; the file's own two parts must not overlap.
+        if train is None and f_train is not None:
+            train = [i for i in match_names(f_train, ids, split_file, "train") if i not in (test or [])]
+            used = True
+        if test is None and f_test is not None:
+            test = [i for i in match_names(f_test, ids, split_file, "test")
+                    if train_ids is None or i not in train]
+            used = True
+        if used:
+            src.append(str(split_file))
+    if train is None or test is None:
+        if train is None:
+            d_train, _ = default_split(ids)
+            train = [i for i in d_train if i not in (test or [])]
+            if test is None:
+                test = [i for i in orbit_ids(ids) if i not in train]
+        else:
+            test = [i for i in orbit_ids(ids) if i not in train]
+        src.append("default (LEVIR-NVS 3-view protocol)" if len(ids) == 21 and sorted(ids)[0] == "000"
+                   else "default (3 evenly spaced views in name order)")
+    both = sorted(set(train) & set(test))
+    if both:
+        where = None if train_ids is not None and test_ids is not None else (
+            split_file if str(split_file) in src else root)
+        raise InputError(where, f"views {both} are in both the training and the test set")
+    if not train:
+        raise InputError(root, "the split leaves no training view")
+    return train, test, " + ".join(src)
 
 
 def _norm_id(i: str | int) -> str:
     """Accept 8 or "8" or "008" for view 008."""
     s = str(i)
     return f"{int(s):03d}" if s.isdigit() and len(s) < 3 else s
+
+
+def require_train_views(scene: "Scene", minimum: int = MIN_TRAIN_VIEWS) -> None:
+    """``InputError`` unless the scene's split has ``minimum`` training views: SfM with known poses,
+    the plane sweep and the IBR features all work between training views, and a single view
+    trains a model that only reproduces it."""
+    if len(scene.train) < minimum:
+        raise InputError(scene.root, f"{len(scene.train)} training view ({', '.join(scene.train) or 'none'}; "
+                                     f"split from {scene.split_source}): DIBR-GS and the 3DGS baseline need at "
+                                     f"least {minimum}; name more with --train or in {SPLIT_FILE}")
 
 
 def validate_camera_arrays(w2c: np.ndarray, K: np.ndarray, depth_range: tuple[float, float] | None,

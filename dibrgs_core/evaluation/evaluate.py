@@ -87,9 +87,25 @@ def avge(psnr: float, ssim: float, lpips: float) -> float:
 # ---------------------------------------------------------------------------
 # Evaluation
 # ---------------------------------------------------------------------------
+def run_split(work: Path, scene_root: str) -> tuple[list[str] | None, list[str] | None, str | None]:
+    """(train, test, scene digest) the run in ``work`` recorded in its ``config.json`` (Nones when
+    it recorded none: runs from before the split was recorded use the scene's own split)."""
+    import json
+
+    try:
+        d = json.loads((work / "config.json").read_text())
+        run = d.get("run") or {}
+        return run.get("train"), run.get("test"), run.get("digest")
+    except (OSError, ValueError, AttributeError):
+        return None, None, None
+
+
 def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_backbone: str | Path | None = None,
              fps_repeats: int = 3, write_renders: bool = True) -> dict[str, Any]:
-    """Evaluate ``WORK`` on its scene's held-out views; writes ``metrics.json`` and ``renders/``."""
+    """Evaluate ``WORK`` on its run's held-out views; writes ``metrics.json`` and ``renders/``.
+
+    ``metrics.json`` is strict JSON: a metric that is infinite (PSNR of a render identical to its
+    image) or undefined is ``null``, with the reason under ``undefined``."""
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
     from tqdm import tqdm
 
@@ -100,19 +116,28 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     work = Path(work)
     tr = load_trained(work)
     lp = load_lpips(lpips_weights, lpips_backbone) if lpips_weights else None
-    scene = load_scene(tr.scene)
+    train, test, digest = run_split(work, tr.scene)
+    scene = load_scene(tr.scene, train, test, load_depth=False)
+    if digest is not None and scene.digest() != digest:
+        raise InputError(tr.scene, f"the scene changed since {work} was trained on it (its digest was {digest}, "
+                                   f"now {scene.digest()}); train again to evaluate on it")
     frames = views_to_frames(scene.test_views(), tr.cfg.resolution_scale)
     if not frames:
-        raise InputError(tr.scene, "the scene has no held-out views to evaluate")
-    per_view = {}
+        raise InputError(tr.scene, "the run's split has no held-out views to evaluate")
+    per_view: dict[str, dict[str, Any]] = {}
+    undefined: dict[str, str] = {}
     renders = []
     for f in tqdm(frames, desc="eval", unit="view", disable=None):
         img, _ = tr.render(f.cam.cam)
         gt = f.image.numpy()
-        p = float(peak_signal_noise_ratio(gt, img, data_range=1.0))
+        with np.errstate(divide="ignore"):
+            p = float(peak_signal_noise_ratio(gt, img, data_range=1.0))
         s = float(structural_similarity(gt, img, channel_axis=2, data_range=1.0, gaussian_weights=True,
                                         sigma=1.5, use_sample_covariance=False))
         row: dict[str, Any] = {"psnr": p, "ssim": s}
+        if not math.isfinite(p):
+            row["psnr"] = None
+            undefined[f"per_view.{f.cam.cam.name}.psnr"] = "infinite: the render equals the image (MSE 0)"
         if lp is not None:
             row["lpips"] = float(lp(torch.from_numpy(img), f.image))
         per_view[f.cam.cam.name] = row
@@ -128,13 +153,18 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
             tr.render(f.cam.cam)
             n += 1
     fps = n / (time.perf_counter() - t0)
-    psnr = float(np.mean([r["psnr"] for r in per_view.values()]))
+    finite = [r["psnr"] for r in per_view.values() if r["psnr"] is not None]
+    psnr = float(np.mean(finite)) if len(finite) == len(per_view) else math.inf
     ssim = float(np.mean([r["ssim"] for r in per_view.values()]))
     metrics: dict[str, Any] = {"psnr": psnr, "ssim": ssim, "fps": fps, "views": len(frames),
                                "method": tr.method, "preset": tr.cfg.preset, **tr.sizes}
+    if not math.isfinite(psnr):
+        metrics["psnr"] = None
+        undefined["psnr"] = (f"infinite: {len(per_view) - len(finite)} of {len(per_view)} held-out renders equal "
+                             "their images, so the mean PSNR is infinite")
     if lp is not None:
         metrics["lpips"] = float(np.mean([r["lpips"] for r in per_view.values()]))
-        metrics["avge"] = avge(psnr, ssim, metrics["lpips"])
+        metrics["avge"] = avge(psnr, ssim, metrics["lpips"]) if math.isfinite(psnr) else 0.0
     else:
         metrics["lpips"] = None
         metrics["avge"] = None
@@ -143,14 +173,22 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     if rep_path.exists():
         import json
 
-        vals = json.loads(rep_path.read_text()).get("values", {})
+        try:
+            vals = json.loads(rep_path.read_text()).get("values", {})
+        except (OSError, ValueError, AttributeError) as e:
+            log.warning("%s unreadable (%s); training figures left out of the metrics", rep_path, e)
+            vals = {}
         metrics["train_seconds"] = vals.get("train_seconds")
         metrics["iterations"] = vals.get("iteration")
         metrics["train_peak_memory_mib"] = vals.get("train_peak_memory_mib")
     metrics["eval_peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     metrics["peak_memory_mib"] = max(v for v in (metrics.get("train_peak_memory_mib"),
                                                  metrics["eval_peak_memory_mib"]) if v is not None)
+    metrics["split"] = {"train": list(scene.train), "test": list(scene.test), "source": scene.split_source
+                        if train is None else f"the run ({work / 'config.json'})"}
     metrics["per_view"] = per_view
+    if undefined:
+        metrics["undefined"] = undefined
     write_json(work / "metrics.json", metrics)
     log.info("held-out PSNR %.2f dB, SSIM %.4f, LPIPS %s, %.1f FPS over %d views", psnr, ssim,
              "n/a" if lp is None else f"{metrics['lpips']:.4f}", fps, len(frames))

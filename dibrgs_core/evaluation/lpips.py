@@ -129,7 +129,10 @@ def load_lpips(weights: str | Path, backbone: str | Path | None = None, net: str
         bb = Path(backbone)
         if not bb.is_file():
             raise InputError(bb, "LPIPS backbone weights not found")
-        bsd = torch.load(bb, map_location="cpu", weights_only=True)
+        try:
+            bsd = torch.load(bb, map_location="cpu", weights_only=True)
+        except Exception as e:  # torch raises many types for corrupt files
+            raise InputError(bb, f"not a torch state dict ({e})") from None
         slices = _VGG_SLICES if net == "vgg" else _ALEX_SLICES
         for k, (a, b) in enumerate(slices, 1):
             for i in range(a, b):

@@ -56,8 +56,9 @@ def load_depth_anything(path: str | Path):
     try:
         model = DepthAnythingForDepthEstimation.from_pretrained(p, local_files_only=True)
         processor = AutoImageProcessor.from_pretrained(p, local_files_only=True)
-    except (OSError, ValueError) as e:
-        raise InputError(p, f"cannot load the Depth Anything model given by --depth-model: {e}") from None
+    except Exception as e:  # OSError, ValueError, safetensors' own error for damaged weights, ...
+        raise InputError(p, f"cannot load the Depth Anything model given by --depth-model "
+                            f"({type(e).__name__}: {e}); check or replace the files") from None
     model.eval()
     return model, processor
 

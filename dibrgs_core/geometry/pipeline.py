@@ -181,7 +181,8 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     report = Report()
     t0 = time.time()
     geo = scene_geometry(scene, cfg)
-    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, config=_config_dict(cfg))
+    report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, config=_config_dict(cfg),
+                         inputs=init_inputs(scene, cfg), train=[c.name for c in geo.cameras])
     sparse = run_sparse(geo, cfg, report)
     sfm_reference(geo, sparse, cfg, report)
     report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)
@@ -248,22 +249,44 @@ def _record_coverage(geo: SceneGeometry, depths: list[np.ndarray], report: Repor
     log.info("prior depth on %s of the training pixels", ", ".join(f"{100 * v:.1f} %" for v in cov.values()))
 
 
-def load_result(out_dir: str | Path, config: InitConfig) -> InitResult | None:
-    """The result :func:`initialise` saved in ``out_dir``, or None when there is none or it was
-    made with another depth prior or depth model."""
+def init_inputs(scene: Any, config: InitConfig) -> str:
+    """Digest of what an initialisation reads from the scene: its training views' names, cameras
+    and images, and their depth maps when the prior is the oracle (``gt``)."""
+    from ..data.scene import views_digest
+
+    return views_digest(scene.train_views(), depth=config.depth_prior == "gt")
+
+
+def load_result(out_dir: str | Path, config: InitConfig, inputs: str | None = None) -> InitResult | None:
+    """The result :func:`initialise` saved in ``out_dir``, or None when there is none, it is
+    unreadable, or it was made from other inputs (``inputs``: :func:`init_inputs` of the scene; an
+    initialisation that does not record its inputs is never reused) or with another depth prior or
+    depth model. Other options (voxel, refinement) are those ``dibrgs init`` was given."""
     import json
 
     out = Path(out_dir)
     rep_path, ply = out / "init_report.json", out / "points.ply"
     if not (rep_path.exists() and ply.exists()):
         return None
-    report = Report.from_dict(json.loads(rep_path.read_text()))
-    old = report.values.get("config", {})
-    if old.get("depth_prior") != config.depth_prior or old.get("depth_model") != config.depth_model:
+    try:
+        report = Report.from_dict(json.loads(rep_path.read_text()))
+    except (OSError, ValueError, TypeError) as e:
+        log.warning("%s unreadable (%s); initialising again", rep_path, e)
         return None
-    pts, cols = read_ply(ply)
-    hm = HeightMap.load(out / "height_map.npz") if (out / "height_map.npz").exists() else None
-    log.info("reusing the geometry initialisation in %s", out)
+    old = report.values.get("config", {})
+    if inputs is not None and report.values.get("inputs") != inputs:
+        log.info("%s was made from other training views; initialising again", out)
+        return None
+    if old.get("depth_prior") != config.depth_prior or old.get("depth_model") != config.depth_model:
+        log.info("%s was made with another depth prior; initialising again", out)
+        return None
+    try:
+        pts, cols = read_ply(ply)
+        hm = HeightMap.load(out / "height_map.npz") if (out / "height_map.npz").exists() else None
+    except Exception as e:  # a damaged cache is rebuilt, never fatal
+        log.warning("%s: cached initialisation unreadable (%s); initialising again", out, e)
+        return None
+    log.info("reusing the geometry initialisation in %s (same training views and prior)", out)
     return InitResult(pts, cols, hm, report)
 
 

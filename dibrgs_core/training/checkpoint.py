@@ -31,9 +31,35 @@ MODEL = "model.pt"
 
 
 def save_torch(path: Path, obj: dict[str, Any]) -> None:
-    """``torch.save`` to a temporary name, then rename (readers never see half a file)."""
+    """``torch.save`` to a temporary name, then rename (readers never see half a file). A failed
+    write (a full disk) is the operating system's ``OSError``, not torch's bare RuntimeError."""
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        with open(tmp, "wb") as f:
+            out = _Writes(f)
+            try:
+                torch.save(obj, out)
+            except RuntimeError:
+                if out.error is not None:
+                    raise out.error from None
+                raise
+
+
+class _Writes:
+    """A file's ``write`` that keeps the ``OSError`` it raised (torch's writer turns it into a RuntimeError)."""
+
+    def __init__(self, f: Any) -> None:
+        self.f = f
+        self.error: OSError | None = None
+
+    def write(self, b: Any) -> int:
+        try:
+            return self.f.write(b)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
 
 
 def save_model(path: Path, method: TrainingMethod, cfg: TrainConfig, scene_root: Path,
@@ -56,20 +82,57 @@ class StoredModel:
     train_cameras: list[Camera]
 
 
+def _read(path: Path, what: str, todo: str) -> dict[str, Any]:
+    """``torch.load`` of a run file; ``InputError`` naming it when it is empty, truncated or not ours."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InputError(path, f"{what} not found") from None
+    if size == 0:
+        raise InputError(path, f"{what} is empty (0 bytes); {todo}")
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=False)
+    except OSError:
+        raise
+    except Exception as e:  # torch raises many types for truncated or foreign files
+        raise InputError(path, f"unreadable {what} ({type(e).__name__}: {str(e).splitlines()[0][:200]}); "
+                               f"{todo}") from None
+    if not isinstance(st, dict):
+        raise InputError(path, f"not a DIBR-GS {what} (a {type(st).__name__}); {todo}")
+    return st
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read ``checkpoint.pt`` for ``--resume`` (``InputError`` naming it when it cannot be used)."""
+    path = Path(path)
+    todo = "delete it to start afresh (drop --resume), or restore a good copy"
+    ck = _read(path, "checkpoint", todo)
+    missing = [k for k in ("iteration", "config", "method", "rng", "report") if k not in ck]
+    if missing:
+        raise InputError(path, f"not a DIBR-GS checkpoint (no {', '.join(missing)}); {todo}")
+    try:
+        TrainConfig.from_dict(ck["config"])
+    except (ValueError, TypeError) as e:
+        raise InputError(path, f"checkpoint configuration unreadable ({e}); {todo}") from None
+    return ck
+
+
 def load_model(work: str | Path) -> StoredModel:
     """Read ``WORK/model.pt`` (``InputError`` naming the file when it is missing or unreadable)."""
     path = Path(work) / MODEL
     if not path.exists():
         raise InputError(path, "no trained model here; run `dibrgs train` to completion first "
                                "(an interrupted run continues with `dibrgs train ... --resume`)")
+    todo = "train again (dibrgs train), or restore a good copy"
+    st = _read(path, "trained model", todo)
     try:
-        st = torch.load(path, map_location="cpu", weights_only=False)
         cfg = TrainConfig.from_dict(st["config"])
         model = model_from_state(st["method"], st, cfg.model)
-    except Exception as e:  # a corrupt or foreign file
-        raise InputError(path, f"cannot read the trained model ({e})") from None
-    if st.get("ibr_feats") is not None:
-        model.set_ibr(st["ibr_feats"])
+        if st.get("ibr_feats") is not None:
+            model.set_ibr(st["ibr_feats"])
+        cams = [camera_from_dict(d, str(path)) for d in st["train_cameras"]]
+        scene = str(st["scene"])
+    except Exception as e:  # a foreign or damaged file
+        raise InputError(path, f"cannot read the trained model ({type(e).__name__}: {e}); {todo}") from None
     model.eval()
-    cams = [camera_from_dict(d, str(path)) for d in st["train_cameras"]]
-    return StoredModel(model, cfg, st["scene"], cams)
+    return StoredModel(model, cfg, scene, cams)

@@ -23,7 +23,8 @@ from ..camera.frame import estimate_up, look_at_target, up_frame
 from ..camera.pinhole import Camera
 from ..common.fileio import atomic_path
 from ..common.report import Report
-from ..data.scene import Scene, View
+from ..common.digest import Digest
+from ..data.scene import Scene, View, views_digest
 from .config import TrainConfig
 from .frames import Frame
 from .methods import GS3DTraining, ScaffoldTraining, TrainingMethod
@@ -55,17 +56,27 @@ class Setup:
 
 
 def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
-    """SfM points (N,3) and colours (N,3) uint8 of the training views, cached in ``WORK/init``."""
-    from ..geometry.sfm import triangulate_known_poses
+    """SfM points (N,3) and colours (N,3) uint8 of the training views, cached in ``WORK/init``
+    under a digest of the training views (cameras and images) and the SfM options."""
+    from dataclasses import asdict
+
+    from ..geometry.sfm import SfmConfig, triangulate_known_poses
 
     views = ctx.scene.train_views()
     cache = ctx.work / "init" / "sfm_points.npz"
+    sfm_options = {k: v for k, v in asdict(SfmConfig()).items() if k != "num_threads"}
+    key = Digest("sfm_points/1").text(views_digest(views)).json(sfm_options).hex()
     if cache.exists():
-        d = np.load(cache)
-        return d["points"], d["colors"]
+        try:
+            with np.load(cache) as d:
+                if "key" in d.files and str(d["key"]) == key:
+                    return d["points"], d["colors"]
+            log.info("%s was made from other views or options; triangulating again", cache)
+        except (OSError, ValueError, KeyError) as e:
+            log.warning("%s unreadable (%s); triangulating again", cache, e)
     sc = triangulate_known_poses([v.camera for v in views], [v.image for v in views])
     with atomic_path(cache) as tmp:
-        np.savez(tmp, points=sc.points, colors=sc.colors)
+        np.savez(tmp, points=sc.points, colors=sc.colors, key=np.array(key))
     return sc.points, sc.colors
 
 
@@ -110,9 +121,10 @@ def build_3dgs(ctx: SetupContext) -> Setup:
 
 
 def init_geometry(ctx: SetupContext) -> Any:
-    """The geometry initialisation of ``WORK/init`` (reused when made with the same options)."""
+    """The geometry initialisation of ``WORK/init``, reused only when it was made from the same
+    training views (cameras, images; depth maps for the ``gt`` prior) with the same prior."""
     from ..geometry.config import InitConfig
-    from ..geometry.pipeline import initialise, load_result
+    from ..geometry.pipeline import init_inputs, initialise, load_result
 
     icfg = InitConfig()
     if ctx.cfg.depth_prior != "auto":
@@ -120,7 +132,7 @@ def init_geometry(ctx: SetupContext) -> Any:
     if ctx.depth_model:
         icfg.depth_model = ctx.depth_model
     out = ctx.work / "init"
-    return load_result(out, icfg) or initialise(ctx.scene, out, icfg)
+    return load_result(out, icfg, init_inputs(ctx.scene, icfg)) or initialise(ctx.scene, out, icfg)
 
 
 def _says_near_nadir(report: Report) -> bool | None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import logging.handlers
 import math
 import random
 import resource
@@ -38,15 +39,19 @@ import torch
 
 from ..common.errors import InputError
 from ..common.fileio import write_json
+from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
+from ..common.lock import run_folder_lock
 from ..common.report import Report
 from ..data.load import load_scene
+from ..data.scene import Scene, require_train_views
 from ..models.base import render_model
-from .checkpoint import CHECKPOINT, MODEL, save_model, save_torch
+from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig
 from .curve import evaluate_heldout, plot_curve, write_curve
 from .frames import Frame, views_to_frames
 from .losses import photometric_loss
 from .methods import TrainingMethod
+from .run_folder import CONFIG, Identity, check_resumable, replace_earlier_run, resumed_config, stored_identity
 from .setup import METHODS, SetupContext
 
 log = logging.getLogger("dibrgs.train")
@@ -67,7 +72,8 @@ class Trainer:
 
     def __init__(self, scene_root: str | Path, work: str | Path, cfg: TrainConfig, *, resume: bool = False,
                  progress_json: bool = False, depth_model: str | None = None,
-                 stream: Any = None) -> None:
+                 stream: Any = None, train_ids: list[str] | None = None, test_ids: list[str] | None = None,
+                 force_config: bool = False) -> None:
         self.scene_root = Path(scene_root)
         self.work = Path(work)
         self.cfg = cfg
@@ -75,48 +81,77 @@ class Trainer:
         self.progress_json = progress_json
         self.depth_model = depth_model
         self.stream = stream
+        self.split_request = (train_ids, test_ids)
+        self.force_config = force_config
         self.report = Report()
         self._stop = False
+        self._prepared: tuple[dict[str, Any] | None, Scene, str] | None = None
         self.method: TrainingMethod
         self.train_frames: list[Frame] = []
         self.test_frames: list[Frame] = []
         self.pseudo_frames: list[Frame] = []
 
     # -- setup ----------------------------------------------------------------
-    def setup(self) -> dict[str, Any] | None:
-        """Read the scene, build the method (and pseudo views); returns the checkpoint to resume."""
+    def _prepare(self) -> tuple[dict[str, Any] | None, Scene, str]:
+        """Check the options, read the scene with its split, and settle what happens to an earlier run
+        in the folder (:mod:`.run_folder`): (checkpoint to resume or None, scene, scene digest)."""
         cfg = self.cfg
+        if cfg.method not in METHODS:
+            raise InputError(None, f"unknown method {cfg.method!r} ({' or '.join(METHODS)})")
+        if not (isinstance(cfg.iterations, int) and cfg.iterations >= 1):
+            raise InputError(None, f"--iterations must be a positive integer, got {cfg.iterations!r}")
+        if not (0.0 < cfg.resolution_scale <= MAX_RESOLUTION_SCALE):
+            raise InputError(None, f"--resolution-scale must be in (0, {MAX_RESOLUTION_SCALE:g}], "
+                                   f"got {cfg.resolution_scale!r}")
+        if self.work.exists() and not self.work.is_dir():
+            raise InputError(self.work, "is a file, not a folder; give --out a folder for the run")
         self.work.mkdir(parents=True, exist_ok=True)
+        scene = load_scene(self.scene_root, *self.split_request)
+        require_train_views(scene)
+        digest = scene.digest()
+        split = (list(scene.train), list(scene.test))
         ck_path = self.work / CHECKPOINT
         ckpt = None
         if self.resume and ck_path.exists():
-            ckpt = torch.load(ck_path, map_location="cpu", weights_only=False)
-            saved = TrainConfig.from_dict(ckpt["config"])
-            if saved.method != cfg.method:
-                raise InputError(ck_path, f"checkpoint is a {saved.method} run, asked to resume as {cfg.method}")
-            # A resumed run continues with the configuration it started with,
-            # except for a longer/shorter target length.
-            saved.iterations = cfg.iterations
-            self.cfg = cfg = saved
-            log.info("resuming %s from iteration %d", ck_path, ckpt["iteration"])
-        elif self.resume:
-            log.info("--resume: no checkpoint in %s, starting fresh", self.work)
-        if cfg.method not in METHODS:
-            raise InputError(None, f"unknown method {cfg.method!r} ({' or '.join(METHODS)})")
+            ckpt = load_checkpoint(ck_path)
+            check_resumable(ck_path, Identity.of(ckpt["report"].get("values", {}).get("scene", {})), digest, split)
+            self.cfg = resumed_config(ck_path, ckpt, self.cfg, self.force_config, self.report)
+        else:
+            old = stored_identity(self.work)
+            if self.resume and old is not None and old.digest not in (None, digest):
+                raise InputError(self.work, f"holds a run of another scene ({old.scene}); refusing to --resume "
+                                            "it: choose another --out, or drop --resume to replace it")
+            if self.resume:
+                log.info("--resume: no checkpoint in %s, starting fresh", self.work)
+            replace_earlier_run(self.work, digest, split, "train")
+        return ckpt, scene, digest
+
+    def setup(self) -> dict[str, Any] | None:
+        """Read the scene, build the method (and pseudo views); returns the checkpoint to resume."""
+        if self._prepared is None:
+            self._prepared = self._prepare()
+        ckpt, scene, digest = self._prepared
+        cfg = self.cfg
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
         random.seed(cfg.seed)
-        write_json(self.work / "config.json", {"scene": str(self.scene_root.resolve()), "config": cfg.to_dict()})
-
-        scene = load_scene(self.scene_root)
         train_views, test_views = scene.train_views(), scene.test_views()
-        if not train_views:
-            raise InputError(self.scene_root, "the scene has no training views")
         s = cfg.resolution_scale
         self.train_frames = views_to_frames(train_views, s)
         self.test_frames = views_to_frames(test_views, s)
-        self.report.values["scene"] = {"root": str(self.scene_root), "train": list(scene.train),
-                                       "test": list(scene.test), "resolution_scale": s}
+        h, w = self.train_frames[0].image.shape[:2]
+        if min(h, w) < MIN_RESOLUTION:
+            raise InputError(None, f"--resolution-scale {s:g} gives {w}x{h} images; training needs at least "
+                                   f"{MIN_RESOLUTION} pixels a side: use a larger scale")
+        run = {"digest": digest, "train": list(scene.train), "test": list(scene.test),
+               "split_source": scene.split_source}
+        self.report.values["scene"] = {"root": str(self.scene_root), **run, "resolution_scale": s,
+                                       "resolution": [w, h]}
+        log.info("scene %s (digest %s): train %s, %d test views; split from %s", self.scene_root, digest,
+                 ", ".join(scene.train), len(scene.test), scene.split_source)
+        write_json(self.work / CONFIG, {"scene": str(self.scene_root.resolve()), "run": run,
+                                        "config": cfg.to_dict(),
+                                        "forced_config": self.report.values.get("forced_config", [])})
         self.bg = torch.tensor(cfg.background, dtype=torch.float32)
         # set-up randomness only (random init), apart from the training streams
         ctx = SetupContext(cfg, self.work, scene, self.train_frames, self.report,
@@ -190,18 +225,31 @@ class Trainer:
 
     # -- the loop --------------------------------------------------------------------
     def run(self, stop_after: int | None = None) -> TrainResult:
-        """Train to ``cfg.iterations``; ``stop_after`` checkpoints and stops early (as an interrupt)."""
-        log_handler = logging.FileHandler(self.work / "train.log") if self.work.exists() else None
-        ckpt = self.setup()
-        if log_handler is None:
+        """Train to ``cfg.iterations``; ``stop_after`` checkpoints and stops early (as an interrupt).
+
+        Holds the run folder's lock throughout (a second writer gets ``RunFolderBusy``)."""
+        if self.work.exists() and not self.work.is_dir():
+            raise InputError(self.work, "is a file, not a folder; give --out a folder for the run")
+        with run_folder_lock(self.work, "train"):
+            # What _prepare says (resume changes, a replaced run) is held back until an earlier
+            # run's train.log is gone, then written first into this run's.
+            held = logging.handlers.MemoryHandler(capacity=1 << 16, flushLevel=logging.CRITICAL + 1)
+            logging.getLogger("dibrgs").addHandler(held)
+            try:
+                self._prepared = self._prepare()
+            finally:
+                logging.getLogger("dibrgs").removeHandler(held)
             log_handler = logging.FileHandler(self.work / "train.log")
-        log_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-        logging.getLogger("dibrgs").addHandler(log_handler)
-        try:
-            return self._loop(ckpt, stop_after)
-        finally:
-            logging.getLogger("dibrgs").removeHandler(log_handler)
-            log_handler.close()
+            log_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+            held.setTarget(log_handler)
+            held.close()  # flushes into train.log
+            logging.getLogger("dibrgs").addHandler(log_handler)
+            try:
+                ckpt = self.setup()
+                return self._loop(ckpt, stop_after)
+            finally:
+                logging.getLogger("dibrgs").removeHandler(log_handler)
+                log_handler.close()
 
     def _next_frame(self, it: int, pseudo: tuple[int, int, int] | None) -> Frame:
         """The iteration's view: a pseudo view on pseudo iterations, else the next training view

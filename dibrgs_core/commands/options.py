@@ -1,0 +1,127 @@
+"""Options several commands share, validated when the command line is parsed.
+
+* ``--threads``: torch CPU threads, by default every core this process may run on
+  (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's count);
+* ``--train`` / ``--test``: the split (comma-separated view names or LEVIR ids), overriding
+  ``split.json`` and the default (:func:`dibrgs_core.data.scene.make_split`);
+* argparse types that refuse impossible numbers at parse time with one line naming the option.
+
+Commands that write into a folder hold its lock (:func:`locked`) for their whole run.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+from pathlib import Path
+from typing import Callable, Iterator
+
+from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def add_threads(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                   help=f"torch CPU threads (default: the cores available to this process, {available_cores()} here)")
+
+
+def apply_threads(args: argparse.Namespace) -> int:
+    """Set torch's thread count from ``--threads`` (default: the available cores); returns it."""
+    import torch
+
+    n = args.threads or available_cores()
+    torch.set_num_threads(n)
+    return n
+
+
+def add_split(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--train", type=name_list, default=None, metavar="NAMES",
+                   help="training views, comma-separated names (with or without extension) or LEVIR ids; "
+                        "overrides the scene's split.json (default without either: 001,008,015 for LEVIR-NVS "
+                        "scenes, else 3 evenly spaced views)")
+    p.add_argument("--test", type=name_list, default=None, metavar="NAMES",
+                   help="held-out views, as --train (default: split.json's, else the views not trained on)")
+
+
+@contextlib.contextmanager
+def locked(folder: Path, command: str) -> Iterator[None]:
+    """Hold ``folder``'s run-folder lock (:mod:`dibrgs_core.common.lock`) while the command writes into it."""
+    from ..common.lock import run_folder_lock
+
+    with run_folder_lock(folder, command):
+        yield
+
+
+# -- argparse types: ValueError / ArgumentTypeError messages become "argument --x: ..." -----------
+def name_list(s: str) -> list[str]:
+    names = [x.strip() for x in s.split(",") if x.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected comma-separated view names, got {s!r}")
+    return names
+
+
+def _number(kind: Callable, s: str):
+    try:
+        v = kind(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {s!r}") from None
+    if isinstance(v, float) and not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {s!r}")
+    return v
+
+
+def positive_int(s: str) -> int:
+    v = _number(int, s)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s}")
+    return v
+
+
+def nonnegative_int(s: str) -> int:
+    v = _number(int, s)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {s}")
+    return v
+
+
+def seed(s: str) -> int:
+    v = _number(int, s)
+    if not 0 <= v < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2^32), got {s}")
+    return v
+
+
+def resolution(s: str) -> int:
+    v = _number(int, s)
+    if v < MIN_RESOLUTION:
+        raise argparse.ArgumentTypeError(f"must be at least {MIN_RESOLUTION} pixels, got {s}")
+    return v
+
+
+def resolution_scale(s: str) -> float:
+    v = _number(float, s)
+    if not 0.0 < v <= MAX_RESOLUTION_SCALE:
+        raise argparse.ArgumentTypeError(f"must be in (0, {MAX_RESOLUTION_SCALE:g}], got {s}")
+    return v
+
+
+def nonnegative_float(s: str) -> float:
+    v = _number(float, s)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {s}")
+    return v
+
+
+def positive_float(s: str) -> float:
+    v = _number(float, s)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {s}")
+    return v

@@ -1,0 +1,115 @@
+"""Undistorting photos of COLMAP cameras with lens distortion, through pycolmap, cached by content.
+
+COLMAP's perspective models with distortion (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``,
+``FULL_OPENCV``) become ``PINHOLE`` cameras: :func:`pycolmap.undistort_camera` chooses the
+pinhole (COLMAP's ``image_undistorter`` defaults: no blank pixels, scale in [0.2, 2]) and
+:func:`pycolmap.undistort_image` resamples the photo (8-bit, as COLMAP's own undistorter).
+Fisheye and other non-perspective models are refused: their undistorted views would need far
+larger images or lose the field of view's edge, so the user decides (``colmap image_undistorter``).
+
+Cache: ``$DIBRGS_CACHE/undistorted/<digest>.npy`` (default ``~/.cache/dibrgs``), the digest
+taken over the photo file's bytes, the camera model and parameters, the undistortion options and
+the orientation used, so an edited photo or camera never reuses an old result. A cache that
+cannot be written is skipped with a warning.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..common.digest import Digest, file_digest
+from ..common.errors import InputError
+from ..common.fileio import atomic_path
+
+log = logging.getLogger("dibrgs.undistort")
+
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+#: Perspective models with distortion that are undistorted on load.
+DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+_VERSION = "undistort/1"
+
+
+def model_name(cam) -> str:
+    return cam.model.name if hasattr(cam.model, "name") else str(cam.model)
+
+
+def distortion(cam) -> np.ndarray:
+    """The distortion parameters of a pycolmap camera (empty for pinholes)."""
+    return np.asarray(cam.params, dtype=np.float64)[list(cam.extra_params_idxs())]
+
+
+def check_model(cam, where: Path) -> bool:
+    """Whether ``cam`` needs undistortion; ``InputError`` for models that are not perspective."""
+    model = model_name(cam)
+    if model in PINHOLE_MODELS:
+        return False
+    if model not in DISTORTED_MODELS:
+        kind = "a fisheye model" if "FISHEYE" in model or model in ("FOV", "EUCM") else "not a perspective model"
+        raise InputError(where, f"camera {cam.camera_id}: {model} is {kind}; only pinhole models and "
+                                f"{', '.join(DISTORTED_MODELS)} (undistorted on load) are supported: undistort "
+                                "the photos first (colmap image_undistorter)")
+    return bool(np.any(distortion(cam) != 0))
+
+
+def _options():
+    import pycolmap
+
+    return pycolmap.UndistortCameraOptions()
+
+
+def undistorted_camera(cam):
+    """The pinhole pycolmap camera the undistorted photos of ``cam`` have."""
+    import pycolmap
+
+    return pycolmap.undistort_camera(_options(), cam)
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("DIBRGS_CACHE", Path.home() / ".cache" / "dibrgs")) / "undistorted"
+
+
+@dataclass
+class Undistorted:
+    """An undistorted photo: float32 (H, W, 3) RGB in [0, 1] and its pinhole pycolmap camera."""
+
+    image: np.ndarray
+    camera: object
+
+
+def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], np.ndarray]) -> Undistorted:
+    """The undistorted photo at ``path`` taken with pycolmap camera ``cam``; ``read()`` gives the
+    photo (float RGB in [0, 1], in the pixel order the camera describes) when it is not cached."""
+    import pycolmap
+
+    out_cam = undistorted_camera(cam)
+    key = (Digest(_VERSION).text(file_digest(path)).text(model_name(cam)).array(np.asarray(cam.params, np.float64))
+           .json([cam.width, cam.height, bool(oriented), _options().todict()]).hex())
+    cached = cache_dir() / f"{key}.npy"
+    if cached.is_file():
+        try:
+            a = np.load(cached, allow_pickle=False)
+            if a.shape == (out_cam.height, out_cam.width, 3) and a.dtype == np.uint8:
+                return Undistorted(a.astype(np.float32) / 255.0, out_cam)
+        except (OSError, ValueError) as e:
+            log.warning("%s: unreadable cache entry, recomputing (%s)", cached, e)
+    image = read()
+    if image.shape[:2] != (cam.height, cam.width):
+        raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
+                               f"{cam.width}x{cam.height}")
+    u8 = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+    bitmap, out_cam = pycolmap.undistort_image(_options(), pycolmap.Bitmap.from_array(np.ascontiguousarray(u8)),
+                                               cam)
+    a = np.asarray(bitmap.to_array(), dtype=np.uint8).reshape(out_cam.height, out_cam.width, -1)[..., :3]
+    try:
+        with atomic_path(cached) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, np.ascontiguousarray(a), allow_pickle=False)
+    except (OSError, InputError) as e:
+        log.warning("cannot cache the undistorted %s in %s (%s); continuing without the cache", path.name,
+                    cached.parent, e)
+    return Undistorted(a.astype(np.float32) / 255.0, out_cam)

@@ -1,0 +1,194 @@
+#!/usr/bin/env python
+"""Held-out error of trained runs on a real flight, over the pixels a training photo sees.
+
+A real scene has no true depth, so which held-out pixels a training photo sees is decided on the
+ground plane fitted to the scene's reference points (EVALUATION ONLY: the all-photo reconstruction's
+points in ``reference_points.txt``, never an input of the pipeline): a held-out pixel's ray meets
+the plane, and the point counts as seen by every training photo it projects into. Each run is
+rendered at its held-out cameras at its own resolution and scored:
+
+* ``psnr``: mean of the per-view PSNRs over whole images (what ``dibrgs eval`` reports);
+* ``seen``: PSNR of the pooled squared error over the pixels at least one training photo sees;
+* ``unseen`` / ``one`` / ``two_plus``: pooled PSNR by how many training photos see the pixel.
+
+    python scripts/eval_real_flight.py SCENE WORK [WORK ...] [--reference FILE] [--json FILE]
+        [--md FILE] [--png FILE] [--views NAME,NAME]
+
+``--png`` writes a side-by-side of two held-out photos (ground truth, then each run) with the
+unseen part shaded.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def read_reference_points(path: Path) -> np.ndarray:
+    """(N,3) world points of a ``reference_points.txt`` (``x y z r g b ...`` per line, ``#`` comments)."""
+    rows = [line.split()[:3] for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    pts = np.asarray(rows, np.float64)
+    if pts.ndim != 2 or len(pts) < 3:
+        raise ValueError(f"{path}: need at least 3 points, got {len(pts)}")
+    return pts
+
+
+def fit_plane(points: np.ndarray, iters: int = 5) -> tuple[np.ndarray, float]:
+    """Unit normal ``n`` and offset ``c`` of the plane ``n . X = c`` through ``points``: least squares,
+    refitted without points beyond 3 median absolute deviations (trees, roofs)."""
+    keep = np.ones(len(points), bool)
+    for _ in range(iters):
+        mu = points[keep].mean(0)
+        n = np.linalg.svd(points[keep] - mu)[2][2]
+        r = (points - mu) @ n
+        mad = np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-12
+        new = np.abs(r - np.median(r[keep])) <= 3.0 * 1.4826 * mad
+        if new.sum() < 3 or (new == keep).all():
+            break
+        keep = new
+    mu = points[keep].mean(0)
+    n = np.linalg.svd(points[keep] - mu)[2][2]
+    return n, float(n @ mu)
+
+
+def plane_depth(cam, normal: np.ndarray, offset: float) -> np.ndarray:
+    """(H, W) z-depth at which each pixel's ray meets the plane; 0 where it does not (in front)."""
+    o, d = cam.pixel_rays()
+    den = d @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (offset - o @ normal) / den
+    t = np.where(np.isfinite(t) & (t > 0), t, 0.0)
+    return t.reshape(cam.height, cam.width)
+
+
+def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
+    from dibrgs_core.data.load import read_any_scene
+    from dibrgs_core.evaluation.evaluate import load_trained
+    from dibrgs_core.geometry.visibility import SplitError, visibility_count
+    from dibrgs_core.training.frames import views_to_frames
+
+    normal, offset = fit_plane(read_reference_points(reference))
+    runs, counts_of, images = [], {}, {}
+    for w in works:
+        t = load_trained(w)
+        rep = json.loads((w / "report.json").read_text())["values"]["scene"]
+        scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=False)
+        s = t.cfg.resolution_scale
+        train = views_to_frames(scene.train_views(), s)
+        test = views_to_frames(scene.test_views(), s)
+        sources = [(f.cam.cam, plane_depth(f.cam.cam, normal, offset)) for f in train]
+        acc, per_view = SplitError.empty(), {}
+        for f in test:
+            cam = f.cam.cam
+            key = (cam.name, cam.width, cam.height)
+            if key not in counts_of:
+                counts_of[key] = visibility_count(cam, plane_depth(cam, normal, offset), sources, rel_tol=0.05)
+            count = counts_of[key]
+            img, _ = t.render(cam)
+            gt = f.image.numpy()
+            acc.add(img, gt, count)
+            mse = float(((img - gt) ** 2).mean())
+            per_view[cam.name] = -10.0 * np.log10(max(mse, 1e-20))
+            images.setdefault(cam.name, {"gt": gt, "count": count})[str(w)] = img
+        p = acc.psnr()
+        n_seen = acc.n["one"] + acc.n["two_plus"]
+        sse_seen = acc.sse["one"] + acc.sse["two_plus"]
+        seen = None if n_seen == 0 else float(-10.0 * np.log10(max(sse_seen / n_seen, 1e-20)))
+        runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": [test[0].cam.cam.width,
+                     test[0].cam.cam.height] if test else None, "psnr": float(np.mean(list(per_view.values()))),
+                     "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
+                     "seen_fraction": n_seen / max(acc.n["all"], 1)})
+    return {"scene": str(scene_dir), "reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset},
+            "runs": runs, "_images": images}
+
+
+def table(res: dict) -> str:
+    def fmt(x):
+        return "-" if x is None else f"{x:.2f}"
+
+    r0 = res["runs"][0]
+    f = r0["fractions"]
+    lines = [f"Held-out photos of `{Path(res['scene']).name}`: {r0['seen_fraction']:.1%} of their pixels seen by a "
+             f"training photo ({f['one']:.1%} by one, {f['two_plus']:.1%} by two or more); PSNR in dB.", "",
+             "| run | method | resolution | whole image (mean of views) | seen pixels | by one | by two or more | unseen |",
+             "|---|---|---|---:|---:|---:|---:|---:|"]
+    for r in res["runs"]:
+        g = r["groups"]
+        res_txt = "x".join(map(str, r["resolution"])) if r["resolution"] else "-"
+        lines.append(f"| {Path(r['work']).name} | {r['method']} | {res_txt} | {fmt(r['psnr'])} | {fmt(r['seen'])} | "
+                     f"{fmt(g['one'])} | {fmt(g['two_plus'])} | {fmt(g['unseen'])} |")
+    return "\n".join(lines)
+
+
+def side_by_side(res: dict, path: Path, views: list[str] | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dibrgs_core.common.fileio import atomic_path
+
+    imgs = res["_images"]
+    names = views or sorted(imgs)[:2]
+    runs = res["runs"]
+    fig, axes = plt.subplots(len(names), 1 + len(runs), figsize=(3.2 * (1 + len(runs)), 2.0 * len(names) + 0.3),
+                             squeeze=False)
+    for row, name in zip(axes, names):
+        d = imgs[name]
+        unseen = (d["count"] == 0)[..., None]
+        row[0].imshow(d["gt"])
+        row[0].set_title(f"{name}: ground truth", fontsize=8)
+        for ax, r in zip(row[1:], runs):
+            img = d[r["work"]]
+            shaded = np.where(unseen, 0.35 * img + 0.65 * np.array([0.2, 0.2, 0.5]), img)
+            ax.imshow(np.clip(shaded, 0, 1))
+            ax.set_title(f"{r['method']}: {r['per_view'][name]:.2f} dB", fontsize=8)
+        for ax in row:
+            ax.axis("off")
+    fig.suptitle("held-out photos; blue-shaded: no training photo sees it", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from dibrgs_core.common.errors import InputError
+    from dibrgs_core.common.fileio import write_json, write_text
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("works", type=Path, nargs="+", help="trained run folders (dibrgs train --out)")
+    ap.add_argument("--reference", type=Path, default=None, help="reference points (default SCENE/reference_points.txt)")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--md", type=Path, help="write the table here")
+    ap.add_argument("--png", type=Path, help="side-by-side of two held-out photos")
+    ap.add_argument("--views", default=None, help="comma-separated held-out photo names for --png")
+    a = ap.parse_args(argv)
+    ref = a.reference or a.scene / "reference_points.txt"
+    if not ref.is_file():
+        print(f"error: {ref}: reference points not found", file=sys.stderr)
+        return 2
+    try:
+        res = evaluate_runs(a.scene, a.works, ref)
+    except (InputError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(table(res))
+    if a.md:
+        write_text(a.md, table(res) + "\n")
+    if a.png:
+        side_by_side(res, a.png, a.views.split(",") if a.views else None)
+    if a.json:
+        write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,796 @@
+"""The hostile catalogue (issue 16): what a hostile but fair user tries, through the real command line.
+
+Every case asserts the exit code, the one-line message (naming the file or option and what to
+do, no traceback) and what is left on disk. docs/reliability.md lists the cases with their
+verdicts and these test names. Most cases call ``dibrgs_core.cli.main`` in this process (the
+command's own parser, commands and error path); what needs another process (a second writer, a
+signal, another user's rights, a small or read-only file system) runs ``python -m dibrgs_core``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dibrgs_core.common.lock import LOCK_NAME
+from dibrgs_core.training.checkpoint import CHECKPOINT, MODEL
+
+from run_synth import QUICK, copy_run, dibrgs, dibrgs_subprocess
+
+torch.set_num_threads(1)
+
+
+def one_line(err: str) -> str:
+    """The error line of a command's stderr: exactly one line starting ``dibrgs ...: error:``, no traceback."""
+    assert "Traceback" not in err, err
+    lines = [x for x in err.splitlines() if ": error: " in x]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def no_temp_files(folder: Path) -> None:
+    left = [p for p in folder.rglob(".*.tmp*")]
+    assert not left, left
+
+
+def strict_json(path: Path):
+    def refuse(c):
+        raise ValueError(f"{path}: non-strict JSON constant {c}")
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+@pytest.fixture()
+def scene(scene24, tmp_path) -> Path:
+    """A private copy of the 24x24 scene to damage."""
+    return Path(shutil.copytree(scene24, tmp_path / "scene"))
+
+
+@pytest.fixture()
+def run(finished_run, tmp_path) -> Path:
+    """A private copy of the finished run."""
+    return copy_run(finished_run, tmp_path / "run")
+
+
+# =============================================================================================
+# A. Scene files: every malformed input is a clear error naming the file (dibrgs info / train)
+# =============================================================================================
+def _png_text(s: Path):
+    (s / "Images" / "004.png").write_text("not a PNG")
+
+
+def _png_truncated(s: Path):
+    p = s / "Images" / "004.png"
+    p.write_bytes(p.read_bytes()[:60])
+
+
+def _png_empty(s: Path):
+    (s / "Images" / "004.png").write_bytes(b"")
+
+
+def _png_size(s: Path):
+    from dibrgs_core.data.images import write_png
+
+    write_png(s / "Images" / "004.png", np.zeros((24, 25, 3)))
+
+
+def _cams_edit(old: str, new: str):
+    def f(s: Path):
+        p = s / "Cams" / "004.txt"
+        p.write_text(p.read_text().replace(old, new, 1))
+    return f
+
+
+def _cams_replace_first_row(row: str):
+    def f(s: Path):
+        p = s / "Cams" / "004.txt"
+        lines = p.read_text().splitlines()
+        lines[1] = row
+        p.write_text("\n".join(lines))
+    return f
+
+
+def _cams_values(s: Path):
+    p = s / "Cams" / "004.txt"
+    p.write_text(p.read_text() + "\n1.0\n")
+
+
+def _no_cam(s: Path):
+    (s / "Cams" / "004.txt").unlink()
+
+
+def _no_image(s: Path):
+    (s / "Images" / "004.png").unlink()
+
+
+def _no_images_dir(s: Path):
+    shutil.rmtree(s / "Images")
+
+
+def _depth_missing(s: Path):
+    (s / "Depths" / "004.tiff").unlink()
+
+
+def _depth_corrupt(s: Path):
+    (s / "Depths" / "004.tiff").write_bytes(b"II*\x00garbage")
+
+
+def _depth_size(s: Path):
+    from dibrgs_core.data.images import write_depth_tiff
+
+    write_depth_tiff(s / "Depths" / "004.tiff", np.ones((5, 5), np.float32))
+
+
+def _split_json(text: str):
+    def f(s: Path):
+        (s / "split.json").write_text(text)
+    return f
+
+
+SCENE_CASES = [
+    # id, damage, what the message says, the file it names
+    ("image-not-an-image", _png_text, "unreadable", "Images/004.png"),
+    ("image-truncated", _png_truncated, "truncated", "Images/004.png"),
+    ("image-empty", _png_empty, "unreadable", "Images/004.png"),
+    ("image-other-size", _png_size, "25x24 but", "Images/004.png"),
+    ("image-missing", _no_image, "image missing for camera", "Images/004.png"),
+    ("images-folder-missing", _no_images_dir, "missing folder", "Images"),
+    ("cams-missing", _no_cam, "camera file missing", "Cams/004.txt"),
+    ("cams-nan", _cams_replace_first_row("nan 0 0 0"), "NaN or infinite", "Cams/004.txt"),
+    ("cams-token", _cams_edit("intrinsic", "intrinsic x"), "unexpected token", "Cams/004.txt"),
+    ("cams-no-intrinsic", _cams_edit("intrinsic", "intrinsik"), "'extrinsic' and 'intrinsic'", "Cams/004.txt"),
+    ("cams-count", _cams_values, "DEPTH_MIN DEPTH_MAX", "Cams/004.txt"),
+    ("cams-singular", _cams_replace_first_row("0 0 0 0"), "singular", "Cams/004.txt"),
+    ("cams-reflection", _cams_replace_first_row("-1 0 0 0"), "not a rotation", "Cams/004.txt"),
+    ("depth-missing", _depth_missing, "depth map missing", "Depths/004.tiff"),
+    ("depth-corrupt", _depth_corrupt, "unreadable depth map", "Depths/004.tiff"),
+    ("depth-other-size", _depth_size, "depth map is 5x5", "Depths/004.tiff"),
+    ("split-not-json", _split_json("{train: oops"), "unreadable split file", "split.json"),
+    ("split-not-object", _split_json("[1, 2]"), "expected an object", "split.json"),
+    ("split-unknown-name", _split_json('{"train": ["001", "999"], "test": ["002"]}'), "'999' not in the scene",
+     "split.json"),
+    ("split-overlap", _split_json('{"train": ["001", "002"], "test": ["002", "003"]}'),
+     "in both the training and the test set", "split.json"),
+]
+
+
+@pytest.mark.parametrize("damage,says,names", [c[1:] for c in SCENE_CASES], ids=[c[0] for c in SCENE_CASES])
+def test_scene_file_faults(scene, damage, says, names):
+    """A damaged scene: `dibrgs info` exits 2 with one line naming the file; nothing is written."""
+    damage(scene)
+    before = sorted(p.relative_to(scene) for p in scene.rglob("*"))
+    rc, err = dibrgs("info", scene)
+    line = one_line(err)
+    assert rc == 2 and says in line and str(scene / names) in line, err
+    assert sorted(p.relative_to(scene) for p in scene.rglob("*")) == before
+
+
+def test_scene_folder_missing_or_a_file(tmp_path):
+    rc, err = dibrgs("info", tmp_path / "nope")
+    assert rc == 2 and "scene folder not found" in one_line(err)
+    f = tmp_path / "f.txt"
+    f.write_text("x")
+    rc, err = dibrgs("train", f, "--out", tmp_path / "w", *QUICK)
+    assert rc == 2 and str(f) in one_line(err) and not (tmp_path / "w").exists()
+    rc, err = dibrgs("info", tmp_path)
+    assert rc == 2 and "not a scene" in one_line(err)
+
+
+def test_unknown_view_names_on_the_command_line(scene, tmp_path):
+    rc, err = dibrgs("train", scene, "--out", tmp_path / "w", *QUICK, "--train", "001,nope")
+    line = one_line(err)
+    assert rc == 2 and "--train: 'nope' not in the scene" in line and "001" in line
+    rc, err = dibrgs("info", scene, "--train", "001,002", "--test", "002")
+    assert rc == 2 and "in both the training and the test set" in one_line(err)
+    assert not (tmp_path / "w").exists()  # nothing left behind by a refused run
+
+
+# COLMAP models
+@pytest.fixture()
+def colmap(scene24, tmp_path) -> Path:
+    from dibrgs_core.data.colmap import write_colmap_model
+    from dibrgs_core.data.levir import read_scene
+
+    sc = read_scene(scene24, load_depth=False)
+    root = tmp_path / "colmap"
+    write_colmap_model(sc.cameras, root / "sparse" / "0", binary=True)
+    (root / "images").mkdir()
+    for name in sc.views:
+        shutil.copy(scene24 / "Images" / f"{name}.png", root / "images" / f"{name}.png")
+    return root
+
+
+def _fisheye(root: Path):
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    c = rec.cameras[1]
+    rec.cameras[1] = pycolmap.Camera(model="OPENCV_FISHEYE", width=c.width, height=c.height,
+                                     params=[c.params[0], c.params[1], c.params[2], c.params[3], 0.1, 0, 0, 0],
+                                     camera_id=1)
+    rec.write_binary(str(root / "sparse" / "0"))
+
+
+COLMAP_CASES = [
+    ("model-file-missing", lambda r: (r / "sparse/0/images.bin").unlink(), "COLMAP model file missing",
+     "sparse/0/images.bin"),
+    ("model-corrupt", lambda r: (r / "sparse/0/cameras.bin").write_bytes(b"\x01\x02garbage"),
+     "unreadable COLMAP model", "sparse/0"),
+    ("photo-missing", lambda r: (r / "images/004.png").unlink(), "image file missing", "images/004.png"),
+    ("photo-other-size", lambda r: _png_size_at(r / "images/004.png"), "25x24 but its COLMAP camera is 24x24",
+     "images/004.png"),
+    ("images-folder-missing", lambda r: shutil.rmtree(r / "images"), "image folder not found", "images"),
+    ("fisheye", _fisheye, "OPENCV_FISHEYE is a fisheye model", "sparse/0"),
+]
+
+
+def _png_size_at(p: Path):
+    from dibrgs_core.data.images import write_png
+
+    write_png(p, np.zeros((24, 25, 3)))
+
+
+@pytest.mark.parametrize("damage,says,names", [c[1:] for c in COLMAP_CASES], ids=[c[0] for c in COLMAP_CASES])
+def test_colmap_faults(colmap, damage, says, names):
+    damage(colmap)
+    rc, err = dibrgs("info", colmap)
+    line = one_line(err)
+    assert rc == 2 and says in line and str(colmap / names) in line, err
+
+
+# =============================================================================================
+# B. Option values refused when the command line is parsed (exit 2, one line naming the option)
+# =============================================================================================
+OPTION_CASES = [
+    ("resolution-scale-0", ["train", "S", "--out", "W", "--resolution-scale", "0"], "--resolution-scale: must be in (0, 4]"),
+    ("resolution-scale-negative", ["train", "S", "--out", "W", "--resolution-scale", "-1"], "--resolution-scale: must be in (0, 4]"),
+    ("resolution-scale-huge", ["train", "S", "--out", "W", "--resolution-scale", "5"], "--resolution-scale: must be in (0, 4]"),
+    ("resolution-scale-nan", ["train", "S", "--out", "W", "--resolution-scale", "nan"], "--resolution-scale: must be a finite"),
+    ("iterations-0", ["train", "S", "--out", "W", "--iterations", "0"], "--iterations: must be a positive integer"),
+    ("iterations-text", ["train", "S", "--out", "W", "--iterations", "many"], "--iterations: expected an integer"),
+    ("seed-negative", ["train", "S", "--out", "W", "--seed", "-1"], "--seed: must be in [0, 2^32)"),
+    ("threads-0", ["eval", "W", "--threads", "0"], "--threads: must be a positive integer"),
+    ("demo-resolution-0", ["demo", "--resolution", "0"], "--resolution: must be at least 8 pixels"),
+    ("demo-resolution-4", ["demo", "--resolution", "4"], "--resolution: must be at least 8 pixels"),
+    ("fps-repeats-0", ["eval", "W", "--fps-repeats", "0"], "--fps-repeats: must be a positive integer"),
+    ("voxel-negative", ["init", "S", "--out", "W", "--voxel", "-1"], "--voxel: must be >= 0"),
+    ("scale-0", ["init", "S", "--out", "W", "--scale", "0"], "--scale: must be > 0"),
+    ("empty-train-list", ["train", "S", "--out", "W", "--train", ","], "--train: expected comma-separated"),
+]
+
+
+@pytest.mark.parametrize("argv,says", [c[1:] for c in OPTION_CASES], ids=[c[0] for c in OPTION_CASES])
+def test_bad_option_values(tmp_path, argv, says):
+    argv = [str(tmp_path / a) if a in ("S", "W") else a for a in argv]
+    rc, err = dibrgs(*argv)
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0] and "--help" in lines[0], err
+    assert not (tmp_path / "W").exists()
+
+
+def test_resolution_scale_too_small_for_the_images(scene, tmp_path):
+    """0.1 x 24 px = 2 px: refused once the images' size is known, naming the option."""
+    rc, err = dibrgs("train", scene, "--out", tmp_path / "w", *QUICK, "--resolution-scale", "0.1")
+    line = one_line(err)
+    assert rc == 2 and "--resolution-scale 0.1 gives 2x2 images" in line
+    assert not (tmp_path / "w" / MODEL).exists() and not (tmp_path / "w" / CHECKPOINT).exists()
+
+
+@pytest.mark.parametrize("extra", [[], ["--no-pseudo"]], ids=["pseudo", "no-pseudo"])
+def test_one_training_view_is_refused(scene, tmp_path, extra):
+    """One training view (with or without pseudo views) is refused before anything is trained."""
+    rc, err = dibrgs("train", scene, "--out", tmp_path / "w", *QUICK, "--train", "001", *extra)
+    line = one_line(err)
+    assert rc == 2 and "1 training view (001; split from --train" in line and "at least 2" in line
+    assert not (tmp_path / "w" / MODEL).exists()
+    (scene / "split.json").write_text('{"train": ["008"], "test": ["009"]}')
+    rc, err = dibrgs("init", scene, "--out", tmp_path / "w2", "--threads", "1")
+    assert rc == 2 and "split.json" in one_line(err) and not (tmp_path / "w2" / "init").exists()
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    rc, err = dibrgs("eval", tmp_path / "nope")
+    assert rc == 2 and "Traceback" not in err and "no trained model" in one_line(err)
+    rc, err = dibrgs("eval", tmp_path / "nope", "--debug")
+    assert rc == 2 and "Traceback" in err and "no trained model" in err.strip().splitlines()[-1]
+
+
+def test_threads_default_to_the_available_cores():
+    from dibrgs_core.cli import build_parser
+    from dibrgs_core.commands.options import apply_threads, available_cores
+
+    n = torch.get_num_threads()
+    try:
+        for cmd in (["train", "S", "--out", "W"], ["init", "S", "--out", "W"], ["eval", "W"],
+                    ["render", "W", "--cameras", "C", "--out", "O"], ["export", "W", "--ply", "P"], ["demo"]):
+            args = build_parser().parse_args(cmd)
+            assert args.threads is None, cmd
+            assert apply_threads(args) == available_cores() == len(os.sched_getaffinity(0))
+            assert torch.get_num_threads() == available_cores()
+            args = build_parser().parse_args(cmd + ["--threads", "1"])
+            assert apply_threads(args) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(n)
+
+
+# =============================================================================================
+# C. The run folder: one writer, caches that know their inputs, resume that checks its flags
+# =============================================================================================
+def _config(work: Path) -> dict:
+    return strict_json(work / "config.json")
+
+
+def _model_cfg(work: Path) -> dict:
+    return torch.load(work / MODEL, map_location="cpu", weights_only=False)["config"]
+
+
+def test_two_writers_one_gets_the_lock_error(scene24, finished_run, tmp_path):
+    """Two `dibrgs train` into one folder, in two processes: the second exits 75 naming the first (pid,
+    host) and writes nothing; the first finishes, and config.json and model.pt both hold its seed."""
+    work = copy_run(finished_run, tmp_path / "w")
+    first = subprocess.Popen([sys.executable, "-m", "dibrgs_core", "train", str(scene24), "--out", str(work), *QUICK,
+                              "--iterations", "6", "--seed", "0"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    try:
+        lock = work / LOCK_NAME
+        t0 = time.monotonic()
+        while not (lock.exists() and str(first.pid) in lock.read_text()):
+            assert first.poll() is None and time.monotonic() - t0 < 120, "the first writer never took the lock"
+            time.sleep(0.05)
+        os.kill(first.pid, signal.SIGSTOP)  # hold it inside the run, whatever the machine's speed
+        try:  # the second writer: this test's own process, through the same command line
+            rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--seed", "1")
+        finally:
+            os.kill(first.pid, signal.SIGCONT)
+        line = one_line(err)
+        assert rc == 75, err
+        assert f"in use by pid {first.pid} on {socket.gethostname()} (train" in line and str(work) in line
+        assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert _config(work)["config"]["seed"] == 0 and _model_cfg(work)["seed"] == 0
+    assert "seed 1" not in (work / "train.log").read_text() and not lock.exists()
+
+
+def test_a_stale_lock_is_taken_over(scene24, finished_run, tmp_path, caplog):
+    """A writer killed with SIGKILL leaves its lock file; the next writer takes it over and says whose it was."""
+    work = copy_run(finished_run, tmp_path / "w")
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from dibrgs_core.common.lock import acquire; "
+                               "acquire(sys.argv[1], 'train'); print('locked', flush=True); time.sleep(600)",
+                               str(work)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    assert holder.stdout.readline().strip() == "locked"
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 75 and f"pid {holder.pid}" in one_line(err)
+    holder.kill()
+    holder.wait()
+    assert str(holder.pid) in (work / LOCK_NAME).read_text()  # left behind
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0, err
+    assert f"taking over the stale lock of pid {holder.pid}" in caplog.text
+    assert not (work / LOCK_NAME).exists()
+
+
+def test_render_into_a_busy_folder_and_init_into_a_busy_run(scene24, finished_run, tmp_path):
+    """The lock covers init, eval and render too (the add-on's jobs run these commands)."""
+    from dibrgs_core.common.lock import run_folder_lock
+
+    work = copy_run(finished_run, tmp_path / "w")
+    out = tmp_path / "renders"
+    with run_folder_lock(out, "render"):
+        r = dibrgs_subprocess("render", work, "--cameras", scene24 / "Cams" / "002.txt", "--out", out)
+        assert r.returncode == 75 and "in use by pid" in one_line(r.stderr)
+    with run_folder_lock(work, "train"):
+        r = dibrgs_subprocess("init", scene24, "--out", work)
+        assert r.returncode == 75 and "in use by pid" in one_line(r.stderr)
+    assert not list(out.glob("*.png"))
+
+
+def test_another_scene_replaces_the_run_and_its_caches(other_scene24, finished_run, tmp_path, caplog):
+    """`train OTHER --out W` over an earlier run: reported and replaced; the geometry, SfM points and pseudo
+    views are made again from OTHER (never "reusing the geometry initialisation")."""
+    from dibrgs_core.data.load import load_scene
+    from dibrgs_core.geometry.pipeline import InitConfig, init_inputs
+
+    work = copy_run(finished_run, tmp_path / "w")
+    old_pseudo = strict_json(work / "pseudo" / "manifest.json")["hash"]
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", other_scene24, "--out", work, *QUICK, "--iterations", "2")
+    assert rc == 0, err
+    assert "held a run of another scene" in caplog.text and "reusing the geometry" not in caplog.text
+    other = load_scene(other_scene24)
+    assert _config(work)["run"]["digest"] == other.digest()
+    assert strict_json(work / "init" / "init_report.json")["values"]["inputs"] == init_inputs(other, InitConfig())
+    assert strict_json(work / "pseudo" / "manifest.json")["hash"] != old_pseudo
+    assert _model_cfg(work)["iterations"] == 2
+
+
+def test_resume_refuses_another_scenes_run(other_scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    before = (work / CHECKPOINT).read_bytes()
+    rc, err = dibrgs("train", other_scene24, "--out", work, *QUICK, "--iterations", "8", "--resume")
+    line = one_line(err)
+    assert rc == 2 and "run here is of another scene" in line and "drop --resume to replace it" in line
+    assert (work / CHECKPOINT).read_bytes() == before and (work / MODEL).exists()
+
+
+def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
+    """`init --train 002,009` then `train` with the default split: the initialisation is made again
+    from 001/008/015 (and the split is in report.json and the log)."""
+    work = tmp_path / "w"
+    rc, err = dibrgs("init", scene24, "--out", work, "--train", "2,9", "--threads", "1")
+    assert rc == 0, err
+    assert strict_json(work / "init" / "init_report.json")["values"]["train"] == ["002", "009"]
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "2", "--no-pseudo")
+    assert rc == 0, err
+    assert "made from other training views; initialising again" in caplog.text
+    assert strict_json(work / "init" / "init_report.json")["values"]["train"] == ["001", "008", "015"]
+    scene = strict_json(work / "report.json")["values"]["scene"]
+    assert scene["train"] == ["001", "008", "015"] and scene["split_source"] == "default (LEVIR-NVS 3-view protocol)"
+    assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
+
+
+RESUME_REFUSED = [
+    ("preset", ["--preset", "cpu"], "preset: 'test' -> 'cpu'"),
+    ("seed", ["--seed", "1"], "seed: 0 -> 1"),
+    ("no-pseudo", ["--no-pseudo"], "pseudo.mode: 'auto' -> 'off'"),
+    ("resolution", ["--resolution-scale", "0.5"], "resolution_scale: 1.0 -> 0.5"),
+]
+
+
+@pytest.mark.parametrize("flags,lists", [c[1:] for c in RESUME_REFUSED], ids=[c[0] for c in RESUME_REFUSED])
+def test_resume_refuses_changed_options(scene24, finished_run, tmp_path, flags, lists):
+    work = copy_run(finished_run, tmp_path / "w")
+    before = {p.name: p.read_bytes() for p in (work / CHECKPOINT, work / MODEL, work / "config.json")}
+    preset = flags[1] if flags[0] == "--preset" else "test"
+    flags = [] if flags[0] == "--preset" else flags
+    rc, err = dibrgs("train", scene24, "--out", work, "--preset", preset, "--threads", "1", "--iterations", "6",
+                     "--resume", *flags)
+    line = one_line(err)
+    assert rc == 2 and lists in line and "--force-config" in line and str(work / CHECKPOINT) in line, err
+    assert {n: (work / n).read_bytes() for n in before} == before
+
+
+@pytest.mark.parametrize("flags,lists", [(["--ibr", "none"], "ibr: 'auto' -> 'none'"),
+                                         (["--iterations", "3"], "iterations: 6 -> 3"),
+                                         (["--method", "3dgs"], "method: 'dibrgs' -> '3dgs'")],
+                         ids=["ibr", "fewer-iterations", "method"])
+def test_resume_changes_no_checkpoint_can_follow(scene24, finished_run, tmp_path, flags, lists):
+    """Changes of the model's make-up, or fewer iterations than done, are refused even with --force-config."""
+    work = copy_run(finished_run, tmp_path / "w")
+    argv = ["train", scene24, "--out", work, *QUICK, "--resume", "--force-config"]
+    if "--iterations" not in flags:
+        argv += ["--iterations", "6"]
+    rc, err = dibrgs(*argv, *flags)
+    line = one_line(err)
+    assert rc == 2 and "cannot resume with" in line and lists in line, err
+    assert _model_cfg(work)["iterations"] == 6
+
+
+def test_resume_with_more_iterations_goes_on(scene24, finished_run, tmp_path, caplog):
+    work = copy_run(finished_run, tmp_path / "w")
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--resume")
+    assert rc == 0, err
+    assert _model_cfg(work)["iterations"] == 8 and _config(work)["config"]["iterations"] == 8
+    rep = strict_json(work / "report.json")["values"]
+    assert rep["resumed_from"] == 6 and rep["iteration"] == 8 and rep["resume_changes"] == [["iterations", 6, 8]]
+    assert "resuming with changed iterations: 6 -> 8" in (work / "train.log").read_text()
+
+
+def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--seed", "3", "--resume",
+                     "--force-config")
+    assert rc == 0, err
+    assert _model_cfg(work)["seed"] == 3
+    forced = strict_json(work / "report.json")["values"]["forced_config"]
+    assert forced == [{"iteration": 6, "changes": [["seed", 0, 3]]}]
+    assert _config(work)["forced_config"] == forced
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--force-config")
+    assert rc == 2 and "--force-config only applies with --resume" in one_line(err)
+
+
+def test_resume_refuses_another_split(scene24, finished_run, tmp_path):
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--resume", "--train", "1,8")
+    line = one_line(err)
+    assert rc == 2 and "another split" in line and "train ['001', '008', '015'] -> ['001', '008']" in line
+
+
+def test_a_fresh_run_replaces_the_earlier_runs_outputs(scene24, finished_run, tmp_path, caplog):
+    """Without --resume the earlier run's outputs go first (no mix of two runs); its caches stay."""
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0 and (work / "metrics.json").exists() and (work / "renders").is_dir()
+    keep = work / "notes.txt"
+    keep.write_text("the user's own file")
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "3")
+    assert rc == 0, err
+    assert "starting afresh (no --resume)" in (work / "train.log").read_text()
+    assert not (work / "metrics.json").exists() and not (work / "renders").exists()
+    assert _model_cfg(work)["iterations"] == 3 and keep.read_text() == "the user's own file"
+    assert (work / "init" / "points.ply").exists()
+    assert "train.log" in [p.name for p in work.iterdir()] and "iteration 6" not in (work / "train.log").read_text()
+
+
+# =============================================================================================
+# D. The operating system says no: one line naming the path and what to do, exit 1 (2 for input)
+# =============================================================================================
+@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "foreign"])
+def test_unreadable_checkpoint(scene24, finished_run, tmp_path, what):
+    work = copy_run(finished_run, tmp_path / "w")
+    ck = work / CHECKPOINT
+    data = ck.read_bytes()
+    ck.write_bytes({"empty": b"", "truncated": data[: len(data) // 2], "corrupt": os.urandom(4096),
+                    "foreign": b""}[what])
+    if what == "foreign":
+        torch.save([1, 2, 3], ck)
+    before = ck.read_bytes()
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--resume")
+    line = one_line(err)
+    assert rc == 2 and str(ck) in line and "delete it to start afresh" in line, err
+    assert ck.read_bytes() == before and (work / MODEL).exists()
+
+
+@pytest.mark.parametrize("what", ["empty", "truncated"])
+def test_unreadable_model_file(finished_run, tmp_path, what):
+    work = copy_run(finished_run, tmp_path / "w")
+    m = work / MODEL
+    m.write_bytes(b"" if what == "empty" else m.read_bytes()[:1000])
+    for argv in (["eval", work], ["export", work, "--ply", tmp_path / "g.ply"],
+                 ["render", work, "--cameras", work / "x.json", "--out", tmp_path / "r"]):
+        rc, err = dibrgs(*argv, "--threads", "1")
+        line = one_line(err)
+        assert rc == 2 and str(m) in line and ("empty" in line or "unreadable trained model" in line), err
+    assert not (tmp_path / "g.ply").exists() and not (work / "metrics.json").exists()
+
+
+def test_out_is_a_file_or_under_a_file(scene24, finished_run, tmp_path):
+    f = tmp_path / "file"
+    f.write_text("keep me")
+    rc, err = dibrgs("train", scene24, "--out", f, *QUICK)
+    assert rc == 2 and f"{f}: is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("train", scene24, "--out", f / "sub", *QUICK)
+    assert rc == 1 and "a part of this path is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("render", finished_run, "--cameras", scene24 / "Cams" / "002.txt", "--out", f, "--threads", "1")
+    assert rc == 2 and f"{f}: is a file, not a folder" in one_line(err)
+    rc, err = dibrgs("init", scene24, "--out", f, "--threads", "1")
+    assert rc == 2 and "is a file" in one_line(err)
+    assert f.read_text() == "keep me"
+
+
+def test_export_targets(finished_run, tmp_path):
+    """--ply a folder or a FIFO: refused, left as they are; a symbolic link: the file it points to is
+    written and the link stays; new files get the umask's mode, replaced files keep theirs."""
+    d = tmp_path / "folder"
+    d.mkdir()
+    rc, err = dibrgs("export", finished_run, "--ply", d, "--threads", "1")
+    assert rc == 2 and f"{d}: is a folder, not a regular file" in one_line(err) and d.is_dir()
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    rc, err = dibrgs("export", finished_run, "--ply", fifo, "--threads", "1")
+    assert rc == 2 and "is a FIFO (named pipe), not a regular file" in one_line(err)
+    assert stat_kind(fifo) == "fifo"
+    target = tmp_path / "real" / "g.ply"
+    target.parent.mkdir()
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    link = tmp_path / "link.ply"
+    link.symlink_to(target)
+    rc, err = dibrgs("export", finished_run, "--ply", link, "--threads", "1")
+    assert rc == 0, err
+    assert link.is_symlink() and target.read_bytes().startswith(b"ply\n")
+    assert (target.stat().st_mode & 0o777) == 0o640
+    no_temp_files(tmp_path)
+    old = os.umask(0o027)
+    try:
+        rc, err = dibrgs("export", finished_run, "--ply", tmp_path / "new.ply", "--threads", "1")
+    finally:
+        os.umask(old)
+    assert rc == 0 and ((tmp_path / "new.ply").stat().st_mode & 0o777) == 0o640
+
+
+def stat_kind(p: Path) -> str:
+    import stat
+
+    m = os.lstat(p).st_mode
+    return "fifo" if stat.S_ISFIFO(m) else "dir" if stat.S_ISDIR(m) else "file" if stat.S_ISREG(m) else "other"
+
+
+def test_outputs_are_readable_by_others_under_the_usual_umask(scene24, finished_run, tmp_path):
+    """Renders, scenes and run files are created 0o644 under umask 022 (the old writer made every file 0o600)."""
+    old = os.umask(0o022)
+    try:
+        rc, err = dibrgs("render", finished_run, "--cameras", scene24 / "Cams" / "002.txt", "--out",
+                         tmp_path / "r", "--threads", "1")
+        assert rc == 0, err
+        work = copy_run(finished_run, tmp_path / "w")
+        rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+        assert rc == 0, err
+    finally:
+        os.umask(old)
+    for p in [tmp_path / "r" / "002.png", tmp_path / "r" / "002_depth.exr", work / "metrics.json",
+              *(work / "renders").glob("*.png")]:
+        assert (p.stat().st_mode & 0o777) == 0o644, p
+
+
+def test_corrupt_depth_anything_weights(scene24, tmp_path):
+    pytest.importorskip("transformers")
+    model = tmp_path / "da"
+    model.mkdir()
+    (model / "config.json").write_text('{"model_type": "depth_anything"}')
+    (model / "model.safetensors").write_bytes(b"garbage" * 100)
+    rc, err = dibrgs("init", scene24, "--out", tmp_path / "w", "--depth-model", model, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and str(model) in line and "cannot load the Depth Anything model" in line, err
+    assert not (tmp_path / "w" / "init" / "points.ply").exists()
+
+
+def test_metrics_are_strict_json_when_psnr_is_infinite(tmp_path):
+    """A model that renders exactly the held-out images (black, with every Gaussian transparent):
+    PSNR is infinite, so metrics.json holds null with the reason, and parses as strict JSON."""
+    from dibrgs_core.data.levir import read_scene, write_scene
+    from dibrgs_core.data.scene import View
+    from train_synth import make_synth_scene
+
+    src = read_scene(make_synth_scene(tmp_path / "src", resolution=16))
+    black = write_scene(tmp_path / "black", {k: View(v.camera, np.zeros_like(v.image)) for k, v in src.views.items()})
+    work = tmp_path / "w"
+    rc, err = dibrgs("train", black, "--out", work, *QUICK, "--iterations", "2", "--method", "3dgs")
+    assert rc == 0, err
+    st = torch.load(work / MODEL, weights_only=False)
+    st["model"]["opacity"] = torch.full_like(st["model"]["opacity"], -60.0)
+    torch.save(st, work / MODEL)
+    rc, err = dibrgs("eval", work, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0, err
+    m = strict_json(work / "metrics.json")
+    assert m["psnr"] is None and "infinite" in m["undefined"]["psnr"] and m["ssim"] == pytest.approx(1.0)
+    assert all(v["psnr"] is None for v in m["per_view"].values())
+
+
+
+# -- what needs another user's rights or another file system ------------------------------------
+def _without_root_rights() -> tuple[str, ...]:
+    """A command prefix under which file permissions apply (root keeps its uid, loses the override)."""
+    if os.geteuid() != 0:
+        return ()
+    if shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: permissions cannot be tested")
+    return ("setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner")
+
+
+def test_a_folder_the_user_cannot_write(scene24, tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    os.chmod(locked, 0o555)
+    try:
+        r = dibrgs_subprocess("train", scene24, "--out", locked / "run", *QUICK, prefix=_without_root_rights())
+        line = one_line(r.stderr)
+        assert r.returncode == 1 and str(locked / "run") in line and "permission denied" in line, r.stderr
+        assert "choose a folder you can write" in line and not list(locked.iterdir())
+        r = dibrgs_subprocess("train", scene24, "--out", locked, *QUICK, prefix=_without_root_rights())
+        assert r.returncode == 1 and "permission denied" in one_line(r.stderr)
+    finally:
+        os.chmod(locked, 0o755)
+
+
+class _Mount:
+    """A tmpfs at ``path`` for the test (root or CAP_SYS_ADMIN needed; skipped with the reason otherwise)."""
+
+    def __init__(self, path: Path, options: str):
+        path.mkdir(parents=True, exist_ok=True)
+        if shutil.which("mount") is None:
+            pytest.skip("no mount command: cannot make a small or read-only file system here")
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(path)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode}): needs root or CAP_SYS_ADMIN")
+        self.path = path
+
+    def umount(self) -> None:
+        subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
+
+
+@pytest.fixture()
+def tmpfs(tmp_path):
+    mounts: list[_Mount] = []
+
+    def make(name: str, options: str) -> Path:
+        m = _Mount(tmp_path / name, options)
+        mounts.append(m)
+        return m.path
+    yield make
+    for m in mounts:
+        m.umount()
+
+
+def test_read_only_file_system(scene24, finished_run, tmp_path, tmpfs):
+    ro = tmpfs("ro", "ro,size=1m")
+    rc, err = dibrgs("train", scene24, "--out", ro / "run", *QUICK)
+    line = one_line(err)
+    assert rc == 1 and str(ro / "run") in line and "read-only file system" in line, err
+    rc, err = dibrgs("export", finished_run, "--ply", ro / "g.ply", "--threads", "1")
+    assert rc == 1 and "read-only file system" in one_line(err) and str(ro / "g.ply") in one_line(err)
+
+
+def test_disk_full_during_training(scene24, finished_run, tmp_path, tmpfs):
+    """A run folder on a 192 KiB file system: the run stops with one line naming the file it could not
+    write; no temporary file is left and every file there is whole."""
+    small = tmpfs("small", "size=192k")
+    work = small / "run"
+    for sub in ("init", "pseudo"):  # the caches fit; the checkpoint does not
+        shutil.copytree(finished_run / sub, work / sub)
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "4")
+    line = one_line(err)
+    assert rc == 1 and "no space left on the device" in line and str(work) in line, err
+    assert "free some space" in line
+    no_temp_files(small)
+    for p in work.rglob("*.json"):
+        strict_json(p)
+    assert not (work / MODEL).exists()
+    if (work / CHECKPOINT).exists():
+        torch.load(work / CHECKPOINT, weights_only=False)
+
+
+def test_disk_full_during_export(finished_run, tmp_path, tmpfs):
+    small = tmpfs("small", "size=64k")
+    ply = small / "g.ply"
+    ply.write_text("the previous export")
+    rc, err = dibrgs("export", finished_run, "--ply", ply, "--threads", "1")
+    line = one_line(err)
+    assert rc == 1 and f"{ply}: no space left on the device" in line, err
+    assert ply.read_text() == "the previous export"
+    no_temp_files(small)
+
+
+# -- kill -9 / SIGINT / SIGTERM: resume to identical parameters ----------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
+def test_signals_resume_to_identical_parameters(scene24, finished_run, tmp_path, sig):
+    """A CLI run stopped by a signal at iteration >= 10 and resumed ends bit-identical to an uninterrupted one."""
+    args = ("train", scene24, *QUICK, "--iterations", "40", "--progress-json")
+    a = copy_run(finished_run, tmp_path / "a")
+    b = copy_run(finished_run, tmp_path / "b")
+    rc, err = dibrgs(args[0], args[1], "--out", a, *args[2:])
+    assert rc == 0, err
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    p = subprocess.Popen([sys.executable, "-m", "dibrgs_core", args[0], str(args[1]), "--out", str(b),
+                          *map(str, args[2:])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    for line in p.stdout:
+        if '"iteration"' in line and json.loads(line)["iteration"] >= 10:
+            p.send_signal(sig)
+            break
+    p.wait(timeout=300)
+    assert p.returncode == (-9 if sig == signal.SIGKILL else 130), p.stderr.read()[-2000:]
+    rc, err = dibrgs(args[0], args[1], "--out", b, *args[2:], "--resume")
+    assert rc == 0, err
+    pa = torch.load(a / MODEL, weights_only=False)
+    pb = torch.load(b / MODEL, weights_only=False)
+    for k, v in pa["model"].items():
+        assert torch.equal(v, pb["model"][k]), k
+
+
+def test_corrupt_lpips_backbone(finished_run, tmp_path):
+    """LPIPS heads with a damaged torchvision backbone file: one line naming the backbone, no metrics written."""
+    heads = {f"lin{k}.model.1.weight": torch.ones(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))}
+    torch.save(heads, tmp_path / "vgg.pth")
+    bb = tmp_path / "vgg16.pth"
+    bb.write_bytes(os.urandom(2048))
+    work = copy_run(finished_run, tmp_path / "w")
+    rc, err = dibrgs("eval", work, "--lpips", tmp_path / "vgg.pth", "--lpips-backbone", bb, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and f"{bb}: not a torch state dict" in line, err
+    assert not (work / "metrics.json").exists()

@@ -1,0 +1,206 @@
+"""Photographs as users have them: COLMAP cameras with lens distortion (undistorted on load with
+pycolmap, cached by content), JPEG with an EXIF rotation, any aspect ratio."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.data.colmap import read_colmap_cameras, read_colmap_scene
+from dibrgs_core.data.levir import read_scene, write_cams_file
+from dibrgs_core.data.load import read_any_scene
+
+pycolmap = pytest.importorskip("pycolmap")
+
+W, H = 96, 64  # 3:2, like a drone photo
+
+
+def pattern(w: int, h: int) -> np.ndarray:
+    """A smooth, non-symmetric test image in [0, 1] (bilinear resampling keeps it within a few levels)."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = 0.5 + 0.45 * np.sin(x / 7.0) * np.cos(y / 9.0)
+    g = (x / w) * 0.9 + 0.05
+    b = (y / h) * 0.9 + 0.05
+    return np.stack([r, g, b], -1)
+
+
+def distort_photo(ideal: np.ndarray, K: np.ndarray, cam) -> np.ndarray:
+    """The photo a camera with ``cam``'s distortion takes of the scene whose pinhole (``K``) image is ``ideal``:
+    each distorted pixel looks along pycolmap's ray (cam_from_img) and samples ``ideal`` there."""
+    from scipy.ndimage import map_coordinates
+
+    h, w = cam.height, cam.width
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1)
+    rays = np.nan_to_num(np.asarray(cam.cam_from_img(pix)))  # normalised (x/z, y/z); NaN where not invertible
+    px = K[0, 0] * rays[:, 0] + K[0, 2] - 0.5
+    py = K[1, 1] * rays[:, 1] + K[1, 2] - 0.5
+    out = np.stack([map_coordinates(ideal[..., c], [py, px], order=1, mode="nearest") for c in range(3)], -1)
+    return out.reshape(h, w, 3)
+
+
+def write_distorted_model(root: Path, model: str, params: list[float], n: int = 3) -> tuple[np.ndarray, list]:
+    """A COLMAP text model of ``n`` views sharing one distorted camera, with photos made through that
+    distortion from a known pinhole image; returns (pinhole K, world-to-camera matrices)."""
+    f = 80.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    photo = distort_photo(pattern(W, H), K, cam)
+    (root / "images").mkdir(parents=True)
+    w2cs = []
+    for i in range(n):
+        w2c = look_at([10.0 * i, 0.0, 100.0], [10.0 * i, 0.0, 0.0], [0, 1.0, 0])
+        w2cs.append(w2c)
+        img = pycolmap.Image(name=f"v{i}.png", camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(w2c[:3, :4]))
+        Image.fromarray(np.round(photo * 255).astype(np.uint8)).save(root / "images" / f"v{i}.png")
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write_text(str(root / "sparse" / "0"))
+    return K, w2cs
+
+
+DISTORTED = [("SIMPLE_RADIAL", [80.0, W / 2, H / 2, -0.25]),
+             ("RADIAL", [80.0, W / 2, H / 2, -0.25, -0.05]),
+             ("OPENCV", [80.0, 80.0, W / 2, H / 2, -0.25, 0.05, 0.002, -0.002]),
+             ("FULL_OPENCV", [80.0, 80.0, W / 2, H / 2, -0.25, 0.05, 0.002, -0.002, 0.01, 0.0, 0.0, 0.0])]
+
+
+def _error_against_ideal(image: np.ndarray, Kc: np.ndarray, K: np.ndarray) -> tuple[float, float]:
+    """Mean |image - ideal| where pinhole ``Kc``'s ray lands well inside the ideal image (``K``), and that share."""
+    h, w = image.shape[:2]
+    v_, u_ = np.mgrid[0:h, 0:w].astype(np.float64)
+    px = K[0, 0] * (u_ + 0.5 - Kc[0, 2]) / Kc[0, 0] + K[0, 2] - 0.5
+    py = K[1, 1] * (v_ + 0.5 - Kc[1, 2]) / Kc[1, 1] + K[1, 2] - 0.5
+    inside = (px > 3) & (px < W - 4) & (py > 3) & (py < H - 4)
+    want = pattern(W, H)[np.round(py[inside]).astype(int), np.round(px[inside]).astype(int)]
+    return float(np.abs(image[inside] - want).mean()), float(inside.mean())
+
+
+@pytest.mark.parametrize("model,params", DISTORTED, ids=[m for m, _ in DISTORTED])
+def test_distorted_colmap_model_is_undistorted_on_load(tmp_path, monkeypatch, model, params):
+    """The photos come back as pinhole images: the undistorted camera is pycolmap's, the poses are kept, and
+    each pixel shows what the ideal pinhole image shows along the same ray (within resampling error)."""
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    root = tmp_path / model
+    K, w2cs = write_distorted_model(root, model, params)
+    s = read_colmap_scene(root)
+    und = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(),
+                                    pycolmap.Camera(model=model, width=W, height=H, params=params))
+    for i, v in enumerate(s.views.values()):
+        c = v.camera
+        assert (c.width, c.height) == (und.width, und.height) and np.allclose(c.K, und.calibration_matrix())
+        assert np.allclose(c.w2c, w2cs[i], atol=1e-9)
+        assert v.image.shape == (c.height, c.width, 3)
+        # Each undistorted pixel shows what the ideal pinhole image shows along its ray (resampling error only).
+        err, share = _error_against_ideal(v.image, c.K, K)
+        assert share > 0.5 and err < 0.02, (model, err, share)
+    # The distorted photo taken as a pinhole is far off: the check above can tell undistorted from not.
+    raw = np.asarray(Image.open(root / "images" / "v0.png"), np.float32) / 255.0
+    raw_err, _ = _error_against_ideal(raw, K, K)
+    assert raw_err > 3 * err, (raw_err, err)
+    assert [c.width for c in read_colmap_cameras(root)] == [und.width] * 3
+
+
+def test_undistortion_cache_is_keyed_by_content(tmp_path, monkeypatch):
+    """The undistorted photos are cached; an edited photo or camera gets a new entry, never the old one."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("DIBRGS_CACHE", str(cache))
+    root = tmp_path / "m"
+    write_distorted_model(root, "OPENCV", DISTORTED[2][1])
+    a = read_colmap_scene(root)
+    entries = sorted((cache / "undistorted").glob("*.npy"))
+    assert len(entries) == 1  # three identical photos of one camera: one entry
+    b = read_colmap_scene(root)  # from the cache
+    assert all(np.array_equal(a.views[k].image, b.views[k].image) for k in a.views)
+    img = np.asarray(Image.open(root / "images" / "v1.png")).copy()
+    img[:8] = 255
+    Image.fromarray(img).save(root / "images" / "v1.png")
+    c = read_colmap_scene(root)
+    assert len(list((cache / "undistorted").glob("*.npy"))) == 2
+    assert not np.array_equal(c.views["v1"].image, a.views["v1"].image)
+    assert np.array_equal(c.views["v0"].image, a.views["v0"].image)
+    # An unwritable cache is only a warning.
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "file"))
+    (tmp_path / "file").write_text("not a folder")
+    assert np.array_equal(read_colmap_scene(root).views["v0"].image, a.views["v0"].image)
+
+
+def test_fisheye_and_other_models_are_clear_errors(tmp_path, monkeypatch):
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    for model, params, says in [("OPENCV_FISHEYE", [80, 80, W / 2, H / 2, 0.1, 0, 0, 0], "a fisheye model"),
+                                ("SIMPLE_RADIAL_FISHEYE", [80, W / 2, H / 2, 0.1], "a fisheye model"),
+                                ("FOV", [80, 80, W / 2, H / 2, 0.5], "a fisheye model")]:
+        root = tmp_path / model
+        write_distorted_model(root, model, params)
+        with pytest.raises(InputError, match=f"{model} is {says}.*colmap image_undistorter") as e:
+            read_any_scene(root)
+        assert e.value.path == root / "sparse" / "0"
+
+
+# -- JPEG photos with an EXIF orientation ------------------------------------------------------
+def _jpeg(path: Path, upright: np.ndarray, orientation: int) -> None:
+    """Store ``upright`` as a JPEG the way a camera held on its side does: the pixels rotated, and the EXIF
+    orientation tag saying how to turn them upright."""
+    im = Image.fromarray(np.round(upright * 255).astype(np.uint8))
+    stored = {1: im, 3: im.transpose(Image.Transpose.ROTATE_180), 6: im.transpose(Image.Transpose.ROTATE_90),
+              8: im.transpose(Image.Transpose.ROTATE_270)}[orientation]
+    exif = stored.getexif()
+    exif[0x0112] = orientation
+    stored.save(path, quality=95, exif=exif)
+
+
+@pytest.mark.parametrize("orientation", [6, 8, 3])
+def test_jpeg_scene_with_exif_rotation(tmp_path, orientation):
+    """A LEVIR-layout scene of 3:2 JPEG photos stored rotated with an EXIF orientation: read upright, at
+    the cameras' size, with the pixels where the camera says."""
+    root = tmp_path / "scene"
+    (root / "Images").mkdir(parents=True)
+    K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
+    ups = {}
+    for i in range(4):
+        cam = Camera(K=K, w2c=look_at([20.0 * i, 0, 100], [20.0 * i, 0, 0], [0, 1.0, 0]), width=W, height=H,
+                     name=f"{i:03d}", depth_range=(50.0, 150.0))
+        write_cams_file(root / "Cams" / f"{i:03d}.txt", cam)
+        ups[cam.name] = np.roll(pattern(W, H), 7 * i, axis=1)
+        _jpeg(root / "Images" / f"{i:03d}.jpg", ups[cam.name], orientation if i != 2 else 1)
+    (root / "split.json").write_text('{"train": ["000.jpg", "002.JPG", "003"], "test": ["001"]}')
+    s = read_scene(root)
+    assert s.resolution == (W, H) and s.train == ["000", "002", "003"] and s.test == ["001"]
+    for k, v in s.views.items():
+        assert v.image.shape == (H, W, 3)
+        assert np.abs(v.image - ups[k]).mean() < 0.02, k  # JPEG loss only; a rotated read would be far off
+
+
+def test_colmap_photos_keep_colmaps_pixel_order(tmp_path, monkeypatch):
+    """COLMAP ignores EXIF orientation, so a COLMAP model of rotated JPEGs describes the stored pixels; an
+    EXIF tag is followed only when the stored pixels do not fit the camera and the upright ones do."""
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    root = tmp_path / "m"
+    write_distorted_model(root, "PINHOLE", [80.0, 80.0, W / 2, H / 2])
+    stored = np.asarray(Image.open(root / "images" / "v0.png"), np.float32) / 255.0
+    for i in range(3):  # the same pixels as JPEG, tagged "rotate 90": COLMAP would still see W x H
+        img = Image.open(root / "images" / f"v{i}.png")
+        exif = img.getexif()
+        exif[0x0112] = 6
+        img.save(root / "images" / f"v{i}.jpg", quality=95, exif=exif)
+        (root / "images" / f"v{i}.png").unlink()
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    for im in rec.images.values():
+        im.name = im.name.replace(".png", ".jpg")
+    rec.write_text(str(root / "sparse" / "0"))
+    s = read_colmap_scene(root)
+    assert s.views["v0"].image.shape == (H, W, 3)
+    assert np.abs(s.views["v0"].image - stored).mean() < 0.02
+    # A model whose camera is the upright size (made from rotated copies) gets the upright photos.
+    rec.cameras[1] = pycolmap.Camera(model="PINHOLE", width=H, height=W, params=[80.0, 80.0, H / 2, W / 2],
+                                     camera_id=1)
+    rec.write_text(str(root / "sparse" / "0"))
+    s = read_colmap_scene(root)
+    assert s.views["v0"].image.shape == (W, H, 3)
+    assert np.abs(s.views["v0"].image - np.rot90(stored, -1)).mean() < 0.02
