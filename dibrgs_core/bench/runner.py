@@ -138,8 +138,11 @@ def ensure_scene(spec: RunSpec, scene_dir: Path) -> Path:
     return scene_dir
 
 
-def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> dict[str, Any]:
+def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None, threads: int | None = None
+            ) -> dict[str, Any]:
     """Generate the scene if needed, train (resuming), evaluate; return the result row and curve.
+
+    ``threads``: torch threads of the child commands (None: their default, every available core).
 
     Runs on whichever machine executes it (locally or a Ray worker): the
     scene is regenerated from its seed there if absent, so workers need no
@@ -155,8 +158,10 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None) -> d
              *METHODS[spec.method]]
     if spec.iterations:
         train += ["--iterations", str(spec.iterations)]
+    if threads:
+        train += ["--threads", str(threads)]
     _dibrgs(train, logf)
-    ev = ["eval", str(work)]
+    ev = ["eval", str(work)] + (["--threads", str(threads)] if threads else [])
     if lpips:
         ev += ["--lpips", lpips]
     _dibrgs(ev, logf)
@@ -200,17 +205,18 @@ def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: s
               progress: Callable[[str], None] = print, jobs: int = 1,
               job: Callable[..., dict[str, Any]] = run_one) -> None:
     """Run the jobs on this machine, ``jobs`` at a time (each is a child process with its own
-    torch threads, so ``jobs`` x threads should not exceed the cores). Results are saved as
+    torch threads: the available cores are shared out between them). Results are saved as
     each run finishes; a failed run is reported after the others have finished. ``job`` is
     the function each run calls (``run_one``; tests pass a variant)."""
     from concurrent.futures import ThreadPoolExecutor, as_completed
 
     specs = list(specs)
+    threads = max(1, len(os.sched_getaffinity(0)) // max(1, jobs))
 
     def one(spec: RunSpec) -> tuple[RunSpec, dict[str, Any], float]:
         progress(f"start {spec.key}")
         t0 = time.perf_counter()
-        res = job(spec, work_root, lpips)
+        res = job(spec, work_root, lpips, threads=threads)
         write_json(_result_path(results, spec), res)
         return spec, res, time.perf_counter() - t0
 
@@ -247,7 +253,7 @@ def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: s
     task = ray.remote(num_cpus=num_cpus, num_gpus=num_gpus, max_retries=max_retries,
                       retry_exceptions=False)(job)
     specs = list(specs)
-    refs = {task.remote(s, str(work_root), lpips): s for s in specs}
+    refs = {task.remote(s, str(work_root), lpips, threads=max(1, int(num_cpus))): s for s in specs}
     done = 0
     while refs:
         ready, _ = ray.wait(list(refs), num_returns=1)

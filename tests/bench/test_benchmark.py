@@ -19,7 +19,7 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     scene_dir.parent.mkdir(parents=True)
     os.symlink(tiny_scene, scene_dir)
 
-    def flaky_job(spec, work_root, lpips=None):
+    def flaky_job(spec, work_root, lpips=None, threads=None):
         """run_one, but the first attempt of each run kills its own worker process.
 
         Defined here so Ray pickles it by value: workers cannot import test modules."""
@@ -27,7 +27,8 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
         if not marker.exists():
             marker.write_text("1")
             os._exit(1)  # a dying worker, not an exception
-        return bm.run_one(spec, work_root, lpips)
+        assert threads == 1  # num_cpus=1: one torch thread a task
+        return bm.run_one(spec, work_root, lpips, threads)
 
     suite = bm.make_suite("tiny", preset="test", iterations=60)
     results = work / "results"
@@ -64,7 +65,8 @@ def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_
     spans: dict[str, tuple[float, float]] = {}
     lock = threading.Lock()
 
-    def job(spec, work_root, lpips=None):
+    def job(spec, work_root, lpips=None, threads=None):
+        assert threads == max(1, len(os.sched_getaffinity(0)) // 2)  # jobs=2 share the cores
         t0 = time.perf_counter()
         time.sleep(0.3)
         with lock:
