@@ -746,7 +746,11 @@ def test_disk_full_during_training(scene24, finished_run, tmp_path, tmpfs):
 
 
 def test_disk_full_during_export(finished_run, tmp_path, tmpfs):
-    small = tmpfs("small", "size=64k")
+    # A file system with room for half of the export (at least a page), whatever the run's size.
+    rc, err = dibrgs("export", finished_run, "--ply", tmp_path / "full.ply", "--threads", "1")
+    assert rc == 0, err
+    room = max(4096, (tmp_path / "full.ply").stat().st_size // 2 // 4096 * 4096)
+    small = tmpfs("small", f"size={room}")
     ply = small / "g.ply"
     ply.write_text("the previous export")
     rc, err = dibrgs("export", finished_run, "--ply", ply, "--threads", "1")
