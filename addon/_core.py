@@ -10,8 +10,10 @@ One rule: the add-on uses the ``dibrgs_core`` that sits beside it.
   repository root on ``sys.path``) there is no parent package and the
   absolute ``dibrgs_core`` is used, which is the same checkout.
 
-Only numpy-only modules are imported here (``cameras``, ``bridge.*``); torch
-runs in subprocesses (``bridge.jobs``).
+Only numpy-only modules are imported here (``cameras``, ``height_map``,
+``errors``, ``bridge.*``); torch runs in subprocesses (``bridge.jobs``).
+``tests/test_blender_addon.py`` checks that the add-on imports and builds a
+scene with torch, Pillow and pycolmap blocked.
 """
 from __future__ import annotations
 
@@ -30,4 +32,7 @@ compositor = importlib.import_module(CORE_PACKAGE + ".bridge.compositor")
 jobs = importlib.import_module(CORE_PACKAGE + ".bridge.jobs")
 reports = importlib.import_module(CORE_PACKAGE + ".bridge.reports")
 geometry = importlib.import_module(CORE_PACKAGE + ".bridge.geometry")
+describe = importlib.import_module(CORE_PACKAGE + ".bridge.describe")
+checks = importlib.import_module(CORE_PACKAGE + ".bridge.checks")
+errors = importlib.import_module(CORE_PACKAGE + ".errors")
 height_map = importlib.import_module(CORE_PACKAGE + ".height_map")

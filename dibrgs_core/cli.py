@@ -16,7 +16,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .errors import InputError
 
-COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export"]
+COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]
 
 
 def build_parser() -> argparse.ArgumentParser:
