@@ -119,6 +119,7 @@ def test_progress_lines_and_eta():
 
 def test_stage_lines_show_long_set_up_steps():
     p = progress.Progress()
+    assert p.text() == "starting"  # nothing reported yet (torch is still loading)
     p.update(progress.parse_progress_line('{"stage": "compiling the rasterizer (first run, about 2 minutes)"}'))
     assert p.text() == "compiling the rasterizer (first run, about 2 minutes)" and p.fraction == 0.0
     # A stage's "done" is a count of its items, not the end of the run.

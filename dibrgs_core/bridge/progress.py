@@ -108,6 +108,8 @@ class Progress:
             return "done"
         if self.stage is not None:
             return self.stage + (f" {self.stage_done}/{self.stage_total}" if self.stage_done is not None else "")
+        if self.total == 0 and self.iteration == 0:
+            return "starting"
         parts = [f"it {self.iteration}/{self.total or '?'}"]
         if self.loss is not None:
             parts.append(f"loss {self.loss:.4g}")
