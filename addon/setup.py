@@ -57,7 +57,7 @@ def chosen_python(context: bpy.types.Context | None = None) -> tuple[str | None,
     """(interpreter, "") or (None, why there is none); never starts a process."""
     from .preferences import settings
 
-    chosen = settings(context).python_path or os.environ.get("DIBRGS_PYTHON", "")
+    chosen = os.path.expanduser(settings(context).python_path or os.environ.get("DIBRGS_PYTHON", ""))
     if chosen:
         if not Path(chosen).is_file():
             return None, f"training Python {chosen} not found: set it in {PREFS_HINT}"

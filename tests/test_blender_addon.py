@@ -458,3 +458,25 @@ def test_set_up_check_reports_a_python_that_cannot_train(scene64, fresh, tmp_pat
     assert problem.endswith("see Edit > Preferences > Add-ons > DIBR-GS")
     bpy.ops.dibrgs.import_scene(directory=str(scene64))
     assert _why("initialise") == _why("train") == problem  # the panel says why training is off
+
+
+def test_a_background_job_loads_its_results_into_the_scene_it_started_from(scene64, fresh, tmp_path):
+    """What the application timer does interactively (background mode runs no timers: tick by hand)."""
+    ops = _mod("operators")
+    jobs = _mod("_core").jobs
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    started = fresh.name
+    runner = jobs.JobRunner([jobs.Step("Render camera", [sys.executable, "-c", "print('rendered')"],
+                                       tmp_path / "r.log")])
+    job = ops.Job("Render camera", runner, finish=lambda ctx: f"loaded into {ctx.scene.name}", scene_name=started)
+    ops._active = job
+    runner.start()
+    other = bpy.data.scenes.new("Another scene")
+    with bpy.context.temp_override(scene=other):  # the user looks at another scene meanwhile
+        t0 = time.monotonic()
+        while ops._tick() is not None and time.monotonic() - t0 < 60:
+            assert ops.running_job() is job
+            time.sleep(0.05)
+    assert ops.running_job() is None and ops._active is None
+    assert bpy.data.scenes[started].dibrgs.message == f"loaded into {started}"
+    assert other.dibrgs.message == ""
