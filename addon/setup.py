@@ -14,8 +14,7 @@ import importlib.util
 import os
 import sys
 import tempfile
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
@@ -33,7 +32,6 @@ class CheckRun:
     runner: "jobs.JobRunner"
     report: "checks.CheckReport"
     log_path: Path
-    started: float = field(default_factory=time.monotonic)
 
     @property
     def running(self) -> bool:

@@ -262,7 +262,7 @@ def installed(tiny_scene, tmp_path_factory) -> dict:
     env.pop("DIBRGS_PYTHON", None)
     code = (f"import test_addon as t; t._installed_workflow({str(zpath)!r}, {str(tiny_scene)!r}, "
             f"{str(tmp / 'work')!r}, {str(tmp / 'batch')!r})")
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=1200,
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=2400,
                        cwd=tmp)
     out = {"rc": r.returncode, "log": r.stdout[-6000:] + r.stderr[-6000:], "work": tmp / "work", "tmp": tmp}
     timings = [ln for ln in r.stdout.splitlines() if ln.startswith("TIMINGS ")]

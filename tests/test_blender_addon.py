@@ -142,7 +142,8 @@ def test_import_scene_reproduces_every_camera(scene64, fresh):
         bgs = o.data.background_images
         assert len(bgs) == (1 if o in train else 0)
         if bgs:
-            assert Path(bpy.path.abspath(bgs[0].image.filepath)).resolve() == (scene64 / "Images" / f"{o.name}.png").resolve()
+            want = (scene64 / "Images" / f"{o.name}.png").resolve()
+            assert Path(bpy.path.abspath(bgs[0].image.filepath)).resolve() == want
     assert fresh.camera == objs["001"]
     props = fresh.dibrgs
     assert props.path_curve is not None and props.path_curve.type == "CURVE" and props.path_target is not None
@@ -208,7 +209,8 @@ import importlib.util
 from pathlib import Path
 import bpy
 repo, scene, colmap, init, out = (Path(a) if a else None for a in sys.argv[2:7])
-spec = importlib.util.spec_from_file_location("dibrgs_ext", repo / "__init__.py", submodule_search_locations=[str(repo)])
+spec = importlib.util.spec_from_file_location("dibrgs_ext", repo / "__init__.py",
+                                              submodule_search_locations=[str(repo)])
 ext = importlib.util.module_from_spec(spec); sys.modules["dibrgs_ext"] = ext; spec.loader.exec_module(ext)
 bpy.ops.wm.read_factory_settings(use_empty=True)
 ext.register()
