@@ -42,7 +42,8 @@ class CheckRun:
         if self.running or self.report.ok:
             return None
         if self.report.ok is False:
-            return f"the training Python lacks {', '.join(self.report.problems())}: see {PREFS_HINT}"
+            return (f"the training Python lacks {', '.join(self.report.problems())}: fix it and press "
+                    f"Set up / Check again ({PREFS_HINT})")
         return (f"the check of {self.python} stopped ({self.runner.error or 'no result'}); "
                 f"log: {self.log_path}").splitlines()[0]
 
