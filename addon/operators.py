@@ -280,16 +280,21 @@ class _JobOperator:
         props = context.scene.dibrgs
         try:
             job = self.build(context)
-        except (UserError, ValueError) as e:
+        except (UserError, ValueError, OSError) as e:  # OSError: the run folder cannot be written
             _set_error(props, str(e), setup_problem=isinstance(e, SetupError))
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         job.scene_name = context.scene.name
         job.blocking = bool(self.blocking or bpy.app.background or context.window is None)
-        _active = job
         _set_error(props, "")
         props.message = ""
-        job.runner.start()
+        try:
+            job.runner.start()
+        except OSError as e:  # e.g. the run folder cannot be written
+            _set_error(props, f"{job.label}: cannot start ({e})")
+            self.report({"ERROR"}, props.error)
+            return {"CANCELLED"}
+        _active = job
         if not job.blocking:
             bpy.app.timers.register(_tick, first_interval=TIMER_S, persistent=True)
             return {"FINISHED"}
