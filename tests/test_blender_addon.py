@@ -386,7 +386,12 @@ def test_every_operator_polls_with_a_reason(scene64, fresh, tmp_path, monkeypatc
     assert _why("results") is None and _why("flythrough") is None and _why("render_active_camera") is None
     fresh.camera = None
     assert _why("render_active_camera") == "no camera: make a camera active or set the scene camera"
-    assert ops.running_job() is None
+    # A run folder that cannot be written: an error, and no half-started job locking the panel.
+    (tmp_path / "a_file").write_text("not a folder")
+    fresh.dibrgs.work_dir = str(tmp_path / "a_file" / "work")
+    with pytest.raises(RuntimeError, match="Initialise: cannot start"):
+        bpy.ops.dibrgs.initialise(blocking=True)
+    assert ops.running_job() is None and bpy.ops.dibrgs.initialise.poll()
 
 
 def _sleeping_job(ops, tmp_path, label="Training"):
