@@ -29,12 +29,8 @@ def register() -> None:
 
 def unregister() -> None:
     global _cli_handle
-    job = operators.cancel_running(grace_s=5.0)
-    if job is not None:
-        job.runner.wait(interval_s=0.1)
+    operators.stop_all(grace_s=5.0)
     setup.stop_all()
-    if bpy.app.timers.is_registered(operators._tick):
-        bpy.app.timers.unregister(operators._tick)
     if _cli_handle is not None:
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None

@@ -56,6 +56,8 @@ class Job:
 
 #: The job running now (one at a time).
 _active: Job | None = None
+#: Jobs told to stop because another file was opened; polled until their process has ended.
+_detached: list[Job] = []
 
 
 def running_job() -> Job | None:
@@ -85,6 +87,18 @@ def cancel_running(grace_s: float = 30.0) -> Job | None:
     if job is not None:
         job.runner.cancel(grace_s=grace_s)
     return job
+
+
+def stop_all(grace_s: float = 5.0) -> None:
+    """Stop every job and wait for its process (the add-on is being disabled)."""
+    global _active
+    cancel_running(grace_s=grace_s)
+    for job in ([_active] if _active is not None else []) + _detached:
+        job.runner.wait(interval_s=0.1)
+    _active = None
+    _detached.clear()
+    if bpy.app.timers.is_registered(_tick):
+        bpy.app.timers.unregister(_tick)
 
 
 def _set_error(props, text: str, setup_problem: bool = False) -> None:
@@ -296,7 +310,8 @@ class _JobOperator:
             return {"CANCELLED"}
         _active = job
         if not job.blocking:
-            bpy.app.timers.register(_tick, first_interval=TIMER_S, persistent=True)
+            if not bpy.app.timers.is_registered(_tick):
+                bpy.app.timers.register(_tick, first_interval=TIMER_S, persistent=True)
             return {"FINISHED"}
         last = ""
         while not job.runner.finished:
@@ -346,9 +361,13 @@ def _redraw() -> None:
 def _tick() -> float | None:
     """Polls the background job; loads its results into its scene when it ends."""
     global _active
+    for old in list(_detached):
+        old.runner.poll()
+        if old.runner.finished:
+            _detached.remove(old)
     job = _active
     if job is None:
-        return None
+        return TIMER_S if _detached else None
     try:
         job.runner.poll()
     except Exception as e:  # never leave a job that nobody polls
@@ -358,10 +377,9 @@ def _tick() -> float | None:
     if not job.runner.finished:
         return TIMER_S
     scene = bpy.data.scenes.get(job.scene_name)
-    if job.detached or scene is None:
-        if _active is job:
-            _active = None
-        return None
+    if scene is None:  # its scene was deleted: nothing to load into
+        _active = None
+        return TIMER_S if _detached else None
     wm = bpy.context.window_manager
     override = {"scene": scene}
     if wm is not None and wm.windows:
@@ -369,15 +387,20 @@ def _tick() -> float | None:
     with bpy.context.temp_override(**override):
         level, text = _end(bpy.context, job)
     print(f"[DIBR-GS] {text}", flush=True)
-    return None
+    return TIMER_S if _detached else None
 
 
 @persistent
 def _load_pre(*_args) -> None:
+    global _active
     job = running_job()
     if job is not None:  # its results belong to the file being closed
         job.runner.cancel()
         job.detached = True
+        _active = None
+        _detached.append(job)
+        if not job.blocking and not bpy.app.timers.is_registered(_tick):
+            bpy.app.timers.register(_tick, first_interval=TIMER_S, persistent=True)
         print(f"[DIBR-GS] {job.label} stopped: another file is being opened"
               + (" (training keeps its last checkpoint)" if job.label == "Training" else ""), flush=True)
 
