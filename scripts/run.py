@@ -10,6 +10,7 @@ Exit codes: 0 success, 1 a step failed, 2 bad arguments, 130 interrupted
 """
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -23,7 +24,14 @@ def script_argv() -> list[str]:
     return sys.argv[1:] if not Path(sys.argv[0]).name.lower().startswith("blender") else []
 
 
+def _interrupted_early(signum, _frame) -> None:
+    print(f"run.py: interrupted by {signal.Signals(signum).name} before it started", file=sys.stderr)
+    sys.exit(130)
+
+
 def main(argv: list[str]) -> int:
+    for s in (signal.SIGINT, signal.SIGTERM):  # the batch installs its own once it runs
+        signal.signal(s, _interrupted_early)
     import bpy
 
     sys.path.insert(0, str(REPO))
