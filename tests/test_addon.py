@@ -153,6 +153,13 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     assert core.CORE_PACKAGE == pkg + ".dibrgs_core" and Path(core.cameras.__file__).is_relative_to(
         Path(os.environ["BLENDER_USER_RESOURCES"]))
     mod = lambda name: sys.modules[f"{pkg}.addon.{name}"]  # noqa: E731
+
+    def stop(*_):  # the fixture's time limit sends SIGTERM: stop the `dibrgs` child too (it has its own session)
+        mod("operators").stop_all(grace_s=5.0)
+        sys.stdout.flush()
+        os._exit(1)
+
+    signal.signal(signal.SIGTERM, stop)
     C = bpy.context
     props = C.scene.dibrgs
     lap("install")
@@ -262,10 +269,16 @@ def installed(tiny_scene, tmp_path_factory) -> dict:
     env.pop("DIBRGS_PYTHON", None)
     code = (f"import test_addon as t; t._installed_workflow({str(zpath)!r}, {str(tiny_scene)!r}, "
             f"{str(tmp / 'work')!r}, {str(tmp / 'batch')!r})")
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=2400,
-                       cwd=tmp)
-    out = {"rc": r.returncode, "log": r.stdout[-6000:] + r.stderr[-6000:], "work": tmp / "work", "tmp": tmp}
-    timings = [ln for ln in r.stdout.splitlines() if ln.startswith("TIMINGS ")]
+    p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, cwd=tmp)
+    try:
+        stdout, stderr = p.communicate(timeout=2400)
+    except subprocess.TimeoutExpired:  # SIGTERM: the driver stops its child before it exits
+        p.terminate()
+        stdout, stderr = p.communicate(timeout=120)
+        stderr += "\n(the installed workflow ran out of time: 2400 s)"
+    out = {"rc": p.returncode, "log": stdout[-6000:] + stderr[-6000:], "work": tmp / "work", "tmp": tmp}
+    timings = [ln for ln in stdout.splitlines() if ln.startswith("TIMINGS ")]
     out["timings"] = json.loads(timings[-1][8:]) if timings else {}
     return out
 
