@@ -11,7 +11,9 @@ One rule: the add-on uses the ``dibrgs_core`` that sits beside it.
   absolute ``dibrgs_core`` is used, which is the same checkout.
 
 Only numpy- or stdlib-only modules are imported here (``camera.*``, ``bridge.*``, the height
-map, the training presets); torch runs in subprocesses (``bridge.jobs``).
+map, errors, the training presets); torch runs in subprocesses (``bridge.jobs``).
+``tests/addon/test_blender_addon.py`` checks that the add-on imports and builds a scene with
+torch, Pillow and pycolmap blocked.
 """
 from __future__ import annotations
 
@@ -34,5 +36,8 @@ compositor = importlib.import_module(CORE_PACKAGE + ".bridge.compositor")
 jobs = importlib.import_module(CORE_PACKAGE + ".bridge.jobs")
 reports = importlib.import_module(CORE_PACKAGE + ".bridge.reports")
 geometry = importlib.import_module(CORE_PACKAGE + ".bridge.geometry")
+describe = importlib.import_module(CORE_PACKAGE + ".bridge.describe")
+checks = importlib.import_module(CORE_PACKAGE + ".bridge.checks")
+errors = importlib.import_module(CORE_PACKAGE + ".common.errors")
 height_map = importlib.import_module(CORE_PACKAGE + ".geometry.height_map")
 train_config = importlib.import_module(CORE_PACKAGE + ".training.config")

@@ -1,9 +1,24 @@
-"""The "Train DIBR-GS" panel in the 3D viewport sidebar (N panel, tab "DIBR-GS")."""
+"""The "Train DIBR-GS" panel in the 3D viewport sidebar (N panel, tab "DIBR-GS").
+
+Buttons are enabled by their operators' ``poll()``; when one cannot run, the
+reason (``operators.why_not``) is shown under it. While a job runs, the fields
+it was started with are locked and its progress comes from the runner in
+memory (never from the file).
+"""
 from __future__ import annotations
 
 import bpy
 
-from .operators import active_job
+from . import setup
+from .operators import job_progress, running_job, why_not
+
+
+def _reason(layout, context, action: str, shown: set[str]) -> None:
+    """The reason ``action`` cannot run, unless an earlier box already said it."""
+    reason = why_not(context, action)
+    if reason and reason not in shown:
+        shown.add(reason)
+        layout.label(text=reason, icon="INFO")
 
 
 class DIBRGS_PT_main(bpy.types.Panel):
@@ -16,22 +31,24 @@ class DIBRGS_PT_main(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.dibrgs
-        busy = active_job() is not None
+        job = running_job()
+        locked = job is not None
+        shown: set[str] = set()
 
         box = layout.box()
         box.label(text="Scene", icon="OUTLINER_OB_CAMERA")
-        box.prop(props, "scene_dir")
-        row = box.row()
-        row.enabled = not busy
-        op = row.operator("dibrgs.import_scene", icon="IMPORT")
+        col = box.column()
+        col.enabled = not locked
+        col.prop(props, "scene_dir")
+        op = col.operator("dibrgs.import_scene", icon="IMPORT")
         op.directory = props.scene_dir
-        box.prop(props, "work_dir")
+        col.prop(props, "work_dir")
 
         box = layout.box()
         box.label(text="Initialise", icon="POINTCLOUD_DATA")
-        row = box.row()
-        row.enabled = not busy
-        row.operator("dibrgs.initialise", icon="PLAY")
+        box.operator("dibrgs.initialise", icon="PLAY")
+        if not locked:
+            _reason(box, context, "initialise", shown)
         if props.decisions:
             col = box.column(align=True)
             for d in props.decisions:
@@ -43,33 +60,44 @@ class DIBRGS_PT_main(bpy.types.Panel):
         box.label(text="Pseudo-view path", icon="CURVE_BEZCIRCLE")
         box.prop(props, "path_curve")
         box.prop(props, "path_target")
-        box.prop(props, "pseudo_count")
+        row = box.row()
+        row.enabled = not locked
+        row.prop(props, "pseudo_count")
         box.operator("dibrgs.reset_path", icon="FILE_REFRESH")
 
         box = layout.box()
         box.label(text="Train", icon="SHADERFX")
         col = box.column()
-        col.enabled = not busy
+        col.enabled = not locked
         col.prop(props, "preset")
         col.prop(props, "method")
         col.prop(props, "iterations")
         col.prop(props, "resume")
-        if busy or props.job_running:
-            box.progress(factor=props.job_fraction, type="BAR", text=f"{props.job_label}: {props.job_text}")
+        if job is not None:
+            fraction, text = job_progress(job)
+            box.progress(factor=fraction, type="BAR", text=text)
             box.operator("dibrgs.cancel", icon="CANCEL")
         else:
             box.operator("dibrgs.train", icon="PLAY")
+            _reason(box, context, "train", shown)
+        python, _ = setup.chosen_python(context)
+        run = setup.latest(python)
+        if run is not None and run.running:
+            box.progress(factor=run.report.fraction, type="BAR", text="Set up / Check: " + run.report.text())
 
         box = layout.box()
         box.label(text="Results", icon="NODE_COMPOSITING")
         row = box.row(align=True)
-        row.enabled = not busy
         row.operator("dibrgs.results", icon="RENDER_STILL")
         row.operator("dibrgs.render_active_camera", icon="CAMERA_DATA")
         r = box.row(align=True)
-        r.enabled = not busy
-        r.prop(props, "fly_frames")
+        sub = r.row(align=True)
+        sub.enabled = not locked
+        sub.prop(props, "fly_frames")
         r.operator("dibrgs.flythrough", icon="RENDER_ANIMATION")
+        if not locked:
+            _reason(box, context, "results", shown)
+            _reason(box, context, "render_active_camera", shown)
         if props.results:
             box.prop(props, "result_view")
         for m in props.metrics:

@@ -1,40 +1,29 @@
-"""Add-on preferences: the training interpreter, default preset, local weights.
+"""Add-on preferences: the training interpreter with "Set up / Check", default preset, local weights.
 
-The interpreter must have torch and ``dibrgs_core``; left empty, the add-on
-uses ``$DIBRGS_PYTHON`` if set, else Blender's own ``sys.executable`` when a
-subprocess check (``-c "import torch, dibrgs_core"``) passes.
+The interpreter is a Python 3.11 with torch and the library's dependencies (README,
+section Blender, makes one with one command); ``setup.py`` checks it in the background.
 """
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import dataclass, field
 
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
+from . import setup
 from ._core import ADDON_PACKAGE, jobs, train_config
 
 PRESET_ITEMS = [(name, name.upper() if name == "cpu" else name.title(), text)
                 for name, text in train_config.PRESET_SUMMARY.items()]
-
-_checked: dict[str, tuple[bool, str]] = {}
-
-
-def check_python(python: str, refresh: bool = False) -> tuple[bool, str]:
-    """Cached :func:`dibrgs_core.bridge.jobs.check_interpreter`."""
-    if refresh or python not in _checked:
-        _checked[python] = jobs.check_interpreter(python)
-    return _checked[python]
 
 
 class DIBRGS_AddonPreferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_PACKAGE
 
     python_path: StringProperty(
-        name="Python interpreter", subtype="FILE_PATH",
-        description="Python with torch and dibrgs_core that runs training. Empty: $DIBRGS_PYTHON, "
-                    "else Blender's own Python if it can import them")
+        name="Training Python", subtype="FILE_PATH",
+        description="Python 3.11 with torch and the DIBR-GS dependencies, e.g. ~/dibrgs-env/bin/python "
+                    "(README, section Blender). Empty: $DIBRGS_PYTHON, else Blender's own Python if it has torch")
     default_preset: EnumProperty(name="Default preset", items=PRESET_ITEMS, default="cpu")
     depth_model: StringProperty(name="Depth model folder", subtype="DIR_PATH",
                                 description="Local Depth Anything V2 transformers folder (optional)")
@@ -46,9 +35,9 @@ class DIBRGS_AddonPreferences(bpy.types.AddonPreferences):
 
     def draw(self, context: bpy.types.Context) -> None:
         col = self.layout.column()
-        row = col.row(align=True)
-        row.prop(self, "python_path")
-        row.operator("dibrgs.check_python", text="", icon="CHECKMARK")
+        box = col.box()
+        box.prop(self, "python_path")
+        setup.draw_check(box, context)
         col.prop(self, "default_preset")
         box = col.box()
         box.label(text="Local weights (optional; nothing is downloaded)")
@@ -77,30 +66,4 @@ def settings(context: bpy.types.Context | None = None) -> Settings:
                     default_preset=prefs.default_preset, weights=w)
 
 
-def resolve_python(context: bpy.types.Context | None = None) -> tuple[str | None, str]:
-    """(interpreter, message); interpreter is None when none is usable."""
-    chosen = settings(context).python_path or os.environ.get("DIBRGS_PYTHON", "")
-    if chosen:
-        ok, msg = check_python(chosen)
-        return (chosen if ok else None), msg
-    ok, msg = check_python(sys.executable)
-    if ok:
-        return sys.executable, msg
-    return None, (f"Blender's Python ({sys.executable}) cannot import torch and dibrgs_core: set a Python "
-                  "interpreter that can in the DIBR-GS add-on preferences")
-
-
-class DIBRGS_OT_check_python(bpy.types.Operator):
-    """Check that the chosen Python interpreter can import torch and dibrgs_core"""
-
-    bl_idname = "dibrgs.check_python"
-    bl_label = "Check Python"
-
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        _checked.clear()
-        python, msg = resolve_python(context)
-        self.report({"INFO"} if python else {"ERROR"}, msg)
-        return {"FINISHED"} if python else {"CANCELLED"}
-
-
-CLASSES = (DIBRGS_AddonPreferences, DIBRGS_OT_check_python)
+CLASSES = (DIBRGS_AddonPreferences,)

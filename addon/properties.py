@@ -75,13 +75,12 @@ class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
                                   description="Scene up axis (from the cameras); appears up in pseudo views")
     fly_frames: IntProperty(name="Frames", default=48, min=2, max=10000,
                             description="Frames of the fly-through along the path")
-    # Job state, mirrored from the running subprocess for the panel.
-    job_running: BoolProperty()
-    job_label: StringProperty()
-    job_fraction: FloatProperty(min=0.0, max=1.0)
-    job_text: StringProperty()
+    # Outcome of the last action. The running job itself is never stored here (a saved
+    # file would bring back a job that no longer exists): see operators.running_job.
     message: StringProperty(description="Outcome of the last action")
     error: StringProperty(description="Last failure, with the log path")
+    error_is_setup: BoolProperty(description="The last failure came from the training Python's set-up "
+                                             "(cleared by a successful Set up / Check)")
     log_path: StringProperty(subtype="FILE_PATH")
     decisions: CollectionProperty(type=DIBRGS_Decision)
     metrics: CollectionProperty(type=DIBRGS_Metric)

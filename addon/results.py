@@ -4,7 +4,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-import numpy as np
 from mathutils import Matrix
 
 from . import compositor, scene_build
@@ -21,12 +20,14 @@ def _image(name: str, path: Path) -> bpy.types.Image:
         bpy.data.images.remove(img)
     img = bpy.data.images.load(str(path))
     img.name = name
+    img.colorspace_settings.name = "sRGB"  # the renders are sRGB PNGs (see compositor.color_manage)
     return img
 
 
 def load_renders(scene: bpy.types.Scene, folder: Path, stems: list[str], kind: str) -> list[str]:
-    """Load ``folder/STEM.png`` as images named ``{kind}_{stem}`` and list them as results.
+    """Load ``folder/STEM.png`` as images named ``{kind}_{stem}`` and list them as the results of that kind.
 
+    Results of the same kind that are not among ``stems`` (an earlier run's) leave the list.
     Raises FileNotFoundError naming the first missing render.
     """
     props = scene.dibrgs
@@ -42,6 +43,9 @@ def load_renders(scene: bpy.types.Scene, folder: Path, stems: list[str], kind: s
             item.name = name
         props.results[name].kind = kind
         names.append(name)
+    for item in list(props.results):
+        if item.kind == kind and item.name not in names:
+            props.results.remove(props.results.find(item.name))
     return names
 
 

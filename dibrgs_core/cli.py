@@ -23,7 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .common.errors import EXIT_INPUT, explain, exit_code
 
-COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export"]
+COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]
 
 
 class Parser(argparse.ArgumentParser):

@@ -10,9 +10,11 @@ Blender lives here:
   result nodes are laid out and wired.
 * :mod:`.jobs`: ``dibrgs`` command lines for the chosen interpreter and a
   non-blocking subprocess runner with cancel and a log file.
-* :mod:`.describe`: ``python -m dibrgs_core.bridge.describe SCENE OUT.json``,
-  run by the add-on with the training interpreter so Blender's Python never
-  needs pycolmap, PIL or torch to import a scene.
+* :mod:`.checks`: what ``dibrgs check --json`` (the add-on's "Set up / Check")
+  reports, folded for display.
+* :mod:`.describe`: the scene description the add-on imports, read in
+  Blender's own Python (no torch, Pillow or pycolmap): COLMAP models with
+  :mod:`.colmap_model`, image sizes from headers with :mod:`.imagesize`.
 
 Every module here imports numpy and the standard library only.
 """

@@ -1,77 +1,121 @@
-"""Describe a scene folder as JSON for the Blender add-on.
+"""Describe a scene folder for the Blender add-on, in Blender's own Python.
 
-``python -m dibrgs_core.bridge.describe SCENE OUT.json`` reads a LEVIR-NVS or
-COLMAP folder with the library's readers (which may need pycolmap, PIL,
-tifffile: packages Blender's Python does not have) and writes::
+Blender's Python has numpy but no torch, Pillow or pycolmap, so this module
+reads what the add-on needs (cameras, image paths, the train/test split, the
+track) with numpy and the standard library only: Cams files through the
+library's own parser, image sizes from file headers (:mod:`.imagesize`) and
+COLMAP models with :mod:`.colmap_model`. It applies the same rules and
+messages as the library's readers (``data.levir.read_scene``,
+``data.colmap.read_colmap_scene``), which ``tests/bridge/test_bridge.py`` checks
+on LEVIR and COLMAP (text and binary) scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
-                             "camera": camera_to_dict(...), "image": path|null}],
+                             "camera": camera_to_dict(...), "image": path}],
      "train": [names], "test": [names], "track": [camera dicts]}
 
-Bad input exits with code 2 and an ``InputError`` message on stderr, and
-``OUT.json`` is not written.
+Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 """
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
+from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
-from ..common.fileio import write_json
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
-
-
-def find_image(root: Path, name: str) -> Path | None:
-    """The image file of view ``name`` under ``root`` (LEVIR ``Images/``, COLMAP ``images/``)."""
-    for folder in ("Images", "images", "Image", "image"):
-        d = root / folder
-        if not d.is_dir():
-            continue
-        exact = d / name
-        if exact.is_file() and exact.suffix.lower() in IMAGE_SUFFIXES:
-            return exact.resolve()
-        for suffix in IMAGE_SUFFIXES:
-            for cand in (d / (name + suffix), d / (name + suffix.upper())):
-                if cand.is_file():
-                    return cand.resolve()
-    return None
+from ..data.colmap import find_colmap_model
+from ..data.images import IMAGE_EXTS
+from ..data.scene import make_split, validate_camera_arrays
+from ..data.levir import read_cams_file
+from .colmap_model import read_model
+from .imagesize import image_size
 
 
-def describe_scene(root: Path) -> dict[str, Any]:
-    """The JSON-ready description of the scene at ``root`` (raises InputError)."""
+def describe_scene(root: str | Path) -> dict[str, Any]:
+    """The description of the LEVIR-NVS or COLMAP scene at ``root`` (its ``split.json``, else the default split)."""
     root = Path(root)
-    from ..data.load import read_any_scene
-
-    scene = read_any_scene(root, load_depth=False)
-    train, test = list(scene.train), list(scene.test)
-    views = []
-    for name, view in scene.views.items():
-        split = "train" if name in train else "test" if name in test else "other"
-        img = find_image(root, name)
-        views.append({"name": name, "split": split, "camera": camera_to_dict(view.camera),
-                      "image": str(img) if img is not None else None})
-    return {"root": str(root.resolve()), "views": views, "train": train, "test": test,
-            "track": [camera_to_dict(c) for c in scene.track]}
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m dibrgs_core.bridge.describe",
-                                description="Describe a scene folder as JSON for the Blender add-on.")
-    p.add_argument("scene", type=Path)
-    p.add_argument("out", type=Path)
-    args = p.parse_args(argv)
+    if not root.is_dir():
+        raise InputError(root, "scene folder not found")
+    if (root / "Cams").is_dir():
+        views, images, track = _levir(root)
+    elif find_colmap_model(root) is not None:
+        views, images, track = _colmap(root)
+    else:
+        raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
+                               "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
     try:
-        desc = describe_scene(args.scene)
-    except InputError as e:
-        print(str(e), file=sys.stderr)
-        return 2
-    write_json(args.out, desc)
-    return 0
+        train, test, source = make_split(root, list(views), None)
+    except ValueError as e:
+        raise InputError(root, str(e)) from None
+    out = []
+    for name, cam in views.items():
+        split = "train" if name in train else "test" if name in test else "other"
+        out.append({"name": name, "split": split, "camera": camera_to_dict(cam),
+                    "image": str(images[name].resolve())})
+    return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
+            "track": [camera_to_dict(c) for c in track]}
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]]:
+    img_dir, cam_dir = root / "Images", root / "Cams"
+    if not img_dir.is_dir():
+        raise InputError(img_dir, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
+    images = {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_EXTS and p.is_file()
+              and not p.name.startswith(".")}
+    cams = {p.stem: p for p in sorted(cam_dir.glob("*.txt")) if not p.name.startswith(".")}
+    if not images:
+        raise InputError(img_dir, "no images found")
+    for stem in sorted(set(images) - set(cams)):
+        raise InputError(cam_dir / f"{stem}.txt", f"camera file missing for image {images[stem].name}")
+    for stem in sorted(set(cams) - set(images)):
+        raise InputError(img_dir / f"{stem}.png", f"image missing for camera {cams[stem].name}")
+    views: dict[str, Camera] = {}
+    size, first = None, None
+    for stem in sorted(images):
+        w, h = image_size(images[stem])
+        if size is None:
+            size, first = (w, h), images[stem]
+        elif (w, h) != size:
+            raise InputError(images[stem], f"image is {w}x{h} but {first.name} is {size[0]}x{size[1]}")
+        views[stem] = read_cams_file(cams[stem], size=(w, h))
+    track = []
+    if (root / "Track").is_dir():
+        track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
+                 if not p.name.startswith(".")]
+    return views, {k: images[k] for k in views}, track
+
+
+def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]]:
+    model_dir = find_colmap_model(root)
+    cams, imgs = read_model(model_dir)
+    img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images") if d.is_dir()), None)
+    if img_dir is None:
+        raise InputError(root / "images", "image folder not found")
+    views: dict[str, Camera] = {}
+    paths: dict[str, Path] = {}
+    seen: dict[str, str] = {}
+    for im in sorted(imgs, key=lambda i: i.name):
+        if im.camera_id not in cams:
+            raise InputError(model_dir, f"image {im.name} refers to camera {im.camera_id}, which is not in the model")
+        cam = cams[im.camera_id]
+        K, w2c = cam.K(model_dir), im.w2c()
+        validate_camera_arrays(w2c, K, None, model_dir)
+        vid = Path(im.name).stem
+        if vid in seen:
+            raise InputError(model_dir, f"images {seen[vid]} and {im.name} share the view id {vid!r}")
+        seen[vid] = im.name
+        path = img_dir / im.name
+        if not path.is_file():
+            raise InputError(path, "image file missing (listed in the COLMAP model)")
+        w, h = image_size(path)
+        if (w, h) != (cam.width, cam.height):
+            raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
+        views[vid] = Camera(K=K, w2c=w2c, width=cam.width, height=cam.height, name=vid)
+        paths[vid] = path
+    if not views:
+        raise InputError(model_dir, "COLMAP model has no posed images")
+    sizes = {(c.width, c.height) for c in views.values()}
+    if len(sizes) > 1:
+        raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
+    ids = sorted(views)
+    return {k: views[k] for k in ids}, paths, []

@@ -133,24 +133,25 @@ def eval_command(python: str, work: Path, weights: Weights | None = None) -> lis
     return dibrgs_command(python, "eval", work, *(weights or Weights()).flags("lpips"))
 
 
-def describe_command(python: str, scene: Path, out_json: Path) -> list[str]:
-    """``python -m dibrgs_core.bridge.describe SCENE OUT.json`` (see :mod:`.describe`)."""
-    return [str(python), "-m", "dibrgs_core.bridge.describe", str(scene), str(out_json)]
+def check_command(python: str) -> list[str]:
+    """``dibrgs check --json``: imports every dependency, builds the rasterizer (see :mod:`.checks`)."""
+    return dibrgs_command(python, "check", "--json")
 
 
-def check_interpreter(python: str, timeout_s: float = 300.0) -> tuple[bool, str]:
-    """Whether ``python`` can import torch and this ``dibrgs_core``; (ok, message)."""
-    if not python:
-        return False, "no Python interpreter given"
-    try:
-        r = subprocess.run([python, "-c", "import torch, dibrgs_core; print(torch.__version__)"],
-                           env=subprocess_env(), capture_output=True, text=True, timeout=timeout_s)
-    except (OSError, subprocess.TimeoutExpired) as e:
-        return False, f"{python}: cannot run ({e})"
-    if r.returncode != 0:
-        last = (r.stderr.strip().splitlines() or ["exit code %d" % r.returncode])[-1]
-        return False, f"{python}: cannot import torch and dibrgs_core ({last})"
-    return True, f"{python}: torch {r.stdout.strip()}"
+#: What ``dibrgs eval|render|export`` load: written when training reaches its last iteration.
+MODEL_FILE = "model.pt"
+#: Written at every checkpoint and on interruption; ``--resume`` continues from it.
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
+def model_problem(work: Path) -> str | None:
+    """None when ``work`` holds a trained model, else why not (one line for the user)."""
+    work = Path(work)
+    if (work / MODEL_FILE).is_file():
+        return None
+    if (work / CHECKPOINT_FILE).is_file():
+        return f"training in {work} stopped before the end: train with Resume to finish it"
+    return f"no trained model in {work}: train first"
 
 
 def log_tail(path: Path, lines: int = 5) -> str:

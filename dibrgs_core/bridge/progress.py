@@ -1,9 +1,12 @@
 """Progress of a ``dibrgs train --progress-json`` run, as the add-on shows it.
 
 The training prints one JSON object per line on stdout:
-``{"iteration", "total", "loss", "eta_s", "elapsed_s"}`` while it runs and
-``{"done": true, "work": ...}`` at the end. Any other line (a log line that
-slipped onto stdout) is not progress and is ignored here.
+``{"stage": "compiling the rasterizer (first run, about 2 minutes)"}`` or
+``{"stage": "building 96 pseudo views", "done": 3, "total": 96}`` before and
+during a long set-up step, ``{"iteration", "total", "loss", "eta_s",
+"elapsed_s"}`` while it trains and ``{"done": true, "work": ...}`` at the
+end. Any other line (a log line that slipped onto stdout) is not progress and
+is ignored here.
 """
 from __future__ import annotations
 
@@ -55,10 +58,22 @@ class Progress:
     elapsed_s: float | None = None
     done: bool = False
     work: str | None = None
+    #: The set-up step running now (None once iterations are reported), and its
+    #: count of finished items when it has one.
+    stage: str | None = None
+    stage_done: int | None = None
+    stage_total: int | None = None
 
     def update(self, event: dict[str, Any]) -> None:
         """Fold one progress event in; unknown or malformed fields are ignored."""
-        if event.get("done"):
+        if isinstance(event.get("stage"), str):  # its "done" is a count, not the end of the run
+            done, total = _finite(event.get("done")), _finite(event.get("total"))
+            self.stage = event["stage"]
+            self.stage_total = int(total) if total is not None and total > 0 else None
+            self.stage_done = (min(max(int(done), 0), self.stage_total)
+                               if done is not None and self.stage_total else None)
+            return
+        if event.get("done") is True:
             self.done = True
             self.work = str(event["work"]) if event.get("work") is not None else self.work
             if self.total:
@@ -68,6 +83,7 @@ class Progress:
         it, tot = _finite(event.get("iteration")), _finite(event.get("total"))
         if it is not None:
             self.iteration = max(0, int(it))
+            self.stage = self.stage_done = self.stage_total = None
         if tot is not None and tot > 0:
             self.total = int(tot)
         for key in ("loss", "eta_s", "elapsed_s"):
@@ -76,17 +92,24 @@ class Progress:
 
     @property
     def fraction(self) -> float:
-        """Completed fraction in [0, 1] (1 once done)."""
+        """Completed fraction in [0, 1] (1 once done); of the set-up step while one runs."""
         if self.done:
             return 1.0
+        if self.stage is not None:
+            return self.stage_done / self.stage_total if self.stage_done is not None else 0.0
         if self.total <= 0:
             return 0.0
         return min(max(self.iteration / self.total, 0.0), 1.0)
 
     def text(self) -> str:
-        """One line for the panel, e.g. ``it 120/300  loss 0.0412  ETA 0:42``."""
+        """One line for the panel, e.g. ``it 120/300  loss 0.0412  ETA 0:42`` or
+        ``building 96 pseudo views 3/96``."""
         if self.done:
             return "done"
+        if self.stage is not None:
+            return self.stage + (f" {self.stage_done}/{self.stage_total}" if self.stage_done is not None else "")
+        if self.total == 0 and self.iteration == 0:
+            return "starting"
         parts = [f"it {self.iteration}/{self.total or '?'}"]
         if self.loss is not None:
             parts.append(f"loss {self.loss:.4g}")

@@ -1,9 +1,12 @@
 """The add-on's logic without Blender: dibrgs_core.bridge (path sampling, progress, compositor
-choice, commands and the subprocess runner, reports), the height-map mesh and the manifest."""
+choice, commands and the subprocess runner, `dibrgs check`, the numpy-only scene reader, reports),
+the height-map mesh and the manifest."""
 from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -13,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dibrgs_core.bridge import compositor, jobs, path, progress, reports
+from dibrgs_core.bridge import checks, colmap_model, compositor, describe, imagesize, jobs, path, progress, reports
 from dibrgs_core.bridge.geometry import height_map_mesh
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.camera.serialize import camera_from_dict
@@ -114,6 +117,23 @@ def test_progress_lines_and_eta():
     assert p.done and p.fraction == 1.0 and p.work == "/tmp/w"
     assert progress.format_duration(3725) == "1:02:05"
     assert progress.format_duration(-1) == "--:--"
+
+
+def test_stage_lines_show_long_set_up_steps():
+    p = progress.Progress()
+    assert p.text() == "starting"  # nothing reported yet (torch is still loading)
+    p.update(progress.parse_progress_line('{"stage": "compiling the rasterizer (first run, about 2 minutes)"}'))
+    assert p.text() == "compiling the rasterizer (first run, about 2 minutes)" and p.fraction == 0.0
+    # A stage's "done" is a count of its items, not the end of the run.
+    p.update({"stage": "building 96 pseudo views", "done": 3, "total": 96})
+    assert not p.done and p.text() == "building 96 pseudo views 3/96"
+    assert p.fraction == pytest.approx(3 / 96)
+    p.update({"stage": "building 96 pseudo views", "done": "x", "total": float("nan")})
+    assert p.text() == "building 96 pseudo views" and p.fraction == 0.0
+    p.update({"iteration": 10, "total": 40, "eta_s": 30})  # training has started: the stage is over
+    assert p.stage is None and p.text() == "it 10/40  ETA 0:30" and p.fraction == 0.25
+    p.update({"done": True})
+    assert p.done and p.text() == "done"
 
 
 # ---------------------------------------------------------------------------
@@ -247,11 +267,183 @@ def test_runner_cancel_sends_sigint_so_the_process_can_save(tmp_path):
     assert not (tmp_path / "other").exists() and len(r.steps) == 1
 
 
-def test_check_interpreter_reports_a_python_without_torch(tmp_path):
-    ok, msg = jobs.check_interpreter(str(tmp_path / "missing-python"))
-    assert not ok and "cannot run" in msg
-    ok, msg = jobs.check_interpreter(sys.executable)
-    assert ok, msg
+# ---------------------------------------------------------------------------
+# `dibrgs check` (Set up / Check in Blender)
+# ---------------------------------------------------------------------------
+def test_check_dependencies_are_the_projects():
+    import tomllib
+
+    from dibrgs_core.commands.check import DEPENDENCIES
+
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    assert sorted(d.requirement for d in DEPENDENCIES) == sorted(deps)
+    assert [d.module for d in DEPENDENCIES][0] == "torch"
+
+
+def test_check_report_folds_the_lines():
+    r = checks.CheckReport()
+    assert not r.feed("some log line") and r.ok is None and r.fraction == 0.0
+    assert r.feed('{"check": "torch", "ok": true, "required": true, "detail": "2.13.0", "index": 1, "total": 4}')
+    assert r.text() == "checked torch (1/4)" and r.fraction == 0.25
+    r.feed('{"check": "PIL", "ok": false, "required": true, "detail": "ModuleNotFoundError", '
+           '"fix": "py -m pip install pillow", "index": 2, "total": 4}')
+    r.feed('{"check": "transformers", "ok": false, "required": false, "index": 3, "total": 4}')
+    r.feed('{"stage": "compiling the rasterizer (first run, about 2 minutes)"}')
+    assert r.text().startswith("compiling the rasterizer")
+    r.feed('{"result": {"ok": false, "missing": ["PIL", "transformers"], "fix": "py -m pip install pillow"}}')
+    assert r.ok is False and r.fraction == 1.0 and r.problems() == ["PIL"]
+    assert r.text() == "not ready: PIL"
+
+
+def test_check_names_what_is_missing_and_the_fix(tmp_path):
+    """The real `dibrgs check` in a Python where pycolmap cannot be imported."""
+    block = tmp_path / "block"
+    block.mkdir()
+    (block / "sitecustomize.py").write_text(textwrap.dedent("""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] == "pycolmap":
+                    raise ModuleNotFoundError(f"No module named {name!r} (blocked by the test)")
+        sys.meta_path.insert(0, Block())
+    """))
+    env = jobs.subprocess_env()
+    env["PYTHONPATH"] = os.pathsep.join([env["PYTHONPATH"], str(block)])
+    r = subprocess.run(jobs.check_command(sys.executable) + ["--no-build"], env=env, capture_output=True,
+                       text=True, timeout=300)
+    report = checks.CheckReport()
+    for line in r.stdout.splitlines():
+        report.feed(line)
+    assert r.returncode == 1, r.stdout + r.stderr
+    items = {i.name: i for i in report.items}
+    assert not items["pycolmap"].ok and "blocked by the test" in items["pycolmap"].detail
+    assert items["pycolmap"].fix == f"{sys.executable} -m pip install pycolmap"
+    assert report.result["fix"] == items["pycolmap"].fix and report.problems() == ["pycolmap"]
+    assert all(i.ok for n, i in items.items() if n != "pycolmap"), [i for i in report.items if not i.ok]
+    assert items["torch"].ok and items["dibrgs_core"].detail == str(REPO / "dibrgs_core")
+
+
+def test_model_problem_names_what_the_run_folder_lacks(tmp_path):
+    assert "train first" in jobs.model_problem(tmp_path)
+    (tmp_path / jobs.CHECKPOINT_FILE).write_bytes(b"")
+    assert "stopped before the end" in jobs.model_problem(tmp_path)  # an interrupted run
+    (tmp_path / jobs.MODEL_FILE).write_bytes(b"")
+    assert jobs.model_problem(tmp_path) is None
+
+
+# ---------------------------------------------------------------------------
+# scenes read in Blender's Python: numpy and the standard library only
+# ---------------------------------------------------------------------------
+def test_image_size_from_headers(tmp_path):
+    from PIL import Image
+    import tifffile
+
+    rgb = (np.random.default_rng(0).random((37, 53, 3)) * 255).astype(np.uint8)
+    files = {"a.png": (53, 37), "b.jpg": (53, 37), "c.tif": (53, 37), "d16.png": (53, 37),
+             "e_big.tif": (19, 23), "f_prog.jpg": (53, 37)}
+    Image.fromarray(rgb).save(tmp_path / "a.png")
+    Image.fromarray(rgb).save(tmp_path / "b.jpg", quality=90)
+    Image.fromarray(rgb).save(tmp_path / "f_prog.jpg", progressive=True)
+    Image.fromarray(rgb).save(tmp_path / "c.tif")
+    Image.fromarray((rgb[..., 0].astype(np.uint16) * 257)).save(tmp_path / "d16.png")
+    tifffile.imwrite(tmp_path / "e_big.tif", np.zeros((23, 19), np.float32), bigtiff=True)
+    for name, size in files.items():
+        assert imagesize.image_size(tmp_path / name) == size, name
+        if not name.startswith("e_"):
+            with Image.open(tmp_path / name) as im:
+                assert im.size == size
+    (tmp_path / "bad.png").write_bytes(b"not an image at all")
+    from dibrgs_core.common.errors import InputError
+
+    with pytest.raises(InputError, match="bad.png: unreadable image header"):
+        imagesize.image_size(tmp_path / "bad.png")
+
+
+def _same_description(desc: dict, scene) -> None:
+    assert desc["train"] == list(scene.train) and desc["test"] == list(scene.test)
+    assert [v["name"] for v in desc["views"]] == list(scene.views)
+    assert len(desc["track"]) == len(scene.track)
+    for v in desc["views"]:
+        c = scene.views[v["name"]].camera
+        got = camera_from_dict(v["camera"])
+        assert (got.width, got.height, got.depth_range) == (c.width, c.height, c.depth_range)
+        np.testing.assert_array_equal(got.K, c.K)
+        np.testing.assert_allclose(got.w2c, c.w2c, rtol=0, atol=1e-12)
+        assert Path(v["image"]).is_file() and Path(v["image"]).stem == v["name"]
+    for d, c in zip(desc["track"], scene.track):
+        np.testing.assert_array_equal(camera_from_dict(d).w2c, c.w2c)
+
+
+def test_describe_matches_the_library_on_levir_and_colmap(tiny_scene, tmp_path):
+    """The add-on's reader (numpy only) and the library's (Pillow, pycolmap) agree."""
+    import pycolmap
+
+    from dibrgs_core.data.load import read_any_scene
+
+    from conftest import shared_file
+
+    _same_description(describe.describe_scene(tiny_scene), read_any_scene(tiny_scene, load_depth=False))
+    brighton = shared_file("data/brighton_north")
+    _same_description(describe.describe_scene(brighton), read_any_scene(brighton, load_depth=False))
+    # The same model as COLMAP binary files (written by pycolmap) next to the same images.
+    binary = tmp_path / "brighton_bin"
+    (binary / "sparse" / "0").mkdir(parents=True)
+    (binary / "images").symlink_to(brighton / "images")
+    pycolmap.Reconstruction(str(brighton / "sparse" / "0")).write_binary(str(binary / "sparse" / "0"))
+    assert colmap_model.model_format(binary / "sparse" / "0") == "bin"
+    _same_description(describe.describe_scene(binary), read_any_scene(binary, load_depth=False))
+
+
+def test_colmap_reader_takes_pinholes_and_refuses_distortion(tmp_path):
+    import pycolmap
+
+    from dibrgs_core.common.errors import InputError
+
+    rec = pycolmap.Reconstruction()
+    for cid, (model, params) in enumerate([("SIMPLE_RADIAL", [50.0, 32.0, 30.0, 0.0]),
+                                           ("OPENCV", [50.0, 52.0, 32.0, 30.0, 0.1, 0.0, 0.0, 0.0])], start=1):
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=64, height=60, params=params,
+                                                        camera_id=cid))
+        img = pycolmap.Image(name=f"v{cid}.png", camera_id=cid, image_id=cid)
+        pose = look_at([10.0 * cid, 5.0, 80.0], [0, 0, 0], [0, 0, 1])
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(pose[:3, :4]))
+    for write in ("write_text", "write_binary"):
+        d = tmp_path / write
+        d.mkdir()
+        getattr(rec, write)(str(d))
+        cams, imgs = colmap_model.read_model(d)
+        np.testing.assert_allclose(cams[1].K(d), [[50, 0, 32], [0, 50, 30], [0, 0, 1]])
+        assert sorted(i.name for i in imgs) == ["v1.png", "v2.png"]
+        for im in imgs:
+            np.testing.assert_allclose(im.w2c()[:3], rec.images[im.image_id].cam_from_world().matrix(), atol=1e-12)
+        with pytest.raises(InputError, match=r"camera 2: model OPENCV has distortion \[0.1, 0.0, 0.0, 0.0\]"):
+            cams[2].K(d)
+    (tmp_path / "write_text" / "points3D.txt").unlink()
+    with pytest.raises(InputError, match="points3D.bin: COLMAP model file missing"):
+        colmap_model.read_model(tmp_path / "write_text")
+
+
+def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
+    from dibrgs_core.common.errors import InputError
+    from dibrgs_core.data.load import read_any_scene
+
+    cases = {}
+    cases["empty"] = tmp_path / "empty"
+    cases["empty"].mkdir()
+    bad_cam = tmp_path / "bad_cam"
+    shutil.copytree(tiny_scene, bad_cam, ignore=shutil.ignore_patterns("Depths", "Track"))
+    (bad_cam / "Cams" / "003.txt").write_text("extrinsic 1 0 0 0 1 0 0 0 1 intrinsic 1 0 0 1")
+    cases["bad_cam"] = bad_cam
+    no_cam = tmp_path / "no_cam"
+    shutil.copytree(tiny_scene, no_cam, ignore=shutil.ignore_patterns("Depths", "Track"))
+    (no_cam / "Cams" / "004.txt").unlink()
+    cases["no_cam"] = no_cam
+    for name, root in cases.items():
+        with pytest.raises(InputError) as lib:
+            read_any_scene(root, load_depth=False)
+        with pytest.raises(InputError) as ours:
+            describe.describe_scene(root)
+        assert str(ours.value) == str(lib.value), name
 
 
 # ---------------------------------------------------------------------------
@@ -308,12 +500,38 @@ def test_manifest_is_valid_and_builds_an_extension(tmp_path):
     tool = _blender_ext()
     r = subprocess.run([sys.executable, str(tool), "validate", str(REPO)], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _tracked_files() -> list[str]:
+    r = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"not a git checkout: {r.stderr.strip()}")
+    return [f for f in r.stdout.splitlines() if (REPO / f).is_file()]
+
+
+def test_build_ships_only_the_allow_listed_paths(tmp_path):
+    """A working tree with a venv, scenes, runs, caches and build products: the zip holds the add-on only."""
+    src = tmp_path / "tree"
+    files = _tracked_files()
+    for f in files:
+        (src / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO / f, src / f)
+    junk = ["venv/lib/python3.11/site-packages/torch/__init__.py", "venv/bin/python", "city64/Images/000.png",
+            "city64/Cams/000.txt", "runs/demo/checkpoint.pt", "brighton/sparse/0/cameras.txt", "notes.txt",
+            "dibrgs-0.1.0.zip", ".venv/pyvenv.cfg", "addon/__pycache__/panel.cpython-311.pyc",
+            "dibrgs_core/__pycache__/cameras.cpython-311.pyc", "dibrgs_core/render/csrc/build/rasterize.o",
+            "dibrgs_core/render/csrc/build/ext.so", "dibrgs.egg-info/PKG-INFO", "addon/.DS_Store"]
+    for f in junk:
+        (src / f).parent.mkdir(parents=True, exist_ok=True)
+        (src / f).write_bytes(b"junk")
     zpath = tmp_path / "dibrgs.zip"
-    r = subprocess.run([sys.executable, str(tool), "build", "--source-dir", str(REPO), "--output-filepath",
+    r = subprocess.run([sys.executable, str(_blender_ext()), "build", "--source-dir", str(src), "--output-filepath",
                         str(zpath)], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
-    names = zipfile.ZipFile(zpath).namelist()
-    for needed in ("__init__.py", "blender_manifest.toml", "addon/__init__.py", "addon/_core.py",
-                   "dibrgs_core/camera/pinhole.py", "dibrgs_core/bridge/jobs.py"):
+    names = sorted(zipfile.ZipFile(zpath).namelist())
+    want = sorted(f for f in files if f in ("__init__.py", "blender_manifest.toml")
+                  or (f.startswith(("addon/", "dibrgs_core/")) and "/." not in f))
+    assert names == want, (set(names) ^ set(want))
+    for needed in ("addon/batch.py", "addon/_core.py", "dibrgs_core/bridge/describe.py",
+                   "dibrgs_core/render/csrc/rasterize.cpp"):
         assert needed in names
-    assert not any(n.startswith(("tests/", "scripts/", ".git")) or "__pycache__" in n for n in names)

@@ -1,4 +1,4 @@
-"""Scene generator: a real bpy/Cycles render read back through io_levir, with
+"""Scene generator: a real bpy/Cycles render read back through data.levir, with
 ground-truth depth checked for z-depth semantics and multi-view consistency."""
 from __future__ import annotations
 

@@ -1,0 +1,492 @@
+"""The add-on in Blender, without torch: scene import, cameras, path, compositor, polls, job state.
+
+Nothing here needs the training interpreter, so the same file runs with bpy 5.0.1 (the project's
+environment) and with bpy 4.2 LTS in a second environment that has numpy and nothing else of the
+library's dependencies (``.ci/run``): the 4.2 compositor branch (``scene.use_nodes``,
+``scene.node_tree``, Composite node) runs for real there. That environment gets its scene from
+``$DIBRGS_TEST_SCENE`` (made by ``scripts/make_scene.py`` in the main environment).
+
+The repository is loaded the way Blender loads the extension: as a package (``dibrgs_ext``)
+whose ``__init__`` hands off to ``addon/``.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+REPO = Path(__file__).resolve().parents[2]
+#: What Blender's own Python does not have: the add-on must work without importing any of it.
+BLOCKED = ("torch", "PIL", "pycolmap", "scipy", "tifffile", "OpenEXR", "trimesh", "skimage", "matplotlib",
+           "transformers", "cv2")
+
+
+def load_extension(name: str = "dibrgs_ext"):
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO / "__init__.py",
+                                                      submodule_search_locations=[str(REPO)])
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+@pytest.fixture(scope="module")
+def ext():
+    """The repository as an extension package, registered."""
+    mod = load_extension()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    mod.register()
+    yield mod
+    mod.unregister()
+
+
+@pytest.fixture
+def fresh(ext, tmp_path):
+    """An empty scene whose run folder is in tmp_path."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.dibrgs.work_dir = str(tmp_path / "work")
+    return scene
+
+
+@pytest.fixture
+def scene64(request) -> Path:
+    """A 64x64 generated city: $DIBRGS_TEST_SCENE, else the session's tiny_scene."""
+    if os.environ.get("DIBRGS_TEST_SCENE"):
+        return Path(os.environ["DIBRGS_TEST_SCENE"])
+    return request.getfixturevalue("tiny_scene")
+
+
+def _mod(name: str):
+    return sys.modules[f"dibrgs_ext.addon.{name}"]
+
+
+def _view_objects() -> dict[str, bpy.types.Object]:
+    return {o["dibrgs_view"]: o for o in bpy.data.objects if "dibrgs_view" in o}
+
+
+def _datablock_counts() -> dict[str, int]:
+    return {k: len(getattr(bpy.data, k)) for k in ("objects", "collections", "cameras", "images", "texts",
+                                                   "curves", "node_groups")}
+
+
+def _cams_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(w2c, K) of a LEVIR Cams file, parsed here rather than by the code under test."""
+    t = path.read_text().split()
+    ie, ii = t.index("extrinsic"), t.index("intrinsic")
+    return np.array(t[ie + 1:ie + 17], float).reshape(4, 4), np.array(t[ii + 1:ii + 10], float).reshape(3, 3)
+
+
+def _pixels(path: Path) -> np.ndarray:
+    """8-bit RGB values of a PNG as Blender reads them (no colour conversion for byte images)."""
+    img = bpy.data.images.load(str(path))
+    try:
+        w, h = img.size
+        px = np.empty(w * h * 4, np.float32)
+        img.pixels.foreach_get(px)
+        return np.round(px.reshape(h, w, 4)[..., :3] * 255).astype(int)
+    finally:
+        bpy.data.images.remove(img)
+
+
+def test_register_unregister_twice(ext):
+    for _ in range(2):
+        ext.unregister()
+        assert not hasattr(bpy.types.Scene, "dibrgs")
+        assert not hasattr(bpy.types, "DIBRGS_PT_main")
+        assert sys.modules["dibrgs_ext.addon"]._cli_handle is None
+        ext.register()
+        assert hasattr(bpy.types.Scene, "dibrgs")
+        assert bpy.types.DIBRGS_PT_main.bl_category == "DIBR-GS"
+        assert bpy.ops.dibrgs.train.idname() == "DIBRGS_OT_train"
+        assert sys.modules["dibrgs_ext.addon"]._cli_handle is not None  # `blender -c dibrgs`
+        assert _mod("operators")._load_post in bpy.app.handlers.load_post
+    # The add-on resolved the extension's own dibrgs_core, not the top-level one.
+    assert _mod("_core").CORE_PACKAGE == "dibrgs_ext.dibrgs_core"
+    assert _mod("_core").pinhole.__name__ == "dibrgs_ext.dibrgs_core.camera.pinhole"
+
+
+def test_import_scene_reproduces_every_camera(scene64, fresh):
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    ids = sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
+    assert sorted(objs) == ids
+    r = fresh.render
+    assert (r.resolution_x, r.resolution_y, r.resolution_percentage) == (64, 64, 100)
+    centres = []
+    for vid, obj in objs.items():
+        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
+        centres.append(-w2c[:3, :3].T @ w2c[:3, 3])
+        cam = sb.camera_from_object(obj, fresh)  # through cameras.from_blender on the bpy data
+        assert (cam.width, cam.height) == (64, 64)
+        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+        # Blender stores matrices in float32: positions are exact to 1e-5 of the scene's extent.
+        np.testing.assert_allclose(cam.center, centres[-1], atol=1e-5 * np.abs(centres[-1]).max())
+    train = [o for o in objs.values() if o["dibrgs_split"] == "train"]
+    assert [o.name for o in train] == ["001", "008", "015"]  # the 3-view protocol
+    assert all(o.users_collection[0].name == sb.TRAIN_COLLECTION for o in train)
+    for o in objs.values():
+        bgs = o.data.background_images
+        assert len(bgs) == (1 if o in train else 0)
+        if bgs:
+            want = (scene64 / "Images" / f"{o.name}.png").resolve()
+            assert Path(bpy.path.abspath(bgs[0].image.filepath)).resolve() == want
+    assert fresh.camera == objs["001"]
+    props = fresh.dibrgs
+    assert props.path_curve is not None and props.path_curve.type == "CURVE" and props.path_target is not None
+
+
+def test_wrong_folder_reports_an_error_and_creates_nothing(fresh, tmp_path):
+    junk = tmp_path / "not_a_scene"
+    (junk / "photos").mkdir(parents=True)
+    (junk / "photos" / "a.png").write_bytes(b"not an image")
+    before = _datablock_counts()
+    with pytest.raises(RuntimeError, match="Cannot import .*not_a_scene: not a scene"):
+        bpy.ops.dibrgs.import_scene(directory=str(junk))
+    assert "not a scene" in fresh.dibrgs.error
+    with pytest.raises(RuntimeError, match="not a folder"):
+        bpy.ops.dibrgs.import_scene(directory=str(tmp_path / "missing"))
+    assert _datablock_counts() == before
+
+
+def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    sb = _mod("scene_build")
+    props = fresh.dibrgs
+    n = 16
+    before = sb.path_cameras(bpy.context, n, "pseudo")
+    # The sampled path starts on the fitted orbit: samples are on the orbit's circle.
+    orbit = sb.fit_orbit(sb.scene_description())
+    radii = [np.linalg.norm(c.center - orbit.center) for c in before]
+    np.testing.assert_allclose(radii, orbit.radius, rtol=1e-3)
+    # Lift control point 0 (where sample 0 sits) along the scene up axis.
+    up = np.array(props.scene_up)
+    bp = props.path_curve.data.splines[0].bezier_points[0]
+    lift = 0.3 * orbit.radius
+    for attr in ("co", "handle_left", "handle_right"):
+        setattr(bp, attr, np.array(getattr(bp, attr)) + lift * up)
+    after = sb.path_cameras(bpy.context, n, "pseudo")
+    assert (after[0].center - before[0].center) @ up > 0.5 * lift  # the sample at the edited point follows it up
+    # The far side of the path only slides along the old circle (arc-length spacing), it does not rise.
+    far = after[n // 2].center
+    assert abs((far - before[n // 2].center) @ up) < 1e-3 * lift
+    assert abs(np.linalg.norm(far - orbit.center) - orbit.radius) < 1e-3 * orbit.radius
+    # Moving the look-at Empty turns the cameras towards it.
+    props.path_target.location = np.array(props.path_target.location) + [0.2 * orbit.radius, 0, 0]
+    bpy.context.view_layer.update()
+    turned = sb.path_cameras(bpy.context, n, "pseudo")
+    uv, _ = turned[3].project(np.array(props.path_target.location)[None])
+    np.testing.assert_allclose(uv[0], [turned[3].cx, turned[3].cy], atol=1e-6)
+
+
+# ---------------------------------------------------------------------------
+# Blender's Python has no torch, Pillow or pycolmap: import works without them
+# ---------------------------------------------------------------------------
+_NO_TORCH_DRIVER = """
+import json, sys
+BLOCKED = set(sys.argv[1].split(","))
+attempts = []
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            attempts.append(name)
+            raise ModuleNotFoundError(f"No module named {name!r} (blocked: Blender's Python has none)")
+sys.meta_path.insert(0, Block())
+import importlib.util
+from pathlib import Path
+import bpy
+repo, scene, colmap, init, out = (Path(a) if a else None for a in sys.argv[2:7])
+spec = importlib.util.spec_from_file_location("dibrgs_ext", repo / "__init__.py",
+                                              submodule_search_locations=[str(repo)])
+ext = importlib.util.module_from_spec(spec); sys.modules["dibrgs_ext"] = ext; spec.loader.exec_module(ext)
+bpy.ops.wm.read_factory_settings(use_empty=True)
+ext.register()
+C = bpy.context
+res = {}
+if colmap:
+    assert bpy.ops.dibrgs.import_scene(directory=str(colmap)) == {"FINISHED"}
+    res["colmap_views"] = sum("dibrgs_view" in o for o in bpy.data.objects)
+assert bpy.ops.dibrgs.import_scene(directory=str(scene)) == {"FINISHED"}
+res["levir_views"] = sum("dibrgs_view" in o for o in bpy.data.objects)
+assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}
+sb = sys.modules["dibrgs_ext.addon.scene_build"]
+results = sys.modules["dibrgs_ext.addon.results"]
+comp = sys.modules["dibrgs_ext.addon.compositor"]
+res["pseudo"] = len(sb.path_cameras(C, 8, "pseudo"))
+names = results.load_renders(C.scene, scene / "Images", ["002", "003"], "heldout")
+results.show_all(C.scene, names[1])
+res["wired"] = comp.wired_image(C.scene)
+res["points"] = results.load_init(C, init)
+res["height_map"] = sb.HEIGHT_NAME in bpy.data.objects
+ext.unregister()
+res["attempts"] = sorted(set(attempts))
+res["loaded"] = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
+out.write_text(json.dumps(res))
+"""
+
+
+def test_import_and_results_need_no_torch_pil_or_pycolmap(scene64, tmp_path):
+    """Scene import (LEVIR and COLMAP), path, compositor and initialisation outputs in a Python
+    whose imports of torch, Pillow, pycolmap, scipy, ... fail, as in Blender's."""
+    from dibrgs_core.geometry.height_map import HeightMap
+
+    init = tmp_path / "init"
+    init.mkdir()
+    pts = np.random.default_rng(1).normal(size=(50, 3))
+    ply = ["ply", "format ascii 1.0", f"element vertex {len(pts)}", "property float x", "property float y",
+           "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+    ply += [f"{x:.6f} {y:.6f} {z:.6f} {10 * k % 255} 120 30" for k, (x, y, z) in enumerate(pts)]
+    (init / "points.ply").write_text("\n".join(ply) + "\n")
+    HeightMap(up_frame=np.eye(3), origin=np.zeros(3), cell=1.0, x0=-2.0, y0=-2.0,
+              bounds=np.arange(16, dtype=float).reshape(4, 4)).save(init / "height_map.npz")
+    colmap = Path(os.environ.get("DIBRGS_SHARED", REPO.parent / "shared")) / "data" / "brighton_north"
+    out = tmp_path / "out.json"
+    r = subprocess.run([sys.executable, "-c", textwrap.dedent(_NO_TORCH_DRIVER), ",".join(BLOCKED), str(REPO),
+                        str(scene64), str(colmap) if colmap.is_dir() else "", str(init), str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and out.exists(), r.stdout[-3000:] + r.stderr[-3000:]
+    res = json.loads(out.read_text())
+    assert res["attempts"] == [] and res["loaded"] == [], res
+    assert res["levir_views"] == 21 and res["pseudo"] == 8 and res["wired"] == "heldout_003"
+    assert res["points"] == 50 and res["height_map"]
+    if colmap.is_dir():
+        assert res["colmap_views"] == 9
+
+
+# ---------------------------------------------------------------------------
+# compositor: the result reaches the render, colour-managed, idempotent
+# ---------------------------------------------------------------------------
+def _tree_state(scene) -> tuple:
+    api = _mod("_core").compositor.compositor_api(bpy.app.version)
+    tree = scene.compositing_node_group if api.node_group else scene.node_tree
+    nodes = sorted((n.name, n.bl_idname, getattr(n, "is_active_output", None)) for n in tree.nodes)
+    links = sorted((lk.from_node.name, lk.from_socket.identifier, lk.to_node.name, lk.to_socket.identifier)
+                   for lk in tree.links)
+    sockets = len(tree.interface.items_tree) if api.node_group else 0
+    return nodes, links, sockets
+
+
+def _render(scene, path: Path) -> np.ndarray:
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples = 1
+    s = scene.render.image_settings
+    s.file_format, s.color_mode, s.color_depth = "PNG", "RGB", "8"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    return _pixels(path)
+
+
+def _load_results(scene64, scene) -> list[str]:
+    results = _mod("results")
+    names = results.load_renders(scene, scene64 / "Images", ["002", "003", "004"], "heldout")
+    results.show_all(scene, names[1])
+    return names
+
+
+def test_compositor_render_equals_the_result_png(scene64, fresh, tmp_path):
+    comp = _mod("compositor")
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    assert fresh.view_settings.view_transform == "AgX"  # Blender's default, which would shift the tones
+    names = _load_results(scene64, fresh)
+    assert comp.wired_image(fresh) == "heldout_003"
+    assert fresh.view_settings.view_transform == "Standard"
+    got = _render(fresh, tmp_path / "render.png")
+    want = _pixels(scene64 / "Images" / "003.png")
+    assert np.abs(got - want).max() <= 1  # within 1/255 (the render's dither)
+    # Idempotent: showing, selecting the same result again adds or changes nothing.
+    state = _tree_state(fresh)
+    _load_results(scene64, fresh)
+    comp.select(fresh, "heldout_003")
+    assert _tree_state(fresh) == state
+    # The panel's view switch rewires the output (and only that).
+    fresh.dibrgs.result_view = names[2]
+    assert comp.wired_image(fresh) == names[2]
+    nodes, links, sockets = _tree_state(fresh)
+    assert nodes == state[0] and len(links) == len(state[1]) and sockets == state[2]
+    assert np.abs(_render(fresh, tmp_path / "render4.png") - _pixels(scene64 / "Images" / "004.png")).max() <= 1
+
+
+def test_compositor_takes_over_the_active_output_of_an_existing_tree(scene64, fresh, tmp_path):
+    """A scene that already composites (Render Layers -> output): the result reaches the render."""
+    comp = _mod("compositor")
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    if bpy.app.version >= (5, 0, 0):
+        tree = bpy.data.node_groups.new("My compositing", "CompositorNodeTree")
+        tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        fresh.compositing_node_group = tree
+        rl, out = tree.nodes.new("CompositorNodeRLayers"), tree.nodes.new("NodeGroupOutput")
+        tree.links.new(rl.outputs["Image"], out.inputs[0])
+        spare = tree.nodes.new("NodeGroupOutput")  # a second, inactive output
+        assert out.is_active_output and not spare.is_active_output
+        outputs = lambda: [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]  # noqa: E731
+    else:
+        fresh.use_nodes = True  # Blender's default tree: Render Layers -> Composite
+        tree = fresh.node_tree
+        tree.nodes.new("CompositorNodeComposite")  # a second Composite: the render uses the active one
+        outputs = lambda: [n for n in tree.nodes if n.bl_idname == "CompositorNodeComposite"]  # noqa: E731
+    n_out = len(outputs())
+    _load_results(scene64, fresh)
+    assert len(outputs()) == n_out  # no output node added
+    assert "CompositorNodeRLayers" in {n.bl_idname for n in tree.nodes}  # the user's nodes stay
+    assert comp.wired_images(fresh) == ["heldout_003"] * (1 if bpy.app.version >= (5, 0, 0) else n_out)
+    if bpy.app.version >= (5, 0, 0):
+        assert out.is_active_output and out.inputs[0].links[0].from_node.image.name == "heldout_003"
+    state = _tree_state(fresh)
+    _load_results(scene64, fresh)
+    assert _tree_state(fresh) == state
+    got = _render(fresh, tmp_path / "render.png")
+    assert np.abs(got - _pixels(scene64 / "Images" / "003.png")).max() <= 1
+
+
+# ---------------------------------------------------------------------------
+# poll() with reasons, and job state that never comes from a file
+# ---------------------------------------------------------------------------
+def _why(action: str) -> str | None:
+    return _mod("operators").why_not(bpy.context, action)
+
+
+def test_every_operator_polls_with_a_reason(scene64, fresh, tmp_path, monkeypatch):
+    ops = _mod("operators")
+    for name in ("initialise", "train", "results", "flythrough", "render_active_camera", "reset_path"):
+        assert not getattr(bpy.ops.dibrgs, name).poll(), name
+        assert _why(name) == "import a scene first"
+    assert _why("cancel") == "nothing is running" and not bpy.ops.dibrgs.cancel.poll()
+    with pytest.raises(RuntimeError, match="nothing is running"):
+        bpy.ops.dibrgs.cancel()
+    assert bpy.ops.dibrgs.import_scene.poll()
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    monkeypatch.setenv("DIBRGS_PYTHON", str(tmp_path / "no-such-python"))
+    assert "no-such-python not found" in _why("train") and "Preferences" in _why("train")
+    with pytest.raises(RuntimeError, match="no-such-python not found"):
+        bpy.ops.dibrgs.initialise(blocking=True)
+    monkeypatch.setenv("DIBRGS_PYTHON", sys.executable)
+    assert _why("initialise") is None and _why("train") is None and _why("reset_path") is None
+    work = Path(fresh.dibrgs.work_dir)
+    for action in ("results", "flythrough", "render_active_camera"):
+        assert _why(action) == f"no trained model in {work}: train first"
+    work.mkdir(parents=True)
+    (work / "checkpoint.pt").write_bytes(b"")  # an interrupted run: no model.pt, which render loads
+    assert "stopped before the end: train with Resume" in _why("results")
+    with pytest.raises(RuntimeError, match="stopped before the end"):
+        bpy.ops.dibrgs.results(blocking=True)
+    (work / "model.pt").write_bytes(b"")
+    assert _why("results") is None and _why("flythrough") is None and _why("render_active_camera") is None
+    fresh.camera = None
+    assert _why("render_active_camera") == "no camera: make a camera active or set the scene camera"
+    # A run folder that cannot be written: an error, and no half-started job locking the panel.
+    (tmp_path / "a_file").write_text("not a folder")
+    fresh.dibrgs.work_dir = str(tmp_path / "a_file" / "work")
+    with pytest.raises(RuntimeError, match="Initialise: cannot start"):
+        bpy.ops.dibrgs.initialise(blocking=True)
+    assert ops.running_job() is None and bpy.ops.dibrgs.initialise.poll()
+
+
+def _sleeping_job(ops, tmp_path, label="Training"):
+    """A real subprocess job started the way the panel starts one, without waiting for it."""
+    jobs = _mod("_core").jobs
+    marker = tmp_path / "stopped"
+    code = ("import signal, sys, time\n"
+            f"signal.signal(signal.SIGINT, lambda *a: (open({str(marker)!r}, 'w').write('SIGINT'), sys.exit(130)))\n"
+            "print('handler' + ' set', flush=True)\n"
+            "time.sleep(120)")
+    log = tmp_path / "sleep.log"
+    runner = jobs.JobRunner([jobs.Step(label, [sys.executable, "-c", code], log)])
+    job = ops.Job(label, runner, finish=lambda ctx: "done", scene_name=bpy.context.scene.name)
+    ops._active = job
+    runner.start()
+    t0 = time.monotonic()
+    while "handler set" not in log.read_text() and time.monotonic() - t0 < 30:  # its SIGINT handler is set
+        runner.poll()
+        time.sleep(0.05)
+    return job, marker
+
+
+def test_a_saved_file_never_brings_a_job_back(scene64, fresh, tmp_path, monkeypatch):
+    ops = _mod("operators")
+    monkeypatch.setenv("DIBRGS_PYTHON", sys.executable)
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    job, marker = _sleeping_job(ops, tmp_path)
+    try:
+        assert ops.running_job() is job
+        assert _why("train") == "Training is running: wait for it or cancel it"
+        assert bpy.ops.dibrgs.cancel.poll() and not bpy.ops.dibrgs.train.poll()
+        assert not bpy.ops.dibrgs.import_scene.poll()  # the scene it runs on stays
+        fresh.dibrgs["job_running"] = True  # what earlier versions saved with the file
+        blend = tmp_path / "during_training.blend"
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+        bpy.ops.wm.open_mainfile(filepath=str(blend))
+        # Opening a file stops the job (its results belong to the file it was started from) ...
+        assert job.detached and ops.running_job() is None
+        assert job.runner.wait(timeout_s=60) == "cancelled" and marker.read_text() == "SIGINT"
+        # ... and the file brings no job back: Train is available, Cancel is not.
+        scene = bpy.context.scene
+        assert "job_running" not in scene.dibrgs
+        assert bpy.ops.dibrgs.train.poll() and not bpy.ops.dibrgs.cancel.poll()
+        assert _why("cancel") == "nothing is running"
+    finally:
+        if not job.runner.finished:
+            job.runner.cancel(grace_s=0.0)
+            job.runner.wait()
+        ops._active = None
+
+
+def test_set_up_check_reports_a_python_that_cannot_train(scene64, fresh, tmp_path, monkeypatch):
+    """Set up / Check in a Python without torch (Blender's own, or one that blocks it)."""
+    block = tmp_path / "block"
+    block.mkdir()
+    (block / "sitecustomize.py").write_text(
+        "import sys\nclass B:\n    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'torch':\n            raise ModuleNotFoundError('No module named torch')\n"
+        "sys.meta_path.insert(0, B())\n")
+    monkeypatch.setenv("PYTHONPATH", str(block))
+    monkeypatch.setenv("DIBRGS_PYTHON", sys.executable)
+    setup = _mod("setup")
+    try:
+        with pytest.raises(RuntimeError, match="not ready: torch"):
+            bpy.ops.dibrgs.setup_check(blocking=True)
+        run = setup.latest(sys.executable)
+        items = {i.name: i for i in run.report.items}
+        assert not items["torch"].ok and items["torch"].fix == f"{sys.executable} -m pip install torch==2.13.0"
+        assert items["numpy"].ok and items["rasterizer"].detail == "needs torch"
+        problem = setup.python_problem(bpy.context)
+        assert problem.startswith("the training Python lacks torch, ") and "rasterizer" in problem
+        assert problem.endswith("press Set up / Check again (Edit > Preferences > Add-ons > DIBR-GS)")
+        bpy.ops.dibrgs.import_scene(directory=str(scene64))
+        assert _why("initialise") == _why("train") == problem  # the panel says why training is off
+    finally:
+        setup._runs.pop(sys.executable, None)  # this interpreter is fine outside this test
+
+
+def test_a_background_job_loads_its_results_into_the_scene_it_started_from(scene64, fresh, tmp_path):
+    """What the application timer does interactively (background mode runs no timers: tick by hand)."""
+    ops = _mod("operators")
+    jobs = _mod("_core").jobs
+    bpy.ops.dibrgs.import_scene(directory=str(scene64))
+    started = fresh.name
+    runner = jobs.JobRunner([jobs.Step("Render camera", [sys.executable, "-c", "print('rendered')"],
+                                       tmp_path / "r.log")])
+    job = ops.Job("Render camera", runner, finish=lambda ctx: f"loaded into {ctx.scene.name}", scene_name=started)
+    ops._active = job
+    runner.start()
+    other = bpy.data.scenes.new("Another scene")
+    with bpy.context.temp_override(scene=other):  # the user looks at another scene meanwhile
+        t0 = time.monotonic()
+        while ops._tick() is not None and time.monotonic() - t0 < 60:
+            assert ops.running_job() is job
+            time.sleep(0.05)
+    assert ops.running_job() is None and ops._active is None
+    assert bpy.data.scenes[started].dibrgs.message == f"loaded into {started}"
+    assert other.dibrgs.message == ""
