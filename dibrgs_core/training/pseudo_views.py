@@ -351,11 +351,17 @@ def fill_progressive(samples: Sequence[SourceSamples], order: Sequence[int], sha
     return img.reshape(H, W, 3), valid.reshape(H, W), filled_by.reshape(H, W)
 
 
-def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int], min_common: int = 64
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """``(count (H,W) int32, spread (H,W) float32)``: how many sources see each pixel, and the
     largest mean absolute RGB difference between two of them (0 where fewer than two do).
-    With the right depth, sources agree up to shading; a wrong depth samples different
-    surfaces in different views."""
+
+    With the right depth, sources agree up to shading and exposure; a wrong depth samples
+    different surfaces in different views. Photographs differ in exposure, so each pair is
+    compared after a gain per channel (the ratio of their median colours over the pixels
+    both see, when at least ``min_common`` do; clamped to [0.5, 2]) - exposure is not a
+    depth error.
+    """
     n = shape[0] * shape[1]
     count = np.zeros(n, np.int32)
     spread = np.zeros(n, np.float32)
@@ -363,8 +369,13 @@ def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int]) -> tu
         count += samples[a].visible
         for b in range(a + 1, len(samples)):
             both = samples[a].visible & samples[b].visible
-            diff = np.abs(samples[a].colour - samples[b].colour).mean(-1)
-            spread = np.where(both, np.maximum(spread, diff), spread)
+            if not both.any():
+                continue
+            ca, cb = samples[a].colour[both], samples[b].colour[both]
+            gain = np.ones(3, np.float32)
+            if len(ca) >= min_common:
+                gain = np.clip((np.median(cb, 0) + 1e-3) / (np.median(ca, 0) + 1e-3), 0.5, 2.0).astype(np.float32)
+            spread[both] = np.maximum(spread[both], np.abs(ca * gain - cb).mean(-1))
     return count.reshape(shape), spread.reshape(shape)
 
 

@@ -182,12 +182,13 @@ def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
     from dibrgs_core.data.scene import View
     from dibrgs_core.training.pseudo_views import build_pseudo_views, source_disagreement
 
-    def img(c: Camera, shift: float = 0.0) -> np.ndarray:
+    def img(c: Camera, swap: bool = False) -> np.ndarray:
         o, d = c.pixel_rays()
         t = box_depth(c).ravel()
         p = o + t[:, None] * d
         rgb = np.stack([0.5 + 0.4 * np.sin(p[:, 0] / 3), 0.5 + 0.4 * np.cos(p[:, 1] / 4), 0.3 + p[:, 2] / 30], 1)
-        return np.clip(rgb + shift, 0, 1).reshape(c.height, c.width, 3).astype(np.float32)
+        rgb = rgb[:, [2, 0, 1]] if swap else rgb
+        return np.clip(rgb, 0, 1).reshape(c.height, c.width, 3).astype(np.float32)
 
     srcs = [(c, img(c), box_depth(c)) for c in CAMS]
     tgt = cam(60, 15)
@@ -199,16 +200,25 @@ def test_source_disagreement_and_rejection_in_pseudo_views(tmp_path):
 
     pts = box_points(step=1.0)
     views = [View(camera=c, image=img(c)) for c in CAMS]
-    keep = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "a", surface=True)
-    views[1] = View(camera=CAMS[1], image=img(CAMS[1], shift=0.4))  # one view's colours are off
+    keep = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "a", surface=True).views
+    # One view's colours are off in a way no exposure explains (channels swapped).
+    views[1] = View(camera=CAMS[1], image=img(CAMS[1], swap=True))
     rej = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "b", surface=True,
-                             consistency_tol=0.1)
+                             consistency_tol=0.1).views
     for a, b in zip(keep, rej):
         assert a.rejected is None and b.rejected is not None and b.rejected.mean() > 0.05
         assert not (b.rejected & (b.valid | b.padded)).any()
     again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "b", surface=True,
-                               consistency_tol=0.1)
+                               consistency_tol=0.1).views
     assert all(np.array_equal(x.rejected, y.rejected) for x, y in zip(rej, again))
+    # Another exposure (30% darker) is no depth error: each pair is compared after a gain.
+    views[1] = View(camera=CAMS[1], image=img(CAMS[1]) * 0.7)
+    same = build_pseudo_views(views[:1] + [View(CAMS[1], img(CAMS[1]))] + views[2:], pts, n=2, seed=0,
+                              cache_dir=tmp_path / "c", surface=True, consistency_tol=0.1).views
+    dark = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path / "d", surface=True,
+                              consistency_tol=0.1).views
+    for a, b, c in zip(same, dark, rej):
+        assert b.rejected.mean() < a.rejected.mean() + 0.01 < c.rejected.mean()
 
 
 def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_ground(tmp_path):
@@ -231,7 +241,7 @@ def test_floating_points_lose_to_the_height_field_where_the_views_agree_on_the_g
     dirty = np.concatenate([pts, floating])
     views = [View(camera=c, image=img(c)) for c in CAMS]
     tgt = [cam(60, 15)]
-    pv = build_pseudo_views(views, dirty, 1, 0, tmp_path / "p", path=tgt, surface=True, consistency_tol=0.1)[0]
+    pv = build_pseudo_views(views, dirty, 1, 0, tmp_path / "p", path=tgt, surface=True, consistency_tol=0.1).views[0]
     ref = box_depth(tgt[0])
     o, d = tgt[0].pixel_rays()
     p = o + ref.ravel()[:, None] * d
