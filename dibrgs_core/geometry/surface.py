@@ -4,7 +4,8 @@ Near-nadir aerial scenes are, to first order, a height field: one surface
 height per horizontal position, with vertical walls where it jumps. Depth
 completion in the image (nearest valid pixel) fills a street hidden between
 two towers with a roof's depth; the same hole filled in the height field
-takes the height of the ground around it, and ray casting the field gives
+takes the height of the ground around it, and rasterising the field (a flat
+top per cell, vertical walls between cells; :meth:`HeightField.depth`) gives
 walls and ground where the cloud has no points.
 
 Conventions: heights are measured along the scene's up axis in the local

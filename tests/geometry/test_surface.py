@@ -168,7 +168,8 @@ def test_stray_points_kilometres_away_do_not_blow_up_the_field():
 
 @pytest.mark.stability
 def test_rays_that_do_not_descend_get_no_depth():
-    """Height-field ray cast from a camera looking horizontally: rays at and above the horizon get depth 0, no Inf."""
+    """Height-field depth from a camera looking horizontally: the sky above the field gets depth 0, no Inf;
+    rows below the horizon meet the ground."""
     field = HeightField.build(box_points(step=2.0), CAMS)
     side = Camera(K=np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]),
                   w2c=look_at([0, -200, 5], [0, 0, 5], [0, 0, 1]), width=64, height=64)

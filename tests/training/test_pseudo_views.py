@@ -346,3 +346,45 @@ def test_vectorised_warp_matches_the_per_source_reference(tiny_scene):
         s = sample_sources(target, depth, sources)
         img2, valid2, _ = fill_progressive(s, source_order(target, sources), depth.shape)
         assert np.array_equal(img2, img) and np.array_equal(valid2, valid)
+
+
+def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
+    """``training.setup.pseudo_frames``: a decision ``pseudo_trajectory`` with the class and why,
+    values ``pseudo_views`` (kept, tried, dropped, mean warped / padded / rejected) and weighted frames;
+    a user path overrides the trajectory (and says so)."""
+    import json
+
+    from dibrgs_core.camera.serialize import camera_to_dict
+    from dibrgs_core.common.report import Report
+    from dibrgs_core.training.config import preset
+    from dibrgs_core.training.frames import views_to_frames
+    from dibrgs_core.training.setup import SetupContext, pseudo_frames
+
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
+    cfg = preset("test")
+    cfg.pseudo.n_views = 5
+
+    def run(work, cfg):
+        rep = Report()
+        ctx = SetupContext(cfg, work, None, views_to_frames(views, 1.0), rep, np.random.default_rng(0), None)
+        return pseudo_frames(ctx, scene_points(step=0.06)), rep
+
+    frames, rep = run(tmp_path / "a", cfg)
+    d = {x.step: x for x in rep.decisions}
+    assert d["pseudo_trajectory"].applied and d["pseudo_trajectory"].reason.startswith("orbit: ")
+    assert d["pseudo_trajectory"].details["kind"] == "orbit"
+    v = rep.values["pseudo_views"]
+    assert v["kept"] == len(frames) == 5 and v["wanted"] == 5 and v["tried"] >= 5 and not v["cached"]
+    assert 0.3 < v["mean_warped"] <= 1 and 0 <= v["mean_padded"] < 1 and 0 <= v["mean_rejected"] < 0.5
+    assert "along the orbit trajectory" in d["pseudo_views"].reason
+    for f in frames:
+        assert f.mask.shape == (40, 40) and float(f.mask.max()) == 1.0
+    _, rep2 = run(tmp_path / "a", cfg)
+    assert rep2.values["pseudo_views"]["cached"] and rep2.values["pseudo_views"]["kept"] == 5
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps([camera_to_dict(cam_at(a, 40)) for a in (30, 60)]))
+    cfg.pseudo_path = str(path)
+    frames, rep = run(tmp_path / "b", cfg)
+    d = {x.step: x for x in rep.decisions}
+    assert not d["pseudo_trajectory"].applied and str(path) in d["pseudo_trajectory"].reason
+    assert len(frames) == 2 and rep.values["pseudo_views"]["wanted"] == 2
