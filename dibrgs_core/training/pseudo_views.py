@@ -358,9 +358,10 @@ def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int], min_c
 
     With the right depth, sources agree up to shading and exposure; a wrong depth samples
     different surfaces in different views. Photographs differ in exposure, so each pair is
-    compared after a gain per channel (the ratio of their median colours over the pixels
-    both see, when at least ``min_common`` do; clamped to [0.5, 2]) - exposure is not a
-    depth error.
+    compared after a gain per channel (the median of the colour ratios over the pixels both
+    see, when at least ``min_common`` do; clamped to [0.5, 2]) - exposure is not a depth
+    error. (The ratio of the median colours is no estimate: on a generated city, whose views
+    share one exposure, it strays to 1.2 where the median ratio stays within 4 % of 1.)
     """
     n = shape[0] * shape[1]
     count = np.zeros(n, np.int32)
@@ -374,7 +375,8 @@ def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int], min_c
             ca, cb = samples[a].colour[both], samples[b].colour[both]
             gain = np.ones(3, np.float32)
             if len(ca) >= min_common:
-                gain = np.clip((np.median(cb, 0) + 1e-3) / (np.median(ca, 0) + 1e-3), 0.5, 2.0).astype(np.float32)
+                step = max(1, len(ca) // 4096)  # a few thousand ratios pin the median down
+                gain = np.clip(np.median((cb[::step] + 0.02) / (ca[::step] + 0.02), 0), 0.5, 2.0).astype(np.float32)
             spread[both] = np.maximum(spread[both], np.abs(ca * gain - cb).mean(-1))
     return count.reshape(shape), spread.reshape(shape)
 
