@@ -442,18 +442,14 @@ def _hash_inputs(train_views: Sequence, points: np.ndarray, options: dict, path:
 def _save_view(p: Path, pv: PseudoView) -> None:
     """One view as an uncompressed ``.npz`` (floats barely compress, and compressing cost more
     than building the view); the image is float16, as :func:`_build_one` rounds it."""
-    import zipfile
-
     c = pv.camera
     arrays = {"K": c.K, "w2c": c.w2c, "size": np.array([c.width, c.height]), "name": np.array(c.name),
               "image": pv.image.astype(np.float16), "valid": pv.valid, "padded": pv.padded,
               "depth": np.zeros((0,), np.float32) if pv.depth is None else pv.depth,
               "rejected": np.zeros((0,), bool) if pv.rejected is None else pv.rejected}
     with atomic_path(p) as tmp:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
-            for k, v in arrays.items():
-                with zf.open(f"{k}.npy", "w") as f:
-                    np.lib.format.write_array(f, np.asanyarray(v), allow_pickle=False)
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
 
 
 def _load_view(p: Path) -> PseudoView:
@@ -551,14 +547,14 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     else:
         cams, filtered = [], False
     spacing = point_spacing(pts)
-    field_ = None
+    hfield = None
     if surface and len(pts):
         from ..geometry.surface import HeightField
 
-        field_ = HeightField.build(pts, train_cams)
+        hfield = HeightField.build(pts, train_cams)
     sources = []
     for v in train_views:
-        fill = None if field_ is None else field_.depth(v.camera)
+        fill = None if hfield is None else hfield.depth(v.camera)
         sources.append((v.camera, np.asarray(v.image, np.float32)[..., :3],
                         complete_depth(zbuffer_depth(pts, v.camera, spacing), fill=fill)))
     check = consistency_tol > 0 and len(sources) > 1
@@ -570,7 +566,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         if filtered and len(out) >= n:
             break
         tried += 1
-        pv = _build_one(cam, pts, spacing, field_, sources, check, consistency_tol, max_gap_px,
+        pv = _build_one(cam, pts, spacing, hfield, sources, check, consistency_tol, max_gap_px,
                         min_cloud_cover if filtered else 0.0)
         if pv is None:
             dropped_cloud += 1
@@ -592,7 +588,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     return PseudoBuild(out, traj, tried, dropped_cloud, dropped_warped, time.process_time() - t0)
 
 
-def _build_one(cam: Camera, pts: np.ndarray, spacing: float, field_, sources: list[tuple], check: bool,
+def _build_one(cam: Camera, pts: np.ndarray, spacing: float, hfield, sources: list[tuple], check: bool,
                consistency_tol: float, max_gap_px: float, min_cloud_cover: float) -> PseudoView | None:
     """One pseudo view (None when the cloud covers less than ``min_cloud_cover`` of it)."""
     shape = (cam.height, cam.width)
@@ -605,7 +601,7 @@ def _build_one(cam: Camera, pts: np.ndarray, spacing: float, field_, sources: li
         guessed = np.ones(shape, bool)
     if min_cloud_cover > 0 and 1.0 - guessed.mean() < min_cloud_cover:
         return None
-    surf = None if field_ is None else field_.depth(cam)
+    surf = None if hfield is None else hfield.depth(cam)
     depth = complete_depth(raw, fill=surf)
     proj = _Projector(cam, sources)
     samples = proj.sample(depth, sources, RTOL)
