@@ -145,10 +145,11 @@ def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
 # Classification
 # ---------------------------------------------------------------------------
 def _nn_spacing(P: np.ndarray) -> float:
+    """Median distance from a position to its nearest neighbour (0 when they coincide)."""
     D = np.linalg.norm(P[:, None] - P[None], axis=-1)
     np.fill_diagonal(D, np.inf)
     s = float(np.median(D.min(1)))
-    return s if np.isfinite(s) and s > 0 else 1.0
+    return s if np.isfinite(s) and s > 0 else 0.0
 
 
 def _line_fit(P: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -270,7 +271,8 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
         up: scene up axis (default :func:`.frame.estimate_up`).
         extend: strips are continued this many camera spacings past their end cameras.
         scene_depth: typical distance from the cameras to the scene (world units); a single
-            camera has no spacing, so a quarter of this stands in for it (default 1).
+            camera (or cameras at one position) has no spacing, so a quarter of this stands in
+            for it (default 1).
     """
     cams = list(cams)
     if not cams:
@@ -282,11 +284,12 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
     C = np.stack([c.center for c in cams])
     P = (C @ F.T)[:, :2]
     n = len(cams)
-    if n == 1:
-        spacing = 0.25 * scene_depth if scene_depth and np.isfinite(scene_depth) and scene_depth > 0 else 1.0
-        return Trajectory("free", "a single camera: poses are jittered around it", up, spacing,
-                          segments=[Segment(0, 0)])
-    spacing = _nn_spacing(P)
+    stand_in = 0.25 * scene_depth if scene_depth and np.isfinite(scene_depth) and scene_depth > 0 else 1.0
+    spacing = _nn_spacing(P) if n > 1 else 0.0
+    # Positions equal up to rounding (of the coordinates, or against the scene's depth) coincide.
+    if spacing <= max(1e-9 * float(np.abs(C).max()), 1e-6 * stand_in if scene_depth else 0.0):
+        return Trajectory("free", f"{'a single camera' if n == 1 else 'the cameras share one position'}: "
+                          "poses are jittered around it", up, stand_in, segments=[Segment(0, 0)])
     if n == 2:
         return Trajectory("strips", "two cameras: the line through them", up, spacing, lines=[[0, 1]],
                           segments=_segments_along([[0, 1]], P, extend))

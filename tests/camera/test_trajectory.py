@@ -160,6 +160,13 @@ def test_sampling_is_seeded_and_prefix_stable():
     single = classify(cams[:1], scene_depth=5.3)
     assert single.kind == "free" and single.spacing == pytest.approx(5.3 / 4)
     assert len(sample_poses(single, cams[:1], 3, 0)) == 3
+    # Cameras at one position (a panning camera): jitter from the scene depth, not from units.
+    pan = [Camera(K=K, w2c=look_at([1e3, 0, 5.3], [1e3 + dx, 1, 0], [0, 0, 1]), width=320, height=180)
+           for dx in (-1.0, 0.0, 1.0)]
+    t_pan = classify(pan, scene_depth=5.3)
+    assert t_pan.kind == "free" and t_pan.spacing == pytest.approx(5.3 / 4) and "one position" in t_pan.reason
+    offs = [np.linalg.norm(p.center - pan[0].center) for p in sample_poses(t_pan, pan, 50, 0)]
+    assert 0.02 < np.median(offs) < 0.5
 
 
 def test_brighton_north_flight():
