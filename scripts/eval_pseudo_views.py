@@ -16,7 +16,10 @@ branch's ``WORK/init/points.ply``) - pseudo views are warped from the training v
 
     python scripts/eval_pseudo_views.py SCENE [--priors mvs,gt] [--points PLY ...]
         [--train IDS --test IDS] [--resolution-scale S] [--pseudo N]
-        [--mvs FIELD=VALUE] [--surface auto|on|off] [--consistency-tol T] [--json FILE]
+        [--mvs FIELD=VALUE] [--surface auto|on|off] [--consistency-tol T] [--json FILE] [--png FILE]
+
+``--png`` draws, per cloud, the first two sampled pseudo views (``--pseudo``) beside the nearest
+training photo: warped pixels as they are, padded ones tinted blue, rejected ones red.
 """
 from __future__ import annotations
 
@@ -105,6 +108,9 @@ def evaluate(label: str, points: np.ndarray, train_views: list, tests: list, wor
                                    consistency_tol=consistency_tol)
         wall = time.perf_counter() - t0
         fr = built.mean_fractions()
+        out["_montage"] = [(pv, min(train_views, key=lambda v: float(np.linalg.norm(v.camera.center
+                                                                                  - pv.camera.center))).image)
+                           for pv in built.views[:2]]
         out["sampled"] = {"trajectory": built.trajectory.kind, "why": built.trajectory.reason,
                           "wanted": pseudo, "kept": len(built.views), "tried": built.tried,
                           "dropped_cloud": built.dropped_cloud, "dropped_warped": built.dropped_warped,
@@ -112,6 +118,38 @@ def evaluate(label: str, points: np.ndarray, train_views: list, tests: list, wor
                           "cpu_s": built.cpu_s, "cpu_s_per_view": built.cpu_s / max(1, built.tried), "wall_s": wall,
                           "size": [built.views[0].camera.width, built.views[0].camera.height] if built.views else None}
     return out
+
+
+def montage(results: list[dict], path: Path) -> None:
+    """A PNG: one row per cloud, (nearest training photo, pseudo view) pairs; padded pixels tinted
+    blue, rejected ones red."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in results if r.get("_montage")]
+    if not rows:
+        return
+    cols = 2 * max(len(r["_montage"]) for r in rows)
+    h, w = rows[0]["_montage"][0][0].image.shape[:2]
+    fig, axes = plt.subplots(len(rows), cols, figsize=(2.2 * cols * w / h, 2.4 * len(rows)), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, r in enumerate(rows):
+        for j, (pv, photo) in enumerate(r["_montage"]):
+            img = np.clip(pv.image.copy(), 0, 1)
+            img[pv.padded] = 0.5 * img[pv.padded] + 0.5 * np.array([0.1, 0.3, 1.0])
+            if pv.rejected is not None:
+                img[pv.rejected] = 0.5 * img[pv.rejected] + 0.5 * np.array([1.0, 0.1, 0.1])
+            axes[i, 2 * j].imshow(np.clip(photo[..., :3], 0, 1))
+            axes[i, 2 * j].set_title("nearest training photo", fontsize=7)
+            axes[i, 2 * j + 1].imshow(img)
+            axes[i, 2 * j + 1].set_title(f"{r['prior']}: {pv.camera.name}, {100 * pv.valid.mean():.0f}% warped",
+                                         fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=60)
+    plt.close(fig)
 
 
 def table(scene_dir: Path, results: list[dict]) -> str:
@@ -163,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--consistency-tol", type=float, default=0.0,
                    help="reject warped pixels two training views colour further apart than this (0 = keep all)")
     p.add_argument("--json", type=Path, default=None, help="also write the per-view figures here")
+    p.add_argument("--png", type=Path, default=None, help="with --pseudo: a montage of sampled pseudo views")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import torch
@@ -203,6 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     if not results:
         p.error("nothing to score: give --priors and/or --points")
     print(table(args.scene, results))
+    if args.png:
+        montage(results, args.png)
+    for r in results:
+        r.pop("_montage", None)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
