@@ -388,3 +388,36 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
     d = {x.step: x for x in rep.decisions}
     assert not d["pseudo_trajectory"].applied and str(path) in d["pseudo_trajectory"].reason
     assert len(frames) == 2 and rep.values["pseudo_views"]["wanted"] == 2
+
+
+def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(tiny_scene, tmp_path):
+    """--points scores a PLY (here the generated city's exact depth, back-projected), --pseudo builds
+    sampled views as training does (trajectory, kept/tried, shares, CPU s), --png draws them; a missing
+    PLY is one clear line and exit 2."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import REPO
+    from dibrgs_core.data.levir import read_scene
+    from dibrgs_core.data.ply import write_ply
+
+    sc = read_scene(tiny_scene)
+    pts = np.concatenate([v.camera.backproject(v.depth)[(v.depth > 0).ravel()] for v in sc.train_views()])
+    ply = tmp_path / "cloud.ply"
+    write_ply(ply, pts, np.full((len(pts), 3), 128, np.uint8))
+    script = str(REPO / "scripts" / "eval_pseudo_views.py")
+    out, png = tmp_path / "r.json", tmp_path / "m.png"
+    r = subprocess.run([sys.executable, script, str(tiny_scene), "--priors", "", "--points", f"exact={ply}",
+                        "--pseudo", "3", "--consistency-tol", "0.1", "--json", str(out), "--png", str(png)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "| exact |" in r.stdout and "| exact | orbit | 64x64 | 3 / 3" in r.stdout
+    res = json.loads(out.read_text())[0]
+    s = res["sampled"]
+    assert s["trajectory"] == "orbit" and s["kept"] == 3 and s["tried"] >= 3 and s["cpu_s"] > 0
+    assert 0.3 < s["warped"] <= 1 and abs(s["warped"] + s["padded"] + s["rejected"] - 1) < 0.05
+    assert png.is_file() and png.stat().st_size > 1000
+    bad = subprocess.run([sys.executable, script, str(tiny_scene), "--priors", "", "--points", str(tmp_path / "no.ply")],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "no.ply" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
