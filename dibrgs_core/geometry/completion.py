@@ -1,5 +1,5 @@
 """Completing the dense depth where matching failed (near-nadir scenes): a 2.5D surface of what
-was measured, ray cast into the training pixels without depth, at a lower confidence.
+was measured, rendered into the training pixels without depth, at a lower confidence.
 
 Depth is z-depth in world units (0 / non-finite = none); confidences in [0, 1], measured depth
 at 0.5 and above, completed depth below.
@@ -83,9 +83,8 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
 
 
 def _surface_depth(field, cam: Camera, max_size: int) -> np.ndarray:
-    """Depth (H,W) float64 of ``field`` seen by ``cam`` (0 = no surface), ray-cast at most ``max_size``
-    pixels on the long side and upsampled: the surface is coarser than that, and casting every pixel of a
-    large photo took a minute."""
+    """Depth (H,W) float64 of ``field`` seen by ``cam`` (0 = no surface), rendered at most ``max_size``
+    pixels on the long side and upsampled: the surface is coarser than that."""
     import torch
     import torch.nn.functional as F
 

@@ -87,7 +87,7 @@ class PseudoConfig:
     # Loss weight of padded pixels (filled by padding, no source view saw them)
     # relative to warped ones; 0 masks them out.
     padded_weight: float = 1.0
-    # Large holes in pseudo-view depth: auto = ray-cast a height field of the
+    # Large holes in pseudo-view depth: auto = rasterise a height field of the
     # cloud when the views are near-nadir (surface.applies), else the nearest
     # valid pixel; on / off force it.
     surface: Switch = "auto"

@@ -60,7 +60,8 @@ def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
     under a digest of the training views (cameras and images) and the SfM options."""
     from dataclasses import asdict
 
-    from ..geometry.sfm import SfmConfig, triangulate_known_poses
+    from ..geometry.config import SfmConfig
+    from ..geometry.sfm import triangulate_known_poses
 
     views = ctx.scene.train_views()
     cache = ctx.work / "init" / "sfm_points.npz"
@@ -206,7 +207,10 @@ def build_ibr(ctx: SetupContext) -> Any:
 
 def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
     """Progressive-DIBR pseudo views of ``points`` as weighted frames (warped pixels weight 1,
-    padded ones ``padded_weight``), or none when pseudo views do not apply."""
+    padded ones ``padded_weight``), or none when pseudo views do not apply.
+
+    Records the training cameras' trajectory (the class and why), how many sampled views were
+    kept and dropped, and their mean warped / padded / rejected shares in the report."""
     from ..geometry.surface import decide
     from ..models.base import CameraTensors
     from .pseudo_views import build_pseudo_views
@@ -229,13 +233,28 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
     train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
     surface, why = decide(cfg.pseudo.surface, cams)
     rep.decide("train", "pseudo_depth_height_field", surface, why)
-    pvs = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed, ctx.work / "pseudo",
-                             path=path, surface=surface, consistency_tol=cfg.pseudo.consistency_tol)
+    built = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed, ctx.work / "pseudo",
+                               path=path, surface=surface, consistency_tol=cfg.pseudo.consistency_tol)
+    pvs, traj = built.views, built.trajectory
+    if traj is not None:
+        rep.decide("train", "pseudo_trajectory", True, f"{traj.kind}: {traj.reason}", kind=traj.kind,
+                   spacing=traj.spacing, lines=traj.lines)
+        where = f" along the {traj.kind} trajectory"
+    else:
+        rep.decide("train", "pseudo_trajectory", False, f"poses from the user path {cfg.pseudo_path}")
+        where = f" on the path {cfg.pseudo_path}"
+    fr = built.mean_fractions()
+    rep.values["pseudo_views"] = {"kept": len(pvs), "wanted": len(path) if path is not None else cfg.pseudo.n_views,
+                                  "tried": built.tried, "dropped_no_cloud": built.dropped_cloud,
+                                  "dropped_few_warped": built.dropped_warped, "mean_warped": fr["warped"],
+                                  "mean_padded": fr["padded"], "mean_rejected": fr["rejected"],
+                                  "build_cpu_s": built.cpu_s, "cached": built.cached}
+    log.info("pseudo views: %d kept of %d tried (%d without enough cloud, %d with too few warped pixels); "
+             "mean %.1f%% warped, %.1f%% padded, %.1f%% rejected; %.1f s CPU%s", len(pvs), built.tried,
+             built.dropped_cloud, built.dropped_warped, 100 * fr["warped"], 100 * fr["padded"], 100 * fr["rejected"],
+             built.cpu_s, " (cached)" if built.cached else "")
     if cfg.pseudo.consistency_tol > 0:
-        rej = float(np.mean([pv.rejected.mean() for pv in pvs if pv.rejected is not None] or [0.0]))
-        rep.values["pseudo_rejected_fraction"] = rej
-        log.info("pseudo views: %.1f%% of pixels rejected (training views disagree by > %.2f)",
-                 100 * rej, cfg.pseudo.consistency_tol)
+        rep.values["pseudo_rejected_fraction"] = fr["rejected"]
     frames, empty = [], 0
     for pv in pvs:
         weight = np.asarray(pv.valid, np.float32)
@@ -246,10 +265,12 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
             continue
         frames.append(Frame(CameraTensors.of(pv.camera), torch.from_numpy(
             np.ascontiguousarray(np.clip(pv.image[..., :3], 0, 1), dtype=np.float32)), torch.from_numpy(weight)))
+    dropped = built.dropped_cloud + built.dropped_warped
     rep.decide("train", "pseudo_views", bool(frames),
-               f"{len(frames)} progressive-DIBR pseudo views"
-               + (f" ({empty} without any filled pixel left out)" if empty else "")
-               + (f" on the path {cfg.pseudo_path}" if cfg.pseudo_path else " on the acquisition orbit"))
+               f"{len(frames)} progressive-DIBR pseudo views{where}"
+               + (f" ({dropped} sampled poses dropped: the cloud covered too little of {built.dropped_cloud}, "
+                  f"too little of {built.dropped_warped} was warped)" if dropped else "")
+               + (f" ({empty} without any filled pixel left out)" if empty else ""))
     return frames
 
 

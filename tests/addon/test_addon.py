@@ -151,7 +151,7 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     pkg = "bl_ext.user_default.dibrgs"
     assert pkg in bpy.context.preferences.addons, list(bpy.context.preferences.addons.keys())
     core = sys.modules[pkg + ".addon._core"]
-    assert core.CORE_PACKAGE == pkg + ".dibrgs_core" and Path(core.cameras.__file__).is_relative_to(
+    assert core.CORE_PACKAGE == pkg + ".dibrgs_core" and Path(core.pinhole.__file__).is_relative_to(
         Path(os.environ["BLENDER_USER_RESOURCES"]))
     mod = lambda name: sys.modules[f"{pkg}.addon.{name}"]  # noqa: E731
 

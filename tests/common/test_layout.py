@@ -127,7 +127,7 @@ def test_blender_side_modules_load_without_heavy_libraries():
 
 
 def test_no_module_over_400_lines_but_the_documented_ones():
-    allowed = {"dibrgs_core.training.pseudo_views"}
+    allowed: set[str] = set()  # none today; docs/architecture.md names any exception
     long = {m for m, p in _graph()[0].items() if len(p.read_text().splitlines()) > 400}
     assert long <= allowed
     text = (REPO / "docs" / "architecture.md").read_text()

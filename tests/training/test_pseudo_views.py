@@ -7,18 +7,17 @@ import numpy as np
 import pytest
 
 from dibrgs_core.camera.pinhole import Camera, look_at
-from dibrgs_core.camera.orbit import fit_orbit
 from dibrgs_core.data.scene import View
-from dibrgs_core.training.pseudo_views import (
+from dibrgs_core.training.pseudo_warp import (
     EMPTY,
     PADDED,
-    build_pseudo_views,
-    complete_depth,
-    remove_see_through,
-    sample_orbit_poses,
+    fill_progressive,
+    sample_sources,
+    source_order,
     warp_progressive,
-    zbuffer_depth,
 )
+from dibrgs_core.training.pseudo_views import build_pseudo_views
+from dibrgs_core.training.pseudo_depth import complete_depth, remove_see_through, zbuffer_depth
 
 TOP_H = 1.0  # height of the floating square [-0.6,0.6]^2 above the ground plane z=0
 
@@ -150,43 +149,87 @@ def test_empty_inputs_are_handled():
     assert (zbuffer_depth(behind, cam) == 0).all()
 
 
-def test_orbit_poses():
-    train = [cam_at(a) for a in (0, 120, 240)]
-    orbit = fit_orbit(train)
-    poses = sample_orbit_poses(train, 5, seed=3)
-    assert len(poses) == 5 and len({p.name for p in poses}) == 5
-    for p in poses:
-        assert abs(np.linalg.norm(p.center - orbit.center) - orbit.radius) < 1e-6
-        assert abs((p.center - orbit.center) @ orbit.normal) < 1e-6
-        uv, z = p.project(orbit.target[None])
-        assert z[0] > 0 and np.allclose(uv[0], [32, 32], atol=1e-6)
-        assert np.array_equal(p.K, train[0].K)
-    again = sample_orbit_poses(train, 5, seed=3)
-    assert all(np.allclose(a.w2c, b.w2c) for a, b in zip(poses, again))
-    assert not np.allclose(sample_orbit_poses(train, 5, seed=4)[0].w2c, poses[0].w2c)
-    path = [cam_at(10), cam_at(20)]
-    assert sample_orbit_poses(train, 5, 0, path=path) == path
-
-
 def test_build_pseudo_views_cache(tmp_path):
     views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 48), cam_at(120, 48), cam_at(240, 48))]
     pts = scene_points(step=0.05)
-    pvs = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
-    assert len(pvs) == 2 and (tmp_path / "manifest.json").is_file()
+    built = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
+    pvs = built.views
+    assert len(pvs) == 2 and (tmp_path / "manifest.json").is_file() and not built.cached
+    assert built.trajectory.kind == "orbit" and built.tried >= 2 and built.cpu_s > 0
     for pv in pvs:
         assert pv.image.shape == (48, 48, 3) and pv.image.dtype == np.float32
         assert pv.valid.mean() > 0.3 and not (pv.valid & pv.padded).any()
         ref, _ = render(pv.camera)
         assert np.abs(pv.image - ref)[pv.valid].mean() < 0.05
     again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
-    for a, b in zip(pvs, again):
+    assert again.cached and again.tried == built.tried and again.trajectory.kind == "orbit"
+    for a, b in zip(pvs, again.views):
         assert np.array_equal(a.image, b.image) and np.array_equal(a.valid, b.valid)
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.padded, b.padded)
         assert np.allclose(a.camera.w2c, b.camera.w2c) and a.camera.name == b.camera.name
     other = build_pseudo_views(views, pts, n=2, seed=1, cache_dir=tmp_path)
-    assert not np.allclose(other[0].camera.w2c, pvs[0].camera.w2c)
-    # no points at all: views without valid pixels, no crash
+    assert not other.cached and not np.allclose(other.views[0].camera.w2c, pvs[0].camera.w2c)
+    # no points at all: no view is kept (the cloud covers none), no crash
     empty = build_pseudo_views(views, np.zeros((0, 3)), n=1, seed=0, cache_dir=tmp_path / "e")
-    assert not empty[0].valid.any() and np.isfinite(empty[0].image).all()
+    assert empty.views == [] and empty.dropped_cloud == empty.tried == 3
+    # a user path is kept whole, even a view the cloud does not cover
+    path = build_pseudo_views(views, np.zeros((0, 3)), n=5, seed=0, cache_dir=tmp_path / "p", path=[cam_at(60, 48)])
+    assert len(path.views) == 1 and path.trajectory is None and path.views[0].camera.name == "c60"
+    assert not path.views[0].valid.any() and np.isfinite(path.views[0].image).all()
+
+
+def test_cache_is_never_reused_by_another_split_or_scene(tmp_path):
+    """One cache folder, several inputs: another training split, another scene (same cameras, other
+    images), other cameras, another cloud, other options each rebuild; only identical inputs load."""
+    cams = [cam_at(a, 40) for a in (0, 90, 180, 270)]
+    views = [View(camera=c, image=render(c)[0]) for c in cams]
+    pts = scene_points(step=0.06)
+    cache = tmp_path / "pseudo"
+
+    def build(vs, p=pts, **kw):
+        return build_pseudo_views(vs, p, n=2, seed=0, cache_dir=cache, **kw)
+
+    first = build(views[:3])
+    assert not first.cached and build(views[:3]).cached
+    split = build([views[0], views[1], views[3]])  # another split of the same scene
+    assert not split.cached
+    flat = [View(camera=v.camera, image=render(v.camera, occluder=False)[0]) for v in views[:3]]
+    scene2 = build(flat)  # another scene seen by the same cameras
+    assert not scene2.cached
+    for a, b in zip(first.views, scene2.views):  # rebuilt from the other images, not the cached ones
+        assert not np.array_equal(a.image, b.image)
+    moved = [View(camera=Camera(K=c.K, w2c=look_at(c.center * 1.01, [0, 0, 0], [0, 0, 1]), width=40, height=40,
+                                name=c.name), image=v.image) for c, v in zip(cams[:3], views[:3])]
+    assert not build(moved).cached
+    assert not build(views[:3], p=pts + 1e-9).cached
+    assert not build(views[:3], consistency_tol=0.1).cached
+    assert not build(views[:3], min_warped=0.3).cached
+    assert build(views[:3], min_warped=0.3).cached
+
+
+def test_sampled_views_are_filtered_by_cloud_cover_and_warped_share(tmp_path):
+    """Poses whose view the cloud barely covers are skipped; views with too few warped pixels are
+    dropped; up to 3 x n poses are tried to keep n."""
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
+    pts = scene_points(step=0.06)
+    some = pts[pts[:, 0] > 2.5]  # a strip of ground at one side: most views see little of it
+    loose = build_pseudo_views(views, some, n=6, seed=0, cache_dir=tmp_path / "a", min_cloud_cover=0.0,
+                               min_warped=0.0)
+    strict = build_pseudo_views(views, some, n=6, seed=0, cache_dir=tmp_path / "b", min_cloud_cover=0.25,
+                                min_warped=0.0)
+    assert len(loose.views) == 6 and loose.dropped_cloud == 0
+    assert strict.dropped_cloud > 0 and strict.tried <= 18
+    assert len(strict.views) + strict.dropped_cloud == strict.tried
+    from scipy import ndimage
+
+    for pv in strict.views:  # share of pixels within 4 px of a pixel the cloud projects to
+        raw = zbuffer_depth(some, pv.camera)
+        assert (ndimage.distance_transform_edt(raw <= 0) <= 4.0).mean() >= 0.25
+    warped = build_pseudo_views(views, pts, n=6, seed=0, cache_dir=tmp_path / "c", min_warped=0.75)
+    assert warped.dropped_warped > 0 and all(pv.valid.mean() >= 0.75 for pv in warped.views)
+    fr = warped.mean_fractions()
+    assert fr["warped"] == pytest.approx(np.mean([pv.valid.mean() for pv in warped.views]))
+    assert 0 <= fr["padded"] <= 1 and fr["rejected"] == 0.0
 
 
 def test_speed_256():
@@ -232,3 +275,147 @@ def test_eval_pseudo_views_script_ranks_oracle_depth_above_mvs(tiny_scene, tmp_p
         assert len(x["views"]) == 17 and 0.0 < x["valid"] <= 1.0
         assert np.isfinite(x["psnr_all"]) and 8.0 < x["psnr_all"] < 60.0
     assert res["gt"]["psnr_all"] > res["mvs"]["psnr_all"]
+
+
+def reference_warp(target: Camera, depth: np.ndarray, sources: list[tuple]):
+    """The per-source loop the vectorised warp replaced: back-project, ``Camera.project`` into each
+    source, occlusion test, bilinear lookup (pixel centres at +0.5, clamped), nearest source first;
+    then the same two paddings."""
+    from scipy import ndimage
+
+    H, W = target.height, target.width
+    has = (depth > 0).ravel()
+    X = target.backproject(np.where(depth > 0, depth, 1.0))
+    img, valid = np.zeros((H * W, 3)), np.zeros(H * W, bool)
+    filled = np.full(H * W, EMPTY)
+    seen, pad_src = np.zeros(H * W, bool), np.full(H * W, -1)
+
+    def bilinear(im, uv):
+        h, w = im.shape[:2]
+        x, y = np.clip(uv[:, 0] - 0.5, 0, w - 1), np.clip(uv[:, 1] - 0.5, 0, h - 1)
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        x1, y1, ax, ay = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1), (x - x0)[:, None], (y - y0)[:, None]
+        return (im[y0, x0] * (1 - ax) + im[y0, x1] * ax) * (1 - ay) + (im[y1, x0] * (1 - ax) + im[y1, x1] * ax) * ay
+
+    order = np.argsort([np.linalg.norm(s[0].center - target.center) for s in sources], kind="stable")
+    for k in order:
+        cam, im, ds = sources[k]
+        uv, z = cam.project(X)
+        front = has & (z > 0)
+        pad_src[(pad_src < 0) & front] = k
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        seen |= inside
+        i = np.flatnonzero(inside & ~valid)
+        d = ds[uv[i, 1].astype(int).clip(0, cam.height - 1), uv[i, 0].astype(int).clip(0, cam.width - 1)]
+        i = i[(d > 0) & (z[i] <= d * 1.02)]
+        img[i], valid[i], filled[i] = bilinear(im, uv[i]), True, k
+    out = ~valid & ~seen & (pad_src >= 0)
+    for k in np.unique(pad_src[out]):
+        i = np.flatnonzero(out & (pad_src == k))
+        img[i] = bilinear(sources[k][1], sources[k][0].project(X[i])[0])
+        filled[i] = PADDED
+    done = filled != EMPTY
+    if done.any() and not done.all():
+        ii = ndimage.distance_transform_edt(~done.reshape(H, W), return_distances=False, return_indices=True)
+        near = (ii[0] * W + ii[1]).ravel()
+        img[~done], filled[~done] = img[near[~done]], PADDED
+    return img.reshape(H, W, 3), valid.reshape(H, W), filled.reshape(H, W)
+
+
+def test_vectorised_warp_matches_the_per_source_reference(tiny_scene):
+    """Stated tolerance: the one-projection-per-source warp gives the reference's masks and filling
+    sources exactly and its colours within 1e-5, on the analytic scene (with occlusion) and on the
+    generated city with its exact depth."""
+    from dibrgs_core.data.levir import read_scene
+
+    cases = []
+    t = cam_at(90, 64)
+    cases.append((t, render(t)[1], [(c, *render(c)) for c in (cam_at(60), cam_at(200), cam_at(330))]))
+    v = read_scene(tiny_scene).views
+    cases.append((v["005"].camera, v["005"].depth,
+                  [(v[k].camera, v[k].image, v[k].depth) for k in ("001", "008", "015")]))
+    for target, depth, sources in cases:
+        ref_img, ref_valid, ref_filled = reference_warp(target, depth, sources)
+        img, valid, filled = warp_progressive(target, depth, sources)
+        assert np.array_equal(valid, ref_valid) and np.array_equal(filled, ref_filled)
+        assert np.abs(img - ref_img).max() < 1e-5
+        assert valid.mean() > 0.3 and (filled == PADDED).any()
+        # The parts agree with the whole: per-source samples, nearest-first fill.
+        s = sample_sources(target, depth, sources)
+        img2, valid2, _ = fill_progressive(s, source_order(target, sources), depth.shape)
+        assert np.array_equal(img2, img) and np.array_equal(valid2, valid)
+
+
+def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
+    """``training.setup.pseudo_frames``: a decision ``pseudo_trajectory`` with the class and why,
+    values ``pseudo_views`` (kept, tried, dropped, mean warped / padded / rejected) and weighted frames;
+    a user path overrides the trajectory (and says so)."""
+    import json
+
+    from dibrgs_core.camera.serialize import camera_to_dict
+    from dibrgs_core.common.report import Report
+    from dibrgs_core.training.config import preset
+    from dibrgs_core.training.frames import views_to_frames
+    from dibrgs_core.training.setup import SetupContext, pseudo_frames
+
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
+    cfg = preset("test")
+    cfg.pseudo.n_views = 5
+
+    def run(work, cfg):
+        rep = Report()
+        ctx = SetupContext(cfg, work, None, views_to_frames(views, 1.0), rep, np.random.default_rng(0), None)
+        return pseudo_frames(ctx, scene_points(step=0.06)), rep
+
+    frames, rep = run(tmp_path / "a", cfg)
+    d = {x.step: x for x in rep.decisions}
+    assert d["pseudo_trajectory"].applied and d["pseudo_trajectory"].reason.startswith("orbit: ")
+    assert d["pseudo_trajectory"].details["kind"] == "orbit"
+    v = rep.values["pseudo_views"]
+    assert v["kept"] == len(frames) == 5 and v["wanted"] == 5 and v["tried"] >= 5 and not v["cached"]
+    assert 0.3 < v["mean_warped"] <= 1 and 0 <= v["mean_padded"] < 1 and 0 <= v["mean_rejected"] < 0.5
+    assert "along the orbit trajectory" in d["pseudo_views"].reason
+    for f in frames:
+        assert f.mask.shape == (40, 40) and float(f.mask.max()) == 1.0
+    _, rep2 = run(tmp_path / "a", cfg)
+    assert rep2.values["pseudo_views"]["cached"] and rep2.values["pseudo_views"]["kept"] == 5
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps([camera_to_dict(cam_at(a, 40)) for a in (30, 60)]))
+    cfg.pseudo_path = str(path)
+    frames, rep = run(tmp_path / "b", cfg)
+    d = {x.step: x for x in rep.decisions}
+    assert not d["pseudo_trajectory"].applied and str(path) in d["pseudo_trajectory"].reason
+    assert len(frames) == 2 and rep.values["pseudo_views"]["wanted"] == 2
+
+
+def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(tiny_scene, tmp_path):
+    """--points scores a PLY (here the generated city's exact depth, back-projected), --pseudo builds
+    sampled views as training does (trajectory, kept/tried, shares, CPU s), --png draws them; a missing
+    PLY is one clear line and exit 2."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import REPO
+    from dibrgs_core.data.levir import read_scene
+    from dibrgs_core.data.ply import write_ply
+
+    sc = read_scene(tiny_scene)
+    pts = np.concatenate([v.camera.backproject(v.depth)[(v.depth > 0).ravel()] for v in sc.train_views()])
+    ply = tmp_path / "cloud.ply"
+    write_ply(ply, pts, np.full((len(pts), 3), 128, np.uint8))
+    script = str(REPO / "scripts" / "eval_pseudo_views.py")
+    out, png = tmp_path / "r.json", tmp_path / "m.png"
+    r = subprocess.run([sys.executable, script, str(tiny_scene), "--priors", "", "--points", f"exact={ply}",
+                        "--pseudo", "3", "--consistency-tol", "0.1", "--json", str(out), "--png", str(png)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "| exact |" in r.stdout and "| exact | orbit | 64x64 | 3 / 3" in r.stdout
+    res = json.loads(out.read_text())[0]
+    s = res["sampled"]
+    assert s["trajectory"] == "orbit" and s["kept"] == 3 and s["tried"] >= 3 and s["cpu_s"] > 0
+    assert 0.3 < s["warped"] <= 1 and abs(s["warped"] + s["padded"] + s["rejected"] - 1) < 0.05
+    assert png.is_file() and png.stat().st_size > 1000
+    bad = subprocess.run([sys.executable, script, str(tiny_scene), "--priors", "", "--points", str(tmp_path / "no.ply")],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "no.ply" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1

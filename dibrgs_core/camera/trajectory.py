@@ -1,0 +1,396 @@
+"""The acquisition trajectory of a few cameras: its kind, and camera poses along it.
+
+The paper samples pseudo views "along the acquisition trajectory of the input
+views ... between existing cameras". Real acquisitions are not all circles:
+
+* ``orbit``: the cameras lie on a circle and look towards its axis (LEVIR-NVS,
+  the generated scenes; an oblique orbit round a site);
+* ``strips``: the camera centres lie on one straight line (a corridor, or one
+  photo from each strip of a mapping flight) or on parallel straight lines
+  with at least two cameras each (a mapping grid);
+* ``free``: anything else.
+
+:func:`classify` finds the kind and says why; :func:`sample_poses` draws
+cameras on the trajectory: on the circle for an orbit, along the fitted
+lines (continued half a camera spacing past their end cameras) and between
+neighbouring cameras of adjacent lines for strips, between neighbouring
+cameras otherwise. Positions are interpolated, rotations slerped, and each
+pose is jittered a little in position (a fraction of the camera spacing)
+and look direction (degrees), so nothing depends on the scene's units.
+
+OpenCV cameras (:mod:`.pinhole`), world units, up from
+:func:`.frame.estimate_up`. NumPy only (Blender's Python imports it).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Sequence
+
+import numpy as np
+
+from .frame import estimate_up, up_frame
+from .orbit import Orbit, fit_orbit
+from .pinhole import Camera, look_at
+
+#: Kinds of acquisition trajectory :func:`classify` tells apart.
+TrajectoryKind = Literal["orbit", "strips", "free"]
+
+#: Camera centres whose horizontal spread across their main direction is at most this
+#: fraction of the spread along it lie on one straight line.
+LINE_TOL = 0.1
+#: An orbit's cameras look towards its axis: the horizontal part of each viewing direction
+#: points at the circle's centre within this angle (degrees) ...
+ORBIT_AIM_DEG = 30.0
+#: ... once the cameras look at least this far off nadir (degrees); nadir cameras on a
+#: circle need :data:`ORBIT_MIN_NADIR_CAMS` of them and a small fit residual instead.
+ORBIT_MIN_TILT_DEG = 3.0
+ORBIT_MIN_NADIR_CAMS = 5
+#: Largest RMS distance from the fitted circle, as a fraction of its radius.
+ORBIT_RMS_TOL = 0.1
+
+
+@dataclass
+class Segment:
+    """Poses between camera ``a`` and camera ``b``: position ``C_a + t (C_b - C_a)`` for ``t`` in
+    ``[t0, t1]`` (beyond [0, 1] continues the line past an end camera), rotation slerped at
+    ``clip(t, 0, 1)``."""
+
+    a: int
+    b: int
+    t0: float = 0.0
+    t1: float = 1.0
+
+
+@dataclass
+class Trajectory:
+    """What :func:`classify` found.
+
+    Attributes:
+        kind: orbit, strips or free.
+        reason: one sentence: why this kind, with the measured figures.
+        up: unit up axis of the scene (world).
+        spacing: median distance from a camera to its nearest neighbour (world units).
+        orbit: the fitted circle (kind ``orbit`` only).
+        lines: camera indices of each fitted line, ordered along it (kind ``strips``).
+        segments: where :func:`sample_poses` draws poses between cameras (not used for an orbit).
+    """
+
+    kind: TrajectoryKind
+    reason: str
+    up: np.ndarray
+    spacing: float
+    orbit: Orbit | None = None
+    lines: list[list[int]] = field(default_factory=list)
+    segments: list[Segment] = field(default_factory=list)
+
+    def describe(self) -> dict:
+        """JSON-friendly summary (for reports)."""
+        return {"kind": self.kind, "reason": self.reason, "spacing": self.spacing, "lines": self.lines,
+                "orbit": None if self.orbit is None else self.orbit.to_dict()}
+
+
+# ---------------------------------------------------------------------------
+# Rotations (numpy only: no scipy in Blender's Python)
+# ---------------------------------------------------------------------------
+def quat_of(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a 3x3 rotation matrix (Shepperd's method, w >= 0)."""
+    R = np.asarray(R, np.float64)
+    tr = np.trace(R)
+    diag = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
+    k = int(np.argmax(diag))
+    if k == 0:
+        s = 2.0 * np.sqrt(max(1.0 + tr, 1e-300))
+        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
+    else:
+        i, j, m = k - 1, k % 3, (k + 1) % 3
+        s = 2.0 * np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[m, m], 1e-300))
+        q = np.empty(4)
+        q[0] = (R[m, j] - R[j, m]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + m] = (R[m, i] + R[i, m]) / s
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def rot_of(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion (w, x, y, z) (normalised first)."""
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def slerp(Ra: np.ndarray, Rb: np.ndarray, t: float) -> np.ndarray:
+    """Rotation a fraction ``t`` in [0, 1] of the way from ``Ra`` to ``Rb`` along the shortest arc."""
+    qa, qb = quat_of(Ra), quat_of(Rb)
+    d = float(qa @ qb)
+    if d < 0:
+        qb, d = -qb, -d
+    if d > 1.0 - 1e-12:
+        return rot_of(qa + t * (qb - qa))
+    th = np.arccos(min(d, 1.0))
+    return rot_of((np.sin((1 - t) * th) * qa + np.sin(t * th) * qb) / np.sin(th))
+
+
+def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
+    a = np.asarray(axis, np.float64)
+    a = a / max(np.linalg.norm(a), 1e-300)
+    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
+# ---------------------------------------------------------------------------
+# Classification
+# ---------------------------------------------------------------------------
+def _nn_spacing(P: np.ndarray) -> float:
+    """Median distance from a position to its nearest neighbour (0 when they coincide)."""
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    np.fill_diagonal(D, np.inf)
+    s = float(np.median(D.min(1)))
+    return s if np.isfinite(s) and s > 0 else 0.0
+
+
+def _line_fit(P: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Main direction (2,) of horizontal points, their spread along it and across it (RMS)."""
+    Q = P - P.mean(0)
+    _, s, vt = np.linalg.svd(Q, full_matrices=False)
+    n = len(P)
+    along = float(s[0]) / np.sqrt(n)
+    across = float(s[1]) / np.sqrt(n) if len(s) > 1 else 0.0
+    return vt[0], along, across
+
+
+def _orbit_evidence(cams: Sequence[Camera], orbit: Orbit, F: np.ndarray, P: np.ndarray) -> tuple[bool, str]:
+    """Whether the cameras sit on ``orbit`` and look towards its axis, and the figures."""
+    rel_rms = orbit.rms / max(orbit.radius, 1e-300)
+    if len(cams) >= 4 and rel_rms > ORBIT_RMS_TOL:
+        return False, f"the circle through them misses them by {100 * rel_rms:.0f}% of its radius"
+    c2 = (orbit.center @ F.T)[:2]
+    dirs = np.stack([c.view_dir for c in cams]) @ F.T
+    horiz = dirs[:, :2]
+    tilt = np.degrees(np.arcsin(np.clip(np.linalg.norm(horiz, axis=1), 0, 1)))
+    if tilt.min() >= ORBIT_MIN_TILT_DEG:
+        inward = c2 - P
+        cosang = (horiz * inward).sum(1) / np.maximum(np.linalg.norm(horiz, axis=1) * np.linalg.norm(inward, axis=1),
+                                                      1e-300)
+        worst = float(np.degrees(np.arccos(np.clip(cosang.min(), -1, 1))))
+        if worst <= ORBIT_AIM_DEG:
+            return True, (f"{len(cams)} cameras {tilt.mean():.0f} deg off nadir on a circle of radius "
+                          f"{orbit.radius:.3g} look towards its axis (worst {worst:.0f} deg off)")
+        return False, f"the cameras do not look towards the axis of the circle through them ({worst:.0f} deg off)"
+    if len(cams) >= ORBIT_MIN_NADIR_CAMS:
+        return True, (f"{len(cams)} near-nadir cameras lie on a circle of radius {orbit.radius:.3g} "
+                      f"(RMS {100 * rel_rms:.1f}% of it)")
+    return False, (f"{len(cams)} near-nadir cameras (< {ORBIT_MIN_NADIR_CAMS}) off any straight line: a circle "
+                   "through them is no evidence of an orbit")
+
+
+def _parallel_lines(P: np.ndarray, spacing: float) -> tuple[list[list[int]], float] | None:
+    """Split horizontal camera positions into parallel straight lines of >= 2 cameras each.
+
+    Candidate directions are those from each camera to its nearest neighbour; a direction
+    works when the cameras' offsets across it fall into groups of >= 2 separated by more
+    than a quarter of the spacing, each group straight within :data:`LINE_TOL` of the
+    spacing. Returns the lines (indices ordered along them) and the worst offset, or None.
+    """
+    n = len(P)
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    np.fill_diagonal(D, np.inf)
+    best = None
+    for i in range(n):
+        d = P[int(np.argmin(D[i]))] - P[i]
+        d = d / max(np.linalg.norm(d), 1e-300)
+        nrm = np.array([-d[1], d[0]])
+        off = P @ nrm
+        order = np.argsort(off)
+        groups, cur = [], [int(order[0])]
+        for a, b in zip(order[:-1], order[1:]):
+            if off[b] - off[a] > 0.25 * spacing:
+                groups.append(cur)
+                cur = []
+            cur.append(int(b))
+        groups.append(cur)
+        if len(groups) < 2 or min(len(g) for g in groups) < 2:
+            continue
+        worst = max(float(np.abs(off[g] - off[g].mean()).max()) for g in groups)
+        if worst > LINE_TOL * spacing:
+            continue
+        lines = [sorted(g, key=lambda k: float(P[k] @ d)) for g in groups]
+        # A flight grid is regular: cameras along the lines, and the lines themselves, about
+        # evenly spaced (chords of a circle pair up in parallel but at every length).
+        steps = np.array([np.linalg.norm(P[b] - P[a]) for ln in lines for a, b in zip(ln[:-1], ln[1:])])
+        gaps = np.diff(np.sort([float(np.mean(off[g])) for g in groups]))
+        if steps.max() > 2.0 * steps.min() or gaps.max() > 2.0 * gaps.min():
+            continue
+        if best is None or worst < best[1]:
+            best = (lines, worst)
+    return best
+
+
+def _segments_along(lines: list[list[int]], P: np.ndarray, extend: float) -> list[Segment]:
+    """Consecutive cameras of each line, the end segments continued ``extend`` spacings past the ends."""
+    segs = []
+    for line in lines:
+        for a, b in zip(line[:-1], line[1:]):
+            segs.append(Segment(a, b))
+        if len(line) >= 2:
+            first = np.linalg.norm(P[line[1]] - P[line[0]])
+            last = np.linalg.norm(P[line[-1]] - P[line[-2]])
+            spc = float(np.median([np.linalg.norm(P[b] - P[a]) for a, b in zip(line[:-1], line[1:])]))
+            segs.append(Segment(line[1], line[0], 1.0, 1.0 + extend * spc / max(first, 1e-300)))
+            segs.append(Segment(line[-2], line[-1], 1.0, 1.0 + extend * spc / max(last, 1e-300)))
+    return segs
+
+
+def _neighbour_pairs(P: np.ndarray) -> list[tuple[int, int]]:
+    """Edges of the minimum spanning tree of the positions plus each one's nearest neighbour."""
+    n = len(P)
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    pairs = set()
+    inside, rest = [0], set(range(1, n))
+    while rest:  # Prim
+        a, b = min(((i, j) for i in inside for j in rest), key=lambda e: D[e])
+        pairs.add((min(a, b), max(a, b)))
+        inside.append(b)
+        rest.discard(b)
+    Dn = D + np.diag(np.full(n, np.inf))
+    for i in range(n):
+        j = int(np.argmin(Dn[i]))
+        pairs.add((min(i, j), max(i, j)))
+    return sorted(pairs)
+
+
+def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float = 0.5,
+             scene_depth: float | None = None) -> Trajectory:
+    """The kind of trajectory the camera centres follow, and why.
+
+    Args:
+        cams: the training cameras (at least 1).
+        up: scene up axis (default :func:`.frame.estimate_up`).
+        extend: strips are continued this many camera spacings past their end cameras.
+        scene_depth: typical distance from the cameras to the scene (world units); a single
+            camera (or cameras at one position) has no spacing, so a quarter of this stands in
+            for it (default 1).
+    """
+    cams = list(cams)
+    if not cams:
+        raise ValueError("classify needs at least one camera")
+    if up is None:
+        up, _ = estimate_up(cams)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    F = up_frame(up)
+    C = np.stack([c.center for c in cams])
+    P = (C @ F.T)[:, :2]
+    n = len(cams)
+    stand_in = 0.25 * scene_depth if scene_depth and np.isfinite(scene_depth) and scene_depth > 0 else 1.0
+    spacing = _nn_spacing(P) if n > 1 else 0.0
+    # Positions equal up to rounding (of the coordinates, or against the scene's depth) coincide.
+    if spacing <= max(1e-9 * float(np.abs(C).max()), 1e-6 * stand_in if scene_depth else 0.0):
+        return Trajectory("free", f"{'a single camera' if n == 1 else 'the cameras share one position'}: "
+                          "poses are jittered around it", up, stand_in, segments=[Segment(0, 0)])
+    if n == 2:
+        return Trajectory("strips", "two cameras: the line through them", up, spacing, lines=[[0, 1]],
+                          segments=_segments_along([[0, 1]], P, extend))
+    d, along, across = _line_fit(P)
+    if across <= LINE_TOL * along:
+        line = sorted(range(n), key=lambda k: float(P[k] @ d))
+        return Trajectory("strips", f"the {n} camera centres lie on one straight line (RMS offset "
+                          f"{across:.3g}, {100 * across / max(along, 1e-300):.1f}% of their spread {along:.3g} "
+                          f"along it)", up, spacing, lines=[line], segments=_segments_along([line], P, extend))
+    orbit = fit_orbit(cams, up)
+    is_orbit, why_orbit = _orbit_evidence(cams, orbit, F, P)
+    if is_orbit:
+        return Trajectory("orbit", why_orbit, up, spacing, orbit=orbit)
+    grid = _parallel_lines(P, spacing) if n >= 4 else None
+    if grid is not None:
+        lines, worst = grid
+        segs = _segments_along(lines, P, extend)
+        # Between adjacent lines: each camera and its nearest camera on the next line.
+        order = sorted(range(len(lines)), key=lambda k: float(np.mean(P[lines[k]], 0) @ np.array([-d[1], d[0]])))
+        for la, lb in zip(order[:-1], order[1:]):
+            for a in lines[la]:
+                b = min(lines[lb], key=lambda k: float(np.linalg.norm(P[k] - P[a])))
+                segs.append(Segment(a, b))
+        return Trajectory("strips", f"the {n} camera centres lie on {len(lines)} parallel straight lines "
+                          f"(worst offset {worst:.3g}, {100 * worst / spacing:.0f}% of the camera spacing "
+                          f"{spacing:.3g})", up, spacing, lines=lines, segments=segs)
+    pairs = _neighbour_pairs(P)
+    return Trajectory("free", f"neither one straight line ({100 * across / max(along, 1e-300):.0f}% spread "
+                      f"across it), parallel lines, nor an orbit ({why_orbit}): poses between the "
+                      f"{len(pairs)} pairs of neighbouring cameras", up, spacing,
+                      segments=[Segment(a, b) for a, b in pairs])
+
+
+# ---------------------------------------------------------------------------
+# Sampling
+# ---------------------------------------------------------------------------
+def _jitter(eye: np.ndarray, R: np.ndarray, rng: np.random.Generator, sigma: float, F: np.ndarray,
+            look_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Shift ``eye`` (horizontal sigma, vertical sigma/2) and tilt the optical axis of ``R`` (world->camera)
+    by a normal angle of ``look_deg`` degrees about a random axis across it."""
+    off = rng.normal(size=3) * np.array([sigma, sigma, 0.5 * sigma])
+    eye = eye + off @ F
+    phi = rng.uniform(0, 2 * np.pi)
+    ang = np.radians(look_deg) * rng.normal()
+    Rj = axis_angle(np.array([np.cos(phi), np.sin(phi), 0.0]), ang)
+    return eye, Rj @ R
+
+
+def _camera(R: np.ndarray, eye: np.ndarray, like: Camera, name: str) -> Camera:
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ eye
+    return Camera(K=like.K.copy(), w2c=w2c, width=like.width, height=like.height, name=name,
+                  depth_range=like.depth_range)
+
+
+def sample_poses(traj: Trajectory, cams: Sequence[Camera], n: int, seed: int, jitter: float = 0.1,
+                 look_deg: float = 2.0) -> list[Camera]:
+    """``n`` cameras on ``traj`` (seeded; the first ``k`` of ``n`` are the ``k`` of a smaller draw).
+
+    * orbit: uniform angles on the whole circle (the paper), looking at the orbit's target;
+    * otherwise: a segment of ``traj.segments`` at random (weighted by its length), a point on
+      it, the rotation slerped between its cameras.
+
+    Every pose is then jittered: position by ``jitter`` x the length of its segment (an orbit:
+    the smaller of the camera spacing and the radius; horizontally, half that vertically), look direction by ``look_deg`` degrees. Intrinsics and image
+    size come from the nearer camera of the segment (an orbit: the first camera). Names are
+    ``pseudo_000``...
+    """
+    cams = list(cams)
+    if n <= 0:
+        return []
+    rng = np.random.default_rng(seed)
+    F = up_frame(traj.up)
+    out = []
+    if traj.kind == "orbit" and traj.orbit is not None:
+        o = traj.orbit
+        sigma = jitter * min(traj.spacing, o.radius)
+        for i in range(n):
+            eye = o.point(rng.uniform(0.0, 2.0 * np.pi))
+            R = look_at(eye, o.target, o.normal)[:3, :3]
+            eye, R = _jitter(eye, R, rng, sigma, F, look_deg)
+            out.append(_camera(R, eye, cams[0], f"pseudo_{i:03d}"))
+        return out
+    segs = traj.segments or [Segment(0, 0)]
+    C = np.stack([c.center for c in cams])
+    lens = np.array([max(np.linalg.norm(C[s.b] - C[s.a]) * (s.t1 - s.t0), 1e-12) for s in segs])
+    prob = lens / lens.sum()
+    for i in range(n):
+        s = segs[int(rng.choice(len(segs), p=prob))]
+        t = float(rng.uniform(s.t0, s.t1))
+        eye = C[s.a] + t * (C[s.b] - C[s.a])
+        tc = min(max(t, 0.0), 1.0)
+        R = slerp(cams[s.a].R, cams[s.b].R, tc)
+        seg_len = float(np.linalg.norm(C[s.b] - C[s.a]))
+        sigma = jitter * (seg_len if seg_len > 0 else traj.spacing)
+        eye, R = _jitter(eye, R, rng, sigma, F, look_deg)
+        like = cams[s.a] if tc < 0.5 else cams[s.b]
+        out.append(_camera(R, eye, like, f"pseudo_{i:03d}"))
+    return out
+
+
+__all__ = ["TrajectoryKind", "Trajectory", "Segment", "classify", "sample_poses", "slerp", "quat_of", "rot_of",
+           "axis_angle", "LINE_TOL"]
