@@ -1,121 +1,29 @@
-// CPU tile rasterizer for 3D Gaussian Splatting: binning, forward compositing
-// and the hand-written backward. Same rules as reference.py (see there).
-// Tiles are spread dynamically over torch's intra-op threads (the extension is
-// built with -fopenmp: at::parallel_for is a header template and would run
-// serially otherwise). One tile row of 16 pixels is one SIMD vector (GCC/Clang
-// vector extensions: a single AVX-512 register in float), and each tile's
-// Gaussians are first gathered into contiguous per-tile arrays.
+// CPU tile rasterizer for 3D Gaussian Splatting: binning, compositing (the
+// per-tile kernels are in composite.h) and the fused EWA projection, as a torch
+// extension. Same rules as reference.py (see there). Tiles are spread
+// dynamically over torch's intra-op threads (the extension is built with
+// -fopenmp: at::parallel_for is a header template and would run serially
+// otherwise).
 #include <torch/extension.h>
 
+#include <ATen/Parallel.h>
+
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <mutex>
+#include <string>
+#include <type_traits>
 #include <cstdint>
 #include <cstring>
 #include <numeric>
 #include <vector>
 
-#include <ATen/Parallel.h>
+#include "composite.h"
 
-#include <atomic>
-
-#ifdef __AVX512F__
-#include <immintrin.h>
-#endif
+using dibrgs::TILE;
 
 namespace {
-
-constexpr int TILE = 16;
-constexpr int TP = TILE * TILE;
-constexpr double ALPHA_MIN = 1.0 / 255.0;
-constexpr double ALPHA_MAX = 0.99;
-constexpr double T_MIN = 1e-4;
-
-// 16 lanes = one tile row, with the matching integer (mask) vector type.
-template <typename T>
-struct Vec;
-template <>
-struct Vec<float> {
-  typedef float V __attribute__((vector_size(64)));
-  typedef int32_t I __attribute__((vector_size(64)));
-};
-template <>
-struct Vec<double> {
-  typedef double V __attribute__((vector_size(128)));
-  typedef int64_t I __attribute__((vector_size(128)));
-};
-
-template <typename V, typename S>
-inline V splat(S x) {
-  V v;
-  for (int i = 0; i < TILE; ++i) v[i] = x;
-  return v;
-}
-
-// Whether any lane of a 0 / -1 mask is set.
-inline bool any(Vec<float>::I m) {
-#ifdef __AVX512F__
-  __m512i x;
-  std::memcpy(&x, &m, sizeof(x));
-  return _mm512_test_epi32_mask(x, x) != 0;
-#else
-  int32_t r = 0;
-  for (int i = 0; i < TILE; ++i) r |= m[i];
-  return r != 0;
-#endif
-}
-inline bool any(Vec<double>::I m) {
-  int64_t r = 0;
-  for (int i = 0; i < TILE; ++i) r |= m[i];
-  return r != 0;
-}
-
-template <typename V>
-inline auto hsum(V v) {
-  auto s = v[0];
-  for (int i = 1; i < TILE; ++i) s += v[i];
-  return s;
-}
-
-// exp in float: Cephes-style range reduction and polynomial (relative error
-// ~1e-7), on whole vectors with plain arithmetic (no -ffast-math needed).
-// Arguments under -87 give ~0 (alpha is skipped there).
-inline Vec<float>::V vexp(Vec<float>::V x) {
-  typedef Vec<float>::V V;
-  typedef Vec<float>::I I;
-  x = x < -87.0f ? splat<V>(-87.0f) : x;
-  x = x > 88.0f ? splat<V>(88.0f) : x;
-  const V t = x * 1.44269504088896341f;
-  const I n = __builtin_convertvector(t - 0.5f, I);  // rounds to nearest for t <= 0.5
-  const V nf = __builtin_convertvector(n, V);
-  V r = x - nf * 0.693359375f;
-  r = r - nf * -2.12194440e-4f;
-  const V z = r * r;
-  V y = splat<V>(1.9875691500E-4f);
-  y = y * r + 1.3981999507E-3f;
-  y = y * r + 8.3334519073E-3f;
-  y = y * r + 4.1665795894E-2f;
-  y = y * r + 1.6666665459E-1f;
-  y = y * r + 5.0000001201E-1f;
-  y = y * z + r + 1.0f;
-  const I bits = (n + 127) << 23;
-  V scale;
-  std::memcpy(&scale, &bits, sizeof(V));
-  return y * scale;
-}
-inline Vec<double>::V vexp(Vec<double>::V x) {
-  for (int i = 0; i < TILE; ++i) x[i] = std::exp(x[i]);
-  return x;
-}
-
-// Rows [r0, r1] (inclusive, tile-local) where the Gaussian may reach
-// alpha >= 1/255, given its half-extent ey (already widened).
-inline void row_range(double my, double ey, int ty0, int H, int& r0, int& r1) {
-  const double lo = std::ceil(my - ey - 0.5) - ty0;
-  const double hi = std::floor(my + ey - 0.5) - ty0;
-  const int last = std::min(TILE - 1, H - 1 - ty0);
-  r0 = lo < 0 ? 0 : (lo > TILE ? TILE : static_cast<int>(lo));
-  r1 = hi > last ? last : (hi < -1 ? -1 : static_cast<int>(hi));
-}
 
 // The alpha >= 1/255 region is the ellipse q <= 2 ln(255 o) with
 // q = a dx^2 + 2 b dx dy + c dy^2. Culling uses a slightly larger level so that
@@ -125,34 +33,6 @@ inline double cull_level(double o) {
   if (!(o * 255.0 >= 1.0)) return -1.0;
   return 2.0 * std::log(o * 255.0) * 1.01 + 0.01;
 }
-
-// A tile's Gaussians in list order, copied contiguously (structure of arrays).
-template <typename T>
-struct TileData {
-  std::vector<T> mx, my, a, b, c, o, f;
-  std::vector<int32_t> r0, r1;
-  void load(const T* pm, const T* pc, const T* po, const T* pf, const double* pe, const int32_t* ids, int64_t n,
-            int64_t C, int ty0, int H) {
-    for (auto* v : {&mx, &my, &a, &b, &c, &o}) v->resize(n);
-    f.resize(n * C);
-    r0.resize(n);
-    r1.resize(n);
-    for (int64_t k = 0; k < n; ++k) {
-      const int32_t g = ids[k];
-      mx[k] = pm[2 * g];
-      my[k] = pm[2 * g + 1];
-      a[k] = pc[3 * g];
-      b[k] = pc[3 * g + 1];
-      c[k] = pc[3 * g + 2];
-      o[k] = po[g];
-      std::memcpy(&f[k * C], pf + g * C, C * sizeof(T));
-      int lo, hi;
-      row_range(static_cast<double>(my[k]), pe[3 * g + 1], ty0, H, lo, hi);
-      r0[k] = lo;
-      r1[k] = hi;
-    }
-  }
-};
 
 // Runs worker(next) on every torch intra-op thread; workers pull tile indices
 // from the shared counter (dynamic scheduling: tile costs vary a lot).
@@ -261,198 +141,99 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   return {offsets, gids, ext};
 }
 
+// Compositing: per-Gaussian records (make_records), then the tiles.
+
 template <typename T>
-static void forward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
-                         const double* pe, int64_t C, int64_t W, int64_t H, T* out, T* tfin, int32_t* ncon) {
-  typedef typename Vec<T>::V V;
-  typedef typename Vec<T>::I I;
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
-  run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<V> acc(C * TILE);
-    V Tv[TILE];
-    I done[TILE], last[TILE];
-    bool alive[TILE];
-    TileData<T> td;
-    V lane;
-    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
-    for (int64_t tile = next++; tile < tx * ty; tile = next++) {
-      const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
-      const V xs = lane + (T(tx0) + T(0.5));  // pixel centres of a row
-      const I outx = __builtin_convertvector(lane, I) >= static_cast<int>(W - tx0);
-      int nalive = 0;
-      for (int r = 0; r < TILE; ++r) {
-        Tv[r] = splat<V>(T(1));
-        last[r] = splat<I>(0);
-        done[r] = ty0 + r >= H ? splat<I>(-1) : outx;
-        alive[r] = ty0 + r < H;
-        nalive += alive[r];
+dibrgs::Scene<T> scene(const torch::Tensor& rec, const torch::Tensor& offsets, const torch::Tensor& gids, int64_t W,
+                       int64_t H) {
+  return dibrgs::Scene<T>{rec.data_ptr<T>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
+                          rec.size(1) - dibrgs::G_F, W, H, (W + TILE - 1) / TILE};
+}
+
+// Records (N, G_F + C) of the Gaussians for the kernels (see composite.h).
+torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats,
+                      torch::Tensor ext) {
+  const int64_t N = feats.size(0), C = feats.size(1);
+  auto rec = torch::empty({N, dibrgs::G_F + C}, feats.options());
+  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_records", [&] {
+    const scalar_t *pm = means2d.data_ptr<scalar_t>(), *pc = conics.data_ptr<scalar_t>();
+    const scalar_t *po = opac.data_ptr<scalar_t>(), *pf = feats.data_ptr<scalar_t>();
+    const double* pe = ext.data_ptr<double>();
+    scalar_t* pr = rec.data_ptr<scalar_t>();
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pf, pe, b, e, C, pr); });
+  });
+  return rec;
+}
+
+// Compile-time channel counts of the kernels (RGB / 1 channel + depth +
+// alpha in rasterize); others run with the count at run time.
+template <typename F>
+void by_channels(int64_t C, F&& f) {
+  switch (C) {
+    case 5: f(std::integral_constant<int, 5>()); break;
+    case 3: f(std::integral_constant<int, 3>()); break;
+    default: f(std::integral_constant<int, 0>());
+  }
+}
+
+template <typename T, bool STATS>
+void forward_tiles(const dibrgs::Scene<T>& sc, T* out, T* tfin, int32_t* ncon, dibrgs::Stats* stats) {
+  const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
+  by_channels(sc.C, [&](auto ct) {
+    std::mutex mu;
+    run_workers([&](std::atomic<int64_t>& next) {
+      dibrgs::Workspace<T> ws;
+      dibrgs::Stats st;
+      for (int64_t t = next++; t < tiles; t = next++)
+        dibrgs::forward_tile<T, decltype(ct)::value, STATS>(sc, t, ws, out, tfin, ncon, &st);
+      if (STATS) {
+        std::lock_guard<std::mutex> lock(mu);
+        stats->add(st);
       }
-      std::fill(acc.begin(), acc.end(), splat<V>(T(0)));
-      const int64_t s = off[tile], n = off[tile + 1] - s;
-      td.load(pm, pc, po, pf, pe, pg + s, n, C, ty0, static_cast<int>(H));
-      for (int64_t k = 0; k < n && nalive > 0; ++k) {
-        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
-        const T* fk = td.f.data() + k * C;
-        const V dx = mx - xs;
-        const V adx2 = a * dx * dx;
-        const V bdx = b * dx;
-        const I kk = splat<I>(static_cast<int32_t>(k + 1));
-        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
-          if (!alive[r]) continue;
-          const T dy = my - (T(ty0 + r) + T(0.5));
-          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
-          const V oG = o * vexp(power);
-          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
-          const I cand = ~done[r] & (power <= T(0)) & (al >= T(ALPHA_MIN));
-          if (!any(cand)) continue;
-          const V testT = Tv[r] * (T(1) - al);
-          const I stop = cand & (testT < T(T_MIN));
-          const I valid = cand & ~stop;
-          const V w = valid ? al * Tv[r] : splat<V>(T(0));
-          Tv[r] = valid ? testT : Tv[r];
-          last[r] = valid ? kk : last[r];
-          if (any(stop)) {
-            done[r] |= stop;
-            if (!any(~done[r])) {
-              alive[r] = false;
-              --nalive;
-            }
-          }
-          for (int64_t ch = 0; ch < C; ++ch) acc[ch * TILE + r] += w * fk[ch];
-        }
-      }
-      for (int r = 0; r < TILE; ++r) {
-        const int64_t Y = ty0 + r;
-        if (Y >= H) break;
-        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
-          const int64_t pix = Y * W + tx0 + x;
-          for (int64_t ch = 0; ch < C; ++ch) out[pix * C + ch] = acc[ch * TILE + r][x];
-          tfin[pix] = Tv[r][x];
-          ncon[pix] = static_cast<int32_t>(last[r][x]);
-        }
-      }
-    }
+    });
   });
 }
 
 // Forward compositing. Returns (out (H, W, C), T_final (H, W), n_contrib
-// (H, W) int32: 1 + tile-list position of the last Gaussian composited).
+// (H, W) int32: 1 + tile-list position of the last Gaussian composited, the
+// Gaussian records for backward).
 std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
                                    torch::Tensor ext, int64_t W, int64_t H) {
   const int64_t C = feats.size(1);
-  auto out = torch::zeros({H, W, C}, feats.options());
-  auto tfin = torch::ones({H, W}, feats.options());
-  auto ncon = torch::zeros({H, W}, torch::dtype(torch::kInt32));
+  auto rec = records(means2d, conics, opac, feats, ext);
+  auto out = torch::empty({H, W, C}, feats.options());
+  auto tfin = torch::empty({H, W}, feats.options());
+  auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_forward", [&] {
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           feats.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
-                           ext.data_ptr<double>(), C, W, H, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
-                           ncon.data_ptr<int32_t>());
+    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, W, H), out.data_ptr<scalar_t>(),
+                                   tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), nullptr);
   });
-  return {out, tfin, ncon};
+  return {out, tfin, ncon, rec};
+}
+
+template <typename T, bool STATS>
+void backward_tiles(const dibrgs::Scene<T>& sc, const T* gout, const T* tfin, const int32_t* ncon, T* buf,
+                    dibrgs::Stats* stats) {
+  const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
+  by_channels(sc.C, [&](auto ct) {
+    std::mutex mu;
+    run_workers([&](std::atomic<int64_t>& next) {
+      dibrgs::Workspace<T> ws;
+      dibrgs::Stats st;
+      for (int64_t t = next++; t < tiles; t = next++)
+        dibrgs::backward_tile<T, decltype(ct)::value, STATS>(sc, t, ws, gout, tfin, ncon, buf, &st);
+      if (STATS) {
+        std::lock_guard<std::mutex> lock(mu);
+        stats->add(st);
+      }
+    });
+  });
 }
 
 template <typename T>
-static void backward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
-                          const double* pe, const T* gout, const T* tfin, const int32_t* ncon, int64_t C, int64_t W,
-                          int64_t H, T* gm, T* gc, T* go, T* gf) {
-  typedef typename Vec<T>::V V;
-  typedef typename Vec<T>::I I;
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
-  const int64_t G = 6 + C;  // per intersection: mx, my, a, b, c, o, feats
-  const int64_t M = off[tx * ty];
-  std::vector<T> buf(M * G);
-  run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<V> S(C * TILE), D(C * TILE), gfv(C);
-    V Tv[TILE];
-    I last[TILE];
-    int rowmax[TILE];
-    TileData<T> td;
-    V lane;
-    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
-    const V zero = splat<V>(T(0));
-    for (int64_t tile = next++; tile < tx * ty; tile = next++) {
-      const int64_t s = off[tile], e = off[tile + 1];
-      if (e == s) continue;
-      const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
-      const V xs = lane + (T(tx0) + T(0.5));
-      int maxnc = 0;
-      for (int r = 0; r < TILE; ++r) {
-        Tv[r] = splat<V>(T(1));
-        last[r] = splat<I>(0);
-        rowmax[r] = 0;
-        for (int64_t ch = 0; ch < C; ++ch) S[ch * TILE + r] = D[ch * TILE + r] = zero;
-        const int64_t Y = ty0 + r;
-        if (Y >= H) continue;
-        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
-          const int64_t pix = Y * W + tx0 + x;
-          Tv[r][x] = tfin[pix];
-          last[r][x] = ncon[pix];
-          rowmax[r] = std::max(rowmax[r], ncon[pix]);
-          for (int64_t ch = 0; ch < C; ++ch) D[ch * TILE + r][x] = gout[pix * C + ch];
-        }
-        maxnc = std::max(maxnc, rowmax[r]);
-      }
-      td.load(pm, pc, po, pf, pe, pg + s, maxnc, C, ty0, static_cast<int>(H));
-      for (int64_t k = maxnc - 1; k >= 0; --k) {
-        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
-        const T* fk = td.f.data() + k * C;
-        const V dx = mx - xs;
-        const V adx2 = a * dx * dx;
-        const V bdx = b * dx;
-        const I kk = splat<I>(static_cast<int32_t>(k));
-        V gmx = zero, gmy = zero, ga = zero, gb = zero, gcc = zero, gop = zero;
-        bool any_row = false;
-        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
-          if (k >= rowmax[r]) continue;
-          const T dy = my - (T(ty0 + r) + T(0.5));
-          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
-          const V Gv = vexp(power);
-          const V oG = o * Gv;
-          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
-          const I valid = (kk < last[r]) & (power <= T(0)) & (al >= T(ALPHA_MIN));
-          if (!any(valid)) continue;
-          if (!any_row) {
-            std::fill(gfv.begin(), gfv.end(), zero);
-            any_row = true;
-          }
-          // T before this Gaussian, from the one after it.
-          Tv[r] = valid ? Tv[r] / (T(1) - al) : Tv[r];
-          const V va = valid ? al : zero;
-          const V wgt = va * Tv[r];  // this Gaussian's weight at each pixel
-          // dL/dalpha = T * sum_ch D (f - S), S = what lies behind it (masked below).
-          V dsum = zero;
-          for (int64_t ch = 0; ch < C; ++ch) {
-            V& Sr = S[ch * TILE + r];
-            const V Dr = D[ch * TILE + r];
-            const V diff = fk[ch] - Sr;
-            dsum += Dr * diff;
-            gfv[ch] += wgt * Dr;
-            Sr += va * diff;
-          }
-          // No gradient through the 0.99 clamp (as torch.clamp).
-          const V dla = (valid & (oG <= T(ALPHA_MAX))) ? dsum * Tv[r] : zero;
-          const V dp = oG * dla;
-          gop += Gv * dla;
-          gmx -= dp * (a * dx + b * dy);
-          gmy -= dp * (c * dy + bdx);
-          ga -= T(0.5) * dp * dx * dx;
-          gb -= dp * dx * dy;
-          gcc -= T(0.5) * dp * dy * dy;
-        }
-        T* bk = buf.data() + (s + k) * G;
-        if (!any_row) continue;  // buf is zero-initialised
-        bk[0] = hsum(gmx);
-        bk[1] = hsum(gmy);
-        bk[2] = hsum(ga);
-        bk[3] = hsum(gb);
-        bk[4] = hsum(gcc);
-        bk[5] = hsum(gop);
-        for (int64_t ch = 0; ch < C; ++ch) bk[6 + ch] = hsum(gfv[ch]);
-      }
-    }
-  });
+void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t C, T* gm, T* gc, T* go, T* gf) {
+  const int64_t G = 6 + C;
   // Deterministic reduction (fixed order per Gaussian), parallel over columns.
   at::parallel_for(0, G, 1, [&](int64_t cb, int64_t ce) {
     for (int64_t col = cb; col < ce; ++col) {
@@ -474,26 +255,53 @@ static void backward_impl(const T* pm, const T* pc, const T* po, const T* pf, co
 
 // Backward: gradients (means2d (N, 2), conics (N, 3), opac (N,), feats (N, C))
 // from the gradient of the composited features (H, W, C).
-std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                    torch::Tensor ext, torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon,
-                                    int64_t W, int64_t H) {
-  const int64_t C = feats.size(1);
-  auto gm = torch::zeros_like(means2d);
-  auto gc = torch::zeros_like(conics);
-  auto go = torch::zeros_like(opac);
-  auto gf = torch::zeros_like(feats);
+std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor gout,
+                                    torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
+  const int64_t N = rec.size(0), C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
+  auto opts = rec.options();
+  auto gm = torch::zeros({N, 2}, opts), gc = torch::zeros({N, 3}, opts);
+  auto go = torch::zeros({N}, opts), gf = torch::zeros({N, C}, opts);
+  auto buf = torch::empty({M * (6 + C)}, opts);  // every entry is written
   auto go_c = gout.contiguous();
-  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_backward", [&] {
-    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                            feats.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
-                            ext.data_ptr<double>(), go_c.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
-                            ncon.data_ptr<int32_t>(), C, W, H, gm.data_ptr<scalar_t>(), gc.data_ptr<scalar_t>(),
-                            go.data_ptr<scalar_t>(), gf.data_ptr<scalar_t>());
+  AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_backward", [&] {
+    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, W, H), go_c.data_ptr<scalar_t>(),
+                                    tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(),
+                                    nullptr);
+    reduce_gradients<scalar_t>(buf.data_ptr<scalar_t>(), gids.data_ptr<int32_t>(), M, C, gm.data_ptr<scalar_t>(),
+                               gc.data_ptr<scalar_t>(), go.data_ptr<scalar_t>(), gf.data_ptr<scalar_t>());
   });
   return {gm, gc, go, gf};
 }
 
+// Instrumented forward and backward (for benchmarks): int64 (2, 5), rows
+// forward / backward, columns (Gaussian, vector) pairs evaluated, (Gaussian,
+// pixel) pairs evaluated, pairs that composited / carried a gradient, list
+// entries that reached a vector, list entries.
+torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor gout,
+                              int64_t W, int64_t H) {
+  const int64_t C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
+  auto opts = rec.options();
+  auto out = torch::empty({H, W, C}, opts), tfin = torch::empty({H, W}, opts);
+  auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
+  auto buf = torch::empty({M * (6 + C)}, opts);
+  auto res = torch::zeros({2, 5}, torch::kInt64);
+  int64_t* r = res.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_stats", [&] {
+    const auto sc = scene<scalar_t>(rec, offsets, gids, W, H);
+    dibrgs::Stats f, b;
+    forward_tiles<scalar_t, true>(sc, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), &f);
+    backward_tiles<scalar_t, true>(sc, gout.contiguous().data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
+                                   ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(), &b);
+    int i = 0;
+    for (const auto* s : {&f, &b}) {
+      r[i++] = s->vectors, r[i++] = s->lanes, r[i++] = s->contrib, r[i++] = s->gaussians, r[i++] = s->entries;
+    }
+  });
+  return res;
+}
+
+// The vector code path this build uses, and its float lanes.
+std::string simd() { return std::string(dibrgs::simd_name()) + " x" + std::to_string(dibrgs::VBYTES / 4); }
 
 // ---------------------------------------------------------------------------
 // Projection (EWA splatting), fused forward and backward. Same maths as
@@ -697,6 +505,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
   m.def("backward", &backward, "gradients of the compositing");
+  m.def("composite_stats", &composite_stats, "instrumented compositing (pair counts)");
+  m.def("simd", &simd, "vector code path of this build");
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
   m.def("project_backward", &project_backward, "gradients of the projection");
 }
