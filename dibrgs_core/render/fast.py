@@ -297,17 +297,17 @@ def available(required: bool = False) -> bool:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, ext, width, height):  # type: ignore[override]
-        out, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, ext, width, height)
-        ctx.save_for_backward(rec, offsets, gids, tfin, ncon)
+    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width, height):  # type: ignore[override]
+        out, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width, height)
+        ctx.save_for_backward(rec, offsets, gids, masks, tfin, ncon)
         ctx.size = (width, height)
         return out
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
-        rec, offsets, gids, tfin, ncon = ctx.saved_tensors
+        rec, offsets, gids, masks, tfin, ncon = ctx.saved_tensors
         width, height = ctx.size
-        gm, gc, go, gf = extension().backward(rec, offsets, gids, gout.contiguous(), tfin, ncon, width, height)
+        gm, gc, go, gf = extension().backward(rec, offsets, gids, masks, gout.contiguous(), tfin, ncon, width, height)
         return gm, gc, go, gf, None, None, None, None, None
 
 
@@ -328,8 +328,8 @@ def composite_fast(
     con = conics.to(dt).contiguous()
     op = opacities.to(dt).contiguous()
     fe = feats.contiguous()
-    offsets, gids, ext = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
-    return _Composite.apply(m2, con, op, fe, offsets, gids, ext, width, height)
+    offsets, gids, masks = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
+    return _Composite.apply(m2, con, op, fe, offsets, gids, masks, width, height)
 
 
 class _Project(torch.autograd.Function):

@@ -244,21 +244,14 @@ struct Geo {
 // A Gaussian's record (R = G_F + C values of type T): mean, opacity,
 // conic scaled for the kernels' exp (A = -a k / 2, B = -b k, Cq = -c k / 2,
 // k = Exp<T>::kscale, so that A dx^2 + B dx dy + Cq dy^2 = k power), LO =
-// k ln(opacity) (o exp(power) = Exp(k power + LO)), raw conic, the chord
-// parameters of its culling ellipse (see segment_mask), then C features.
-enum { G_MX, G_MY, G_O, G_A, G_B, G_C, G_LO, G_RA, G_RB, G_RC, G_P, G_Q, G_S, G_Y, G_F };
+// k ln(opacity) (o exp(power) = Exp(k power + LO)), raw conic, then C features.
+enum { G_MX, G_MY, G_O, G_A, G_B, G_C, G_LO, G_RA, G_RB, G_RC, G_F };
 
-// Records of Gaussians [i0, i1) (rec: N * (G_F + C)); ext is bin_tiles'
-// (N, 3) ex, ey, level. The culling ellipse q(d) <= lvl (q = a dx^2 + 2 b dx
-// dy + c dy^2, d = mean - pixel centre) has the chord S dy +- sqrt(P - Q dy^2)
-// at row offset dy, |dy| <= Y; degenerate conics get P = Y = inf (every
-// pixel of the tile).
+// Records of Gaussians [i0, i1) (rec: N * (G_F + C)).
 template <typename T>
-void make_records(const T* m2, const T* con, const T* op, const T* feat, const double* ext, int64_t i0, int64_t i1,
-                  int64_t C, T* rec) {
+void make_records(const T* m2, const T* con, const T* op, const T* feat, int64_t i0, int64_t i1, int64_t C, T* rec) {
   const int64_t R = G_F + C;
   const T k = Exp<T>::kscale;
-  auto fl = [](double v) { return static_cast<T>(std::min(std::max(v, -1e30), 1e30)); };
   for (int64_t g = i0; g < i1; ++g) {
     T* r = rec + g * R;
     const T ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2];
@@ -267,15 +260,26 @@ void make_records(const T* m2, const T* con, const T* op, const T* feat, const d
     // Listed Gaussians have o >= 1/255; others get a finite value (never read).
     r[G_LO] = static_cast<T>(std::log(std::max(static_cast<double>(op[g]), 1e-30)) * static_cast<double>(k));
     r[G_RA] = ca, r[G_RB] = cb, r[G_RC] = cc;
-    const double a = ca, b = cb, c = cc, lvl = ext[3 * g + 2], det = a * c - b * b;
-    if (a > 0 && det > 0 && std::isfinite(det) && std::isfinite(lvl) && lvl >= 0) {
-      r[G_P] = fl(lvl / a), r[G_Q] = fl(det / (a * a)), r[G_S] = fl(-b / a), r[G_Y] = fl(std::sqrt(lvl * a / det));
-    } else {
-      r[G_P] = r[G_Y] = std::numeric_limits<T>::infinity(), r[G_Q] = r[G_S] = T(0);
-    }
     for (int64_t ch = 0; ch < C; ++ch) r[G_F + ch] = feat[g * C + ch];
   }
 }
+
+// The culling ellipse q(d) <= lvl of a Gaussian (q = a dx^2 + 2 b dx dy + c
+// dy^2, d = mean - pixel centre) as chords: S dy +- sqrt(P - Q dy^2) at row
+// offset dy, |dy| <= Y; a degenerate conic reaches every pixel (P = Y = inf).
+struct Chords {
+  float P = 0, Q = 0, S = 0, Y = -1;  // default: reaches nothing
+  Chords() = default;
+  Chords(double a, double b, double c, double lvl) {
+    const double det = a * c - b * b;
+    auto fl = [](double v) { return static_cast<float>(std::min(std::max(v, -1e30), 1e30)); };
+    if (a > 0 && det > 0 && std::isfinite(det) && std::isfinite(lvl) && lvl >= 0) {
+      P = fl(lvl / a), Q = fl(det / (a * a)), S = fl(-b / a), Y = fl(std::sqrt(lvl * a / det));
+    } else {
+      P = Y = std::numeric_limits<float>::infinity(), Q = S = 0.0f;
+    }
+  }
+};
 
 // spread<MS>[x]: bit i of the byte x moved to bit i * MS.
 template <int MS>
@@ -297,18 +301,18 @@ inline uint64_t spread_rows(uint64_t x) {
   return kSpread<M>.t[x & 0xFF] | (uint64_t(kSpread<M>.t[(x >> 8) & 0xFF]) << (8 * MS));
 }
 
-// Row segments of a tile (bit row * MS + segment) that a Gaussian's culling
-// ellipse reaches: rows whose centre lies within Y + 1 of the mean (bin_tiles'
-// ey), and there the ellipse's chord at the row centre (at its nearest point
-// for rows just outside it), widened by a pixel, against each segment's
-// pixel centres. Like the binning culls it only skips pixels with alpha <
-// 1/255 (the level is bin_tiles' inflated one).
+// Row segments of a tile (bit row * MS + segment, for element type T) that a
+// Gaussian's culling ellipse reaches, given its mean relative to the tile's
+// corner: rows whose centre lies within Y + 1 of the mean (bin_tiles' ey),
+// and there the ellipse's chord at the row centre (at its nearest point for
+// rows just outside it), widened by a pixel, against each segment's pixel
+// centres. Like the binning culls it only skips pixels with alpha < 1/255
+// (the level is bin_tiles' inflated one).
 template <typename T>
-inline uint64_t segment_mask(const T* rec, int tx0, int ty0) {
+inline uint64_t segment_mask(const Chords& e, float mxr, float myr) {
   typedef Geo<T> G;
   constexpr int LF = VBYTES / 4;
-  const float P = rec[G_P], Q = rec[G_Q], S = rec[G_S], Y = rec[G_Y], Y1 = Y + 1.0f;
-  const float mxr = static_cast<float>(rec[G_MX] - T(tx0)), myr = static_cast<float>(rec[G_MY] - T(ty0));
+  const float Y1 = e.Y + 1.0f;
   VF lane;
   for (int i = 0; i < LF; ++i) lane[i] = static_cast<float>(i);
   uint64_t hit[G::MS] = {};
@@ -316,10 +320,10 @@ inline uint64_t segment_mask(const T* rec, int tx0, int ty0) {
     if (myr + Y1 < j * LF + 0.5f || myr - Y1 > j * LF + LF - 0.5f) continue;  // no row of this vector
     const VF dy = myr - (lane + (j * LF + 0.5f));
     const VIF rowok = (dy <= Y1) & (dy >= -Y1);
-    const VF dyc = vmax(vmin(dy, splat<VF>(Y)), splat<VF>(-Y));
-    const VF disc = vmax(P - Q * dyc * dyc, VF{});
+    const VF dyc = vmax(vmin(dy, splat<VF>(e.Y)), splat<VF>(-e.Y));
+    const VF disc = vmax(e.P - e.Q * dyc * dyc, VF{});
     const VF hw = vsqrt(disc) + 1.0f;
-    const VF cen = mxr - S * dyc;
+    const VF cen = mxr - e.S * dyc;
     const VF lo = cen - hw, hi = cen + hw;
     for (int ms = 0; ms < G::MS; ++ms) {
       const float s0 = ms * G::VPM * G::L + 0.5f, s1 = s0 + (G::VPM * G::L - 1);
@@ -334,9 +338,10 @@ inline uint64_t segment_mask(const T* rec, int tx0, int ty0) {
 // Global inputs of the compositing: screen-space Gaussians and tile lists.
 template <typename T>
 struct Scene {
-  const T* rec;        // (N, G_F + C) Gaussian records (make_records)
-  const int64_t* off;  // (tiles + 1) list offsets
-  const int32_t* ids;  // Gaussian ids of the tile lists
+  const T* rec;          // (N, G_F + C) Gaussian records (make_records)
+  const int64_t* off;    // (tiles + 1) list offsets
+  const int32_t* ids;    // Gaussian ids of the tile lists
+  const uint64_t* mask;  // segments of its tile that each list entry reaches (segment_mask)
   int64_t C, W, H, tx;
 };
 
@@ -359,7 +364,6 @@ struct Workspace {
   typedef typename Vec<T>::I I;
   typedef Geo<T> G;
   std::vector<T> gs;           // n records of G_F + C values
-  std::vector<uint64_t> mask;  // segments each Gaussian reaches
   std::vector<V> st;           // per vector of the tile: a record of state vectors
   // One Gaussian's pass over its vectors: values of the first pass
   // (independent per vector, so they overlap in the pipeline) for the second
@@ -372,14 +376,12 @@ struct Workspace {
 
   Workspace() : pv(G::NV), pdy(G::NV), pgv(G::NV) {}
 
-  // Copies the records of entries [s, s + n) of the tile list and computes
-  // their segment masks.
+  // Copies the records of entries [s, s + n) of the tile list.
   template <int CT>
-  void load(const Scene<T>& sc, int64_t s, int64_t n, int tx0, int ty0) {
+  void load(const Scene<T>& sc, int64_t s, int64_t n) {
     const int64_t R = G_F + (CT > 0 ? CT : sc.C);
     gs.resize(n * R);
-    mask.resize(n);
-    constexpr int AHEAD = 8;
+    constexpr int AHEAD = 24;
     for (int64_t i = 0; i < std::min<int64_t>(n, AHEAD); ++i) __builtin_prefetch(sc.rec + sc.ids[s + i] * R);
     for (int64_t i = 0; i < n; ++i) {
       if (i + AHEAD < n) {
@@ -390,7 +392,6 @@ struct Workspace {
       T* __restrict r = gs.data() + i * R;
       const T* __restrict src = sc.rec + sc.ids[s + i] * R;
       for (int64_t j = 0; j < R; ++j) r[j] = src[j];
-      mask[i] = segment_mask<T>(r, tx0, ty0);
     }
   }
 
@@ -416,6 +417,7 @@ struct Workspace {
     T* __restrict dys = pdy.data();
     int32_t* __restrict gvs = pgv.data();
     int nv = 0;
+    // [hot] first pass
     do {
       const int r = __builtin_ctzll(m) >> G::LMS;
       const unsigned rb = static_cast<unsigned>(m >> (r * G::MS)) & SEG;
@@ -440,6 +442,7 @@ struct Workspace {
         }
       }
     } while (m);
+    // [/hot]
     return nv;
   }
 };
@@ -469,9 +472,9 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
       if (r < nrows && lanes(ws.inside[s])) alive |= uint64_t(1) << (r * G::MS + s / G::VPM);
     }
   const int64_t s0 = sc.off[tile], n = sc.off[tile + 1] - s0;
-  ws.template load<CT>(sc, s0, n, tx0, ty0);
+  ws.template load<CT>(sc, s0, n);
   const T* const gs = ws.gs.data();
-  const uint64_t* const mask = ws.mask.data();
+  const uint64_t* const mask = sc.mask + s0;
   const V* const pv = ws.pv.data();
   const int32_t* const pgv = ws.pgv.data();
   const V amax = splat<V>(T(ALPHA_MAX)), tmin = splat<V>(T(T_MIN)), zero = V{};
@@ -484,6 +487,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
     const T* __restrict g = gs + k * GS;
     const int nv = ws.template first_pass<false>(g, m, ty0, st, FS, I{});
     const V kv = (V)splat<I>(static_cast<IS>(k + 1));
+    // [hot] second pass: transmittance and accumulated features
     for (int i = 0; i < nv; ++i) {
       const int gv = pgv[i];
       V* __restrict p = st + gv * FS;
@@ -513,6 +517,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
         if (all) alive &= ~(uint64_t(1) << (r * G::MS + ms));
       }
     }
+    // [/hot]
   }
   for (int r = 0; r < nrows; ++r)
     for (int s = 0; s < G::NS; ++s) {
@@ -576,9 +581,9 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
   std::sort(order, order + nseg, [&](int x, int y) { return segmax[x] > segmax[y]; });
   T* const bk = buf + s0 * NG;
   std::fill(bk + maxnc * NG, bk + n * NG, T(0));  // entries behind every pixel's last one
-  ws.template load<CT>(sc, s0, maxnc, tx0, ty0);
+  ws.template load<CT>(sc, s0, maxnc);
   const T* const gs = ws.gs.data();
-  const uint64_t* const mask = ws.mask.data();
+  const uint64_t* const mask = sc.mask + s0;
   V* const pv = ws.pv.data();
   const T* const pdy = ws.pdy.data();
   const int32_t* const pgv = ws.pgv.data();
@@ -588,9 +593,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
   int ev = 0;
   Stats stt;
   if (STATS) stt.entries = n;
-  V gfr[CT > 0 ? CT : 1];
   std::vector<V> gfd(CT > 0 ? 0 : C);
-  V* const gf = CT > 0 ? gfr : gfd.data();
   for (int64_t k = maxnc - 1; k >= 0; --k) {
     while (ev < nseg && segmax[order[ev]] > k) active |= uint64_t(1) << order[ev++];
     const uint64_t m = mask[k] & active;
@@ -607,6 +610,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
     // Second pass: transmittance, colour behind, dL/dpower and its moments;
     // leaves the weights in pv for the feature gradients (a third pass keeps
     // every accumulator in a register on 16-register targets).
+    // [hot]
     for (int i = 0; i < nv; ++i) {
       const int gv = pgv[i];
       V* __restrict p = st + gv * FS;
@@ -647,11 +651,28 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       Mxy = fmadd(pdx, dyv, Mxy);
       Myy = fmadd(pdy_, dyv, Myy);
     }
-    for (int64_t ch = 0; ch < C; ++ch) gf[ch] = zero;
-    for (int i = 0; i < nv; ++i) {
-      const V wgt = pv[i];
-      const V* D = st + pgv[i] * FS + 2 + C;
-      for (int64_t ch = 0; ch < C; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
+    // [/hot]
+    // Third pass: feature gradients sum_pixels weight * dL/dout.
+    if constexpr (CT > 0) {
+      // [hot]
+      V gf[CT > 0 ? CT : 1];
+      for (int ch = 0; ch < CT; ++ch) gf[ch] = zero;
+      for (int i = 0; i < nv; ++i) {
+        const V wgt = pv[i];
+        const V* D = st + pgv[i] * FS + 2 + C;
+        for (int ch = 0; ch < CT; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
+      }
+      // [/hot]
+      for (int ch = 0; ch < CT; ++ch) out[6 + ch] = hsum(gf[ch]);
+    } else {
+      V* const gf = gfd.data();
+      for (int64_t ch = 0; ch < C; ++ch) gf[ch] = zero;
+      for (int i = 0; i < nv; ++i) {
+        const V wgt = pv[i];
+        const V* D = st + pgv[i] * FS + 2 + C;
+        for (int64_t ch = 0; ch < C; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
+      }
+      for (int64_t ch = 0; ch < C; ++ch) out[6 + ch] = hsum(gf[ch]);
     }
     // power = -(a dx^2 + c dy^2) / 2 - b dx dy with d = mean - pixel.
     const T a = g[G_RA], b = g[G_RB], c = g[G_RC];
@@ -662,7 +683,6 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
     out[3] = -hsum(Mxy);
     out[4] = T(-0.5) * hsum(Myy);
     out[5] = hsum(M0) / g[G_O];  // sum exp(power) dL/dalpha (listed Gaussians have o >= 1/255)
-    for (int64_t ch = 0; ch < C; ++ch) out[6 + ch] = hsum(gf[ch]);
   }
   if (STATS) stats->add(stt);
 }

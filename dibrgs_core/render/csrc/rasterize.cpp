@@ -46,29 +46,44 @@ void run_workers(F&& worker) {
 
 }  // namespace
 
-// Whether the ellipse q(d) <= lvl around (mx, my), q = a dx^2 + 2 b dx dy +
-// c dy^2 (a, c > 0), reaches the box of tile (x, y)'s pixel centres widened by
-// a pixel: the convex q is minimised over the box, on its edges when the centre
-// is outside. Like the other culls it only skips tiles without any pixel of
-// alpha >= 1/255.
-inline bool ellipse_meets_tile(double mx, double my, const double* con, double lvl, int32_t x, int32_t y) {
-  const double x0 = x * TILE + 0.5 - 1.0 - mx, x1 = x * TILE + TILE - 0.5 + 1.0 - mx;
-  const double y0 = y * TILE + 0.5 - 1.0 - my, y1 = y * TILE + TILE - 0.5 + 1.0 - my;
-  if (x0 <= 0 && x1 >= 0 && y0 <= 0 && y1 >= 0) return true;
-  const double a = con[0], b = con[1], c = con[2];
-  // min over t in [lo, hi] of p s^2 + 2 b s t + r t^2 with s fixed.
-  auto edge = [b](double s, double lo, double hi, double p, double r) {
-    const double t = std::min(std::max(-b * s / r, lo), hi);
-    return p * s * s + 2.0 * b * s * t + r * t * t;
-  };
-  const double q = std::min(std::min(edge(x0, y0, y1, a, c), edge(x1, y0, y1, a, c)),
-                            std::min(edge(y0, x0, x1, c, a), edge(y1, x0, x1, c, a)));
-  return !(q > lvl);  // NaN (degenerate conic) keeps the tile
+namespace {
+
+// Indices sorted by increasing key, ties in their given order (LSD radix sort
+// on the keys' bytes; bytes that all keys share are skipped).
+void radix_sort(std::vector<uint64_t>& key, std::vector<int32_t>& idx) {
+  const size_t n = key.size();
+  std::vector<uint64_t> k2(n);
+  std::vector<int32_t> i2(n);
+  for (int shift = 0; shift < 64; shift += 8) {
+    size_t cnt[256] = {0};
+    for (size_t i = 0; i < n; ++i) ++cnt[(key[i] >> shift) & 0xFF];
+    if (n == 0 || cnt[(key[0] >> shift) & 0xFF] == n) continue;
+    size_t pos[256], sum = 0;
+    for (int b = 0; b < 256; ++b) pos[b] = sum, sum += cnt[b];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t p = pos[(key[i] >> shift) & 0xFF]++;
+      k2[p] = key[i];
+      i2[p] = idx[i];
+    }
+    key.swap(k2);
+    idx.swap(i2);
+  }
 }
 
-// Tile lists. Returns (offsets int64 (tiles+1), gauss_ids int32 (isects),
-// extents float64 (N, 3)): Gaussians of a tile in increasing depth (ties by
-// index); extents are the half-sizes (+1 px) of the culling ellipse and its level.
+// Order-preserving map of a double to an unsigned integer.
+inline uint64_t depth_key(double d) {
+  uint64_t u;
+  std::memcpy(&u, &d, sizeof(u));
+  return (u >> 63) ? ~u : (u | (uint64_t(1) << 63));
+}
+
+}  // namespace
+
+// Tile lists. Returns (offsets int64 (tiles + 1), gauss_ids int32 (M), masks
+// int64 (M)): Gaussians of a tile in increasing depth (ties by index), and the
+// row segments of its tile that each one reaches (dibrgs::segment_mask, laid
+// out for the dtype of means2d). A Gaussian is listed in the tiles of its
+// 3-sigma square that its culling ellipse reaches.
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                      torch::Tensor depths, torch::Tensor radii, int64_t W, int64_t H) {
   auto m = means2d.to(torch::kFloat64).contiguous();
@@ -77,90 +92,137 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   auto dep = depths.to(torch::kFloat64).contiguous();
   auto rad = radii.to(torch::kInt64).contiguous();
   const int64_t N = m.size(0);
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
+  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
   const double* pm = m.data_ptr<double>();
   const double* pc = con.data_ptr<double>();
   const double* po = op.data_ptr<double>();
   const double* pd = dep.data_ptr<double>();
   const int64_t* pr = rad.data_ptr<int64_t>();
-  auto ext = torch::zeros({N, 3}, torch::kFloat64);
-  double* pe = ext.data_ptr<double>();
-  std::vector<int32_t> rect(4 * N, 0);
-  std::vector<int64_t> live;
-  live.reserve(N);
-  for (int64_t i = 0; i < N; ++i) {
-    const double r = static_cast<double>(pr[i]);
-    const double mx = pm[2 * i], my = pm[2 * i + 1];
-    const double t = cull_level(po[i]);
-    if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) continue;
-    double det = pc[3 * i] * pc[3 * i + 2] - pc[3 * i + 1] * pc[3 * i + 1];
-    if (!(det > 0)) det = 1.0;
-    const double ex = std::sqrt(t * pc[3 * i + 2] / det) + 1.0;
-    const double ey = std::sqrt(t * pc[3 * i] / det) + 1.0;
-    pe[3 * i] = ex;
-    pe[3 * i + 1] = ey;
-    pe[3 * i + 2] = t;
-    auto clampt = [](double v, int64_t hi) {
-      return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
-    };
-    const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
-    const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
-    const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
-    const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
-    if (x1 <= x0 || y1 <= y0) continue;
-    rect[4 * i] = x0;
-    rect[4 * i + 1] = x1;
-    rect[4 * i + 2] = y0;
-    rect[4 * i + 3] = y1;
-    live.push_back(i);
-  }
-  std::stable_sort(live.begin(), live.end(), [pd](int64_t a, int64_t b) { return pd[a] < pd[b]; });
+  // What the tile emission needs of a Gaussian, in one cache line: gathered
+  // in depth order below, so that the emission reads memory sequentially.
+  struct Bin {
+    double mx, my;
+    dibrgs::Chords ch;
+    int32_t x0, x1, y0, y1, id, pad;
+  };
+  std::vector<Bin> bins(N);  // filled for live Gaussians only
+  std::vector<uint8_t> alive(N, 0);
+  at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      const double r = static_cast<double>(pr[i]);
+      const double mx = pm[2 * i], my = pm[2 * i + 1];
+      const double t = cull_level(po[i]);
+      if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) continue;
+      double det = pc[3 * i] * pc[3 * i + 2] - pc[3 * i + 1] * pc[3 * i + 1];
+      if (!(det > 0)) det = 1.0;
+      const double ex = std::sqrt(t * pc[3 * i + 2] / det) + 1.0;
+      const double ey = std::sqrt(t * pc[3 * i] / det) + 1.0;
+      auto clampt = [](double v, int64_t hi) {
+        return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
+      };
+      const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
+      const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
+      const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
+      const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
+      if (x1 <= x0 || y1 <= y0) continue;
+      bins[i] = Bin{mx, my, dibrgs::Chords(pc[3 * i], pc[3 * i + 1], pc[3 * i + 2], t),
+                    x0, x1, y0, y1, static_cast<int32_t>(i), 0};
+      alive[i] = 1;
+    }
+  });
+  std::vector<uint64_t> key;
+  std::vector<int32_t> live;
+  for (int64_t i = 0; i < N; ++i)
+    if (alive[i]) {
+      key.push_back(depth_key(pd[i]));
+      live.push_back(static_cast<int32_t>(i));
+    }
+  radix_sort(key, live);
+  const int64_t nlive = static_cast<int64_t>(live.size());
+  std::vector<Bin> order(nlive);
+  at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t j = b; j < e; ++j) order[j] = bins[live[j]];
+  });
   // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in
-  // depth order (the rectangle's corner tiles are often missed).
-  std::vector<int32_t> hits, hit_ids;
-  hits.reserve(4 * live.size());
-  hit_ids.reserve(4 * live.size());
-  auto offsets = torch::zeros({tx * ty + 1}, torch::kInt64);
+  // depth order, with the segments it reaches there: chunks of the depth
+  // order list their hits in parallel, then scatter them.
+  const int64_t nchunk = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads() * 4, nlive / 4096));
+  struct Hit {
+    int32_t tile, id;
+    uint64_t mask;
+  };
+  std::vector<std::vector<Hit>> hits(nchunk);
+  std::vector<std::vector<int64_t>> counts(nchunk);
+  const bool dbl = means2d.scalar_type() == torch::kFloat64;
+  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      auto& ht = hits[c];
+      auto& cnt = counts[c];
+      cnt.assign(ntiles, 0);
+      const int64_t j0 = nlive * c / nchunk, j1 = nlive * (c + 1) / nchunk;
+      ht.reserve(4 * (j1 - j0));
+      for (int64_t j = j0; j < j1; ++j) {
+        const Bin& g = order[j];
+        for (int32_t y = g.y0; y < g.y1; ++y)
+          for (int32_t x = g.x0; x < g.x1; ++x) {
+            const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
+            const uint64_t mk = dbl ? dibrgs::segment_mask<double>(g.ch, mxr, myr)
+                                    : dibrgs::segment_mask<float>(g.ch, mxr, myr);
+            if (mk == 0) continue;  // no pixel of this tile can reach alpha >= 1/255
+            ht.push_back(Hit{static_cast<int32_t>(y * tx + x), g.id, mk});
+            ++cnt[y * tx + x];
+          }
+      }
+    }
+  });
+  auto offsets = torch::zeros({ntiles + 1}, torch::kInt64);
   int64_t* off = offsets.data_ptr<int64_t>();
-  for (int64_t i : live) {
-    // A one-tile-wide (or tall) rectangle already spans the ellipse's extent.
-    const bool test = rect[4 * i + 1] - rect[4 * i] > 1 && rect[4 * i + 3] - rect[4 * i + 2] > 1;
-    for (int32_t y = rect[4 * i + 2]; y < rect[4 * i + 3]; ++y)
-      for (int32_t x = rect[4 * i]; x < rect[4 * i + 1]; ++x)
-        if (!test || ellipse_meets_tile(pm[2 * i], pm[2 * i + 1], pc + 3 * i, pe[3 * i + 2], x, y)) {
-          hits.push_back(static_cast<int32_t>(y * tx + x));
-          hit_ids.push_back(static_cast<int32_t>(i));
-          off[y * tx + x + 1] += 1;
-        }
+  // Start of each chunk's run in each tile: tiles in order, chunks in order.
+  for (int64_t t = 0; t < ntiles; ++t) {
+    int64_t pos = off[t];
+    for (int64_t c = 0; c < nchunk; ++c) {
+      const int64_t n = counts[c][t];
+      counts[c][t] = pos;
+      pos += n;
+    }
+    off[t + 1] = pos;
   }
-  for (int64_t t = 0; t < tx * ty; ++t) off[t + 1] += off[t];
-  auto gids = torch::empty({off[tx * ty]}, torch::kInt32);
+  auto gids = torch::empty({off[ntiles]}, torch::kInt32);
+  auto masks = torch::empty({off[ntiles]}, torch::kInt64);
   int32_t* pg = gids.data_ptr<int32_t>();
-  std::vector<int64_t> pos(off, off + tx * ty);
-  for (size_t h = 0; h < hits.size(); ++h) pg[pos[hits[h]]++] = hit_ids[h];
-  return {offsets, gids, ext};
+  uint64_t* pk = reinterpret_cast<uint64_t*>(masks.data_ptr<int64_t>());
+  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      auto& pos = counts[c];
+      for (const Hit& h : hits[c]) {
+        const int64_t p = pos[h.tile]++;
+        pg[p] = h.id;
+        pk[p] = h.mask;
+      }
+    }
+  });
+  return {offsets, gids, masks};
 }
 
 // Compositing: per-Gaussian records (make_records), then the tiles.
 
 template <typename T>
-dibrgs::Scene<T> scene(const torch::Tensor& rec, const torch::Tensor& offsets, const torch::Tensor& gids, int64_t W,
-                       int64_t H) {
+dibrgs::Scene<T> scene(const torch::Tensor& rec, const torch::Tensor& offsets, const torch::Tensor& gids,
+                       const torch::Tensor& masks, int64_t W, int64_t H) {
   return dibrgs::Scene<T>{rec.data_ptr<T>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
-                          rec.size(1) - dibrgs::G_F, W, H, (W + TILE - 1) / TILE};
+                          reinterpret_cast<const uint64_t*>(masks.data_ptr<int64_t>()), rec.size(1) - dibrgs::G_F,
+                          W, H, (W + TILE - 1) / TILE};
 }
 
 // Records (N, G_F + C) of the Gaussians for the kernels (see composite.h).
-torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats,
-                      torch::Tensor ext) {
+torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats) {
   const int64_t N = feats.size(0), C = feats.size(1);
   auto rec = torch::empty({N, dibrgs::G_F + C}, feats.options());
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_records", [&] {
     const scalar_t *pm = means2d.data_ptr<scalar_t>(), *pc = conics.data_ptr<scalar_t>();
     const scalar_t *po = opac.data_ptr<scalar_t>(), *pf = feats.data_ptr<scalar_t>();
-    const double* pe = ext.data_ptr<double>();
     scalar_t* pr = rec.data_ptr<scalar_t>();
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pf, pe, b, e, C, pr); });
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pf, b, e, C, pr); });
   });
   return rec;
 }
@@ -199,14 +261,14 @@ void forward_tiles(const dibrgs::Scene<T>& sc, T* out, T* tfin, int32_t* ncon, d
 // Gaussian records for backward).
 std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                   torch::Tensor ext, int64_t W, int64_t H) {
+                                   torch::Tensor masks, int64_t W, int64_t H) {
   const int64_t C = feats.size(1);
-  auto rec = records(means2d, conics, opac, feats, ext);
+  auto rec = records(means2d, conics, opac, feats);
   auto out = torch::empty({H, W, C}, feats.options());
   auto tfin = torch::empty({H, W}, feats.options());
   auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_forward", [&] {
-    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, W, H), out.data_ptr<scalar_t>(),
+    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), out.data_ptr<scalar_t>(),
                                    tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), nullptr);
   });
   return {out, tfin, ncon, rec};
@@ -232,31 +294,31 @@ void backward_tiles(const dibrgs::Scene<T>& sc, const T* gout, const T* tfin, co
 }
 
 template <typename T>
-void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t C, T* gm, T* gc, T* go, T* gf) {
+void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int64_t C, T* gm, T* gc, T* go, T* gf) {
   const int64_t G = 6 + C;
-  // Deterministic reduction (fixed order per Gaussian), parallel over columns.
-  at::parallel_for(0, G, 1, [&](int64_t cb, int64_t ce) {
-    for (int64_t col = cb; col < ce; ++col) {
-      T* dst;
-      int64_t stride, base;
-      if (col < 2) {
-        dst = gm, stride = 2, base = col;
-      } else if (col < 5) {
-        dst = gc, stride = 3, base = col - 2;
-      } else if (col == 5) {
-        dst = go, stride = 1, base = 0;
-      } else {
-        dst = gf, stride = C, base = col - 6;
+  // Deterministic: each Gaussian sums its entries in list order; threads own
+  // ranges of Gaussians (and each reads the whole list).
+  const int64_t nt = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), N / 1024));
+  at::parallel_for(0, nt, 1, [&](int64_t tb, int64_t te) {
+    for (int64_t t = tb; t < te; ++t) {
+      const int64_t g0 = N * t / nt, g1 = N * (t + 1) / nt;
+      for (int64_t k = 0; k < M; ++k) {
+        const int64_t g = pg[k];
+        if (g < g0 || g >= g1) continue;
+        const T* b = buf + k * G;
+        gm[2 * g] += b[0], gm[2 * g + 1] += b[1];
+        gc[3 * g] += b[2], gc[3 * g + 1] += b[3], gc[3 * g + 2] += b[4];
+        go[g] += b[5];
+        for (int64_t ch = 0; ch < C; ++ch) gf[g * C + ch] += b[6 + ch];
       }
-      for (int64_t k = 0; k < M; ++k) dst[pg[k] * stride + base] += buf[k * G + col];
     }
   });
 }
 
 // Backward: gradients (means2d (N, 2), conics (N, 3), opac (N,), feats (N, C))
 // from the gradient of the composited features (H, W, C).
-std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor gout,
-                                    torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
+std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor masks,
+                                    torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
   const int64_t N = rec.size(0), C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
   auto opts = rec.options();
   auto gm = torch::zeros({N, 2}, opts), gc = torch::zeros({N, 3}, opts);
@@ -264,10 +326,10 @@ std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, to
   auto buf = torch::empty({M * (6 + C)}, opts);  // every entry is written
   auto go_c = gout.contiguous();
   AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_backward", [&] {
-    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, W, H), go_c.data_ptr<scalar_t>(),
+    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), go_c.data_ptr<scalar_t>(),
                                     tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(),
                                     nullptr);
-    reduce_gradients<scalar_t>(buf.data_ptr<scalar_t>(), gids.data_ptr<int32_t>(), M, C, gm.data_ptr<scalar_t>(),
+    reduce_gradients<scalar_t>(buf.data_ptr<scalar_t>(), gids.data_ptr<int32_t>(), M, N, C, gm.data_ptr<scalar_t>(),
                                gc.data_ptr<scalar_t>(), go.data_ptr<scalar_t>(), gf.data_ptr<scalar_t>());
   });
   return {gm, gc, go, gf};
@@ -277,8 +339,8 @@ std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, to
 // forward / backward, columns (Gaussian, vector) pairs evaluated, (Gaussian,
 // pixel) pairs evaluated, pairs that composited / carried a gradient, list
 // entries that reached a vector, list entries.
-torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor gout,
-                              int64_t W, int64_t H) {
+torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor masks,
+                              torch::Tensor gout, int64_t W, int64_t H) {
   const int64_t C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
   auto opts = rec.options();
   auto out = torch::empty({H, W, C}, opts), tfin = torch::empty({H, W}, opts);
@@ -287,7 +349,7 @@ torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::T
   auto res = torch::zeros({2, 5}, torch::kInt64);
   int64_t* r = res.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_stats", [&] {
-    const auto sc = scene<scalar_t>(rec, offsets, gids, W, H);
+    const auto sc = scene<scalar_t>(rec, offsets, gids, masks, W, H);
     dibrgs::Stats f, b;
     forward_tiles<scalar_t, true>(sc, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), &f);
     backward_tiles<scalar_t, true>(sc, gout.contiguous().data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
