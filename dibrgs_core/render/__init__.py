@@ -31,8 +31,15 @@ from .projection import Projected, project_gaussians, quat_to_rotmat
 from .reference import composite_reference
 
 __all__ = [
-    "rasterize", "project_gaussians", "quat_to_rotmat", "Projected", "composite",
-    "Backend", "set_backend", "get_backend", "ENV_BACKEND",
+    "ENV_BACKEND",
+    "Backend",
+    "Projected",
+    "composite",
+    "get_backend",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "set_backend",
 ]
 
 log = logging.getLogger("dibrgs.render")

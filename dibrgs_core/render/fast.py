@@ -48,9 +48,9 @@ import sys
 import sysconfig
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -162,7 +162,8 @@ def _probe(cxx: str, flags: list[str], workdir: Path) -> list[str]:
     for flag in flags:
         src = omp if flag == "-fopenmp" else plain
         res = subprocess.run(
-            [cxx, flag, "-c", str(src), "-o", str(workdir / "probe.o")], capture_output=True, text=True, timeout=120
+            [cxx, flag, "-c", str(src), "-o", str(workdir / "probe.o")], capture_output=True, text=True, timeout=120,
+            check=False,
         )
         if res.returncode != 0:
             rejected.append(flag)
