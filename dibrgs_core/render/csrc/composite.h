@@ -19,6 +19,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 #if defined(__x86_64__) || defined(__i386__)
@@ -184,6 +185,31 @@ inline VD vmax(VD a, VD b) {
 // Lanes of v where m is set, 0 elsewhere (bitwise: NaN or inf never leak).
 inline VF keep(VIF m, VF v) { return (VF)(m & (VIF)v); }
 inline VD keep(VID m, VD v) { return (VD)(m & (VID)v); }
+
+// out[i] = sum of the lanes of v[i], i < K (K <= 8): on AVX2 floats by a
+// transposing hadd tree, else lane by lane.
+template <int K, typename V, typename T>
+inline void hsums(const V* v, T* out) {
+#if DIBRGS_VBYTES == 32 && defined(__AVX__)
+  if constexpr (std::is_same<V, VF>::value) {
+    __m256 x[8];
+    for (int i = 0; i < 8; ++i) x[i] = i < K ? (__m256)v[i] : _mm256_setzero_ps();
+    const __m256 a0 = _mm256_hadd_ps(x[0], x[1]), a1 = _mm256_hadd_ps(x[2], x[3]);
+    const __m256 a2 = _mm256_hadd_ps(x[4], x[5]), a3 = _mm256_hadd_ps(x[6], x[7]);
+    const __m256 b0 = _mm256_hadd_ps(a0, a1), b1 = _mm256_hadd_ps(a2, a3);
+    const __m256 r = _mm256_add_ps(_mm256_permute2f128_ps(b0, b1, 0x20), _mm256_permute2f128_ps(b0, b1, 0x31));
+    alignas(32) float t[8];
+    _mm256_store_ps(t, r);
+    for (int i = 0; i < K; ++i) out[i] = t[i];
+    return;
+  }
+#endif
+  for (int i = 0; i < K; ++i) {
+    T s = v[i][0];
+    for (int l = 1; l < static_cast<int>(sizeof(V) / sizeof(T)); ++l) s += v[i][l];
+    out[i] = s;
+  }
+}
 
 template <typename V>
 inline auto hsum(V v) {
@@ -487,6 +513,9 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
     const T* __restrict g = gs + k * GS;
     const int nv = ws.template first_pass<false>(g, m, ty0, st, FS, I{});
     const V kv = (V)splat<I>(static_cast<IS>(k + 1));
+    V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
+    if constexpr (CT > 0)
+      for (int ch = 0; ch < CT; ++ch) fv[ch] = splat<V>(g[G_F + ch]);
     // [hot] second pass: transmittance and accumulated features
     for (int i = 0; i < nv; ++i) {
       const int gv = pgv[i];
@@ -504,14 +533,18 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
       p[2] = valid ? kv : p[2];
       if (STATS) {
         ++stt.vectors;
-        stt.lanes += __builtin_popcount(lanes(ws.inside[gv % G::NS]));
+        stt.lanes += __builtin_popcount(lanes(ws.inside[(gv & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
       V* acc = p + 3;
-      for (int64_t ch = 0; ch < C; ++ch) acc[ch] = fmadd(w, splat<V>(g[G_F + ch]), acc[ch]);
+      if constexpr (CT > 0) {
+        for (int ch = 0; ch < CT; ++ch) acc[ch] = fmadd(w, fv[ch], acc[ch]);
+      } else {
+        for (int64_t ch = 0; ch < C; ++ch) acc[ch] = fmadd(w, splat<V>(g[G_F + ch]), acc[ch]);
+      }
       if (__builtin_expect(lanes(stop) != 0, 0)) {
         p[1] = (V)(done | stop);
-        const int r = gv / G::NS, s = gv % G::NS, ms = s / G::VPM;
+        const int r = gv / G::NS, s = gv & (G::NS - 1), ms = s / G::VPM;
         bool all = true;
         for (int v = 0; v < G::VPM; ++v) all = all && !lanes(~(I)st[(r * G::NS + ms * G::VPM + v) * FS + 1]);
         if (all) alive &= ~(uint64_t(1) << (r * G::MS + ms));
@@ -606,6 +639,9 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
     const T* __restrict g = gs + k * GS;
     const int nv = ws.template first_pass<true>(g, m, ty0, st, FS, splat<I>(static_cast<IS>(k)));
     const T mx = g[G_MX];
+    V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
+    if constexpr (CT > 0)
+      for (int ch = 0; ch < CT; ++ch) fv[ch] = splat<V>(g[G_F + ch]);
     V M1 = zero, My = zero, Mxx = zero, Mxy = zero, Myy = zero, M0 = zero;
     // Second pass: transmittance, colour behind, dL/dpower and its moments;
     // leaves the weights in pv for the feature gradients (a third pass keeps
@@ -619,7 +655,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       const I valid = oG > zero;
       if (STATS) {
         ++stt.vectors;
-        stt.lanes += __builtin_popcount(lanes(ws.inside[gv % G::NS]));
+        stt.lanes += __builtin_popcount(lanes(ws.inside[(gv & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
       // T before this Gaussian, from the one after it.
@@ -633,7 +669,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       const V* D = p + 2 + C;
       for (int64_t ch = 0; ch < C; ++ch) {
         const V Sr = S[ch];
-        const V diff = g[G_F + ch] - Sr;
+        const V diff = (CT > 0 ? fv[ch] : splat<V>(g[G_F + ch])) - Sr;
         dsum = fmadd(D[ch], diff, dsum);
         S[ch] = fmadd(va, diff, Sr);
       }
@@ -641,7 +677,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       const V dla = keep(valid & (oG <= amax), dsum * Tg);
       const V dp = oG * dla;  // dL/dpower
       M0 += dp;
-      const V dx = mx - xs[gv % G::NS];
+      const V dx = mx - xs[(gv & (G::NS - 1))];
       const V dyv = splat<V>(pdy[i]);
       const V pdx = dp * dx;
       const V pdy_ = dp * dyv;
@@ -663,7 +699,11 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
         for (int ch = 0; ch < CT; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
       }
       // [/hot]
-      for (int ch = 0; ch < CT; ++ch) out[6 + ch] = hsum(gf[ch]);
+      if constexpr (CT <= 8) {
+        hsums<CT>(gf, out + 6);
+      } else {
+        for (int ch = 0; ch < CT; ++ch) out[6 + ch] = hsum(gf[ch]);
+      }
     } else {
       V* const gf = gfd.data();
       for (int64_t ch = 0; ch < C; ++ch) gf[ch] = zero;
@@ -676,13 +716,15 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
     }
     // power = -(a dx^2 + c dy^2) / 2 - b dx dy with d = mean - pixel.
     const T a = g[G_RA], b = g[G_RB], c = g[G_RC];
-    const T m1 = hsum(M1), my_ = hsum(My);
-    out[0] = -(a * m1 + b * my_);
-    out[1] = -(c * my_ + b * m1);
-    out[2] = T(-0.5) * hsum(Mxx);
-    out[3] = -hsum(Mxy);
-    out[4] = T(-0.5) * hsum(Myy);
-    out[5] = hsum(M0) / g[G_O];  // sum exp(power) dL/dalpha (listed Gaussians have o >= 1/255)
+    const V mom[6] = {M1, My, Mxx, Mxy, Myy, M0};
+    T h[6];
+    hsums<6>(mom, h);
+    out[0] = -(a * h[0] + b * h[1]);
+    out[1] = -(c * h[1] + b * h[0]);
+    out[2] = T(-0.5) * h[2];
+    out[3] = -h[3];
+    out[4] = T(-0.5) * h[4];
+    out[5] = h[5] / g[G_O];  // sum exp(power) dL/dalpha (listed Gaussians have o >= 1/255)
   }
   if (STATS) stats->add(stt);
 }
