@@ -209,3 +209,20 @@ def test_kernels_compile_for_each_vector_width(tmp_path, march, reg, lanes):
     probe.write_text(f'#include "composite.h"\nstatic_assert(dibrgs::Geo<float>::L == {lanes}, "lanes");\n')
     subprocess.run(["g++", f"-march={march}", "-std=c++17", f"-I{CSRC}", "-fsyntax-only", str(probe)], check=True,
                    timeout=120)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
+def test_extension_source_compiles_for_avx512():
+    """The whole extension source (torch glue included) passes the compiler's checks for an
+    AVX-512 target (-fsyntax-only: this machine need not run it)."""
+    import sysconfig
+
+    import torch
+
+    inc = Path(torch.__file__).parent / "include"
+    cmd = ["g++", "-std=c++17", "-fsyntax-only", "-march=skylake-avx512", "-fopenmp", "-DTORCH_EXTENSION_NAME=x",
+           "-DTORCH_API_INCLUDE_EXTENSION_H", "-isystem", str(inc), "-isystem", str(inc / "torch/csrc/api/include"),
+           "-isystem", sysconfig.get_paths()["include"], str(CSRC / "rasterize.cpp")]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert res.returncode == 0, res.stderr[-3000:]
