@@ -284,7 +284,7 @@ void make_records(const T* m2, const T* con, const T* op, const T* feat, int64_t
     r[G_MX] = m2[2 * g], r[G_MY] = m2[2 * g + 1], r[G_O] = op[g];
     r[G_A] = T(-0.5) * k * ca, r[G_B] = -k * cb, r[G_C] = T(-0.5) * k * cc;
     // Listed Gaussians have o >= 1/255; others get a finite value (never read).
-    r[G_LO] = static_cast<T>(std::log(std::max(static_cast<double>(op[g]), 1e-30)) * static_cast<double>(k));
+    r[G_LO] = std::log(std::max(op[g], T(1e-30))) * k;
     r[G_RA] = ca, r[G_RB] = cb, r[G_RC] = cc;
     for (int64_t ch = 0; ch < C; ++ch) r[G_F + ch] = feat[g * C + ch];
   }
@@ -383,13 +383,23 @@ struct Stats {
   }
 };
 
-// Per-thread scratch: a tile's Gaussians and the state of its pixel vectors.
+// Records are read in place (a tile's list is in depth order, the records in
+// index order); the kernels prefetch the record AHEAD list entries on, whose
+// arrival the work of the Gaussians in between (tens of vectors) hides.
+constexpr int AHEAD = 4;
+template <typename T>
+inline void prefetch_record(const T* r, int64_t R) {
+  __builtin_prefetch(r);
+  __builtin_prefetch(r + R - 1);
+}
+
+// Per-thread scratch: the state of a tile's pixel vectors and one Gaussian's
+// first pass.
 template <typename T>
 struct Workspace {
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
   typedef Geo<T> G;
-  std::vector<T> gs;           // n records of G_F + C values
   std::vector<V> st;           // per vector of the tile: a record of state vectors
   // One Gaussian's pass over its vectors: values of the first pass
   // (independent per vector, so they overlap in the pipeline) for the second
@@ -401,25 +411,6 @@ struct Workspace {
   I inside[G::NS];  // lanes whose column lies inside the image
 
   Workspace() : pv(G::NV), pdy(G::NV), pgv(G::NV) {}
-
-  // Copies the records of entries [s, s + n) of the tile list.
-  template <int CT>
-  void load(const Scene<T>& sc, int64_t s, int64_t n) {
-    const int64_t R = G_F + (CT > 0 ? CT : sc.C);
-    gs.resize(n * R);
-    constexpr int AHEAD = 24;
-    for (int64_t i = 0; i < std::min<int64_t>(n, AHEAD); ++i) __builtin_prefetch(sc.rec + sc.ids[s + i] * R);
-    for (int64_t i = 0; i < n; ++i) {
-      if (i + AHEAD < n) {
-        const T* nx = sc.rec + sc.ids[s + i + AHEAD] * R;
-        __builtin_prefetch(nx);
-        __builtin_prefetch(nx + R - 1);
-      }
-      T* __restrict r = gs.data() + i * R;
-      const T* __restrict src = sc.rec + sc.ids[s + i] * R;
-      for (int64_t j = 0; j < R; ++j) r[j] = src[j];
-    }
-  }
 
   void columns(int tx0, int64_t W) {
     for (int s = 0; s < G::NS; ++s)
@@ -498,8 +489,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
       if (r < nrows && lanes(ws.inside[s])) alive |= uint64_t(1) << (r * G::MS + s / G::VPM);
     }
   const int64_t s0 = sc.off[tile], n = sc.off[tile + 1] - s0;
-  ws.template load<CT>(sc, s0, n);
-  const T* const gs = ws.gs.data();
+  const int32_t* const ids = sc.ids + s0;
   const uint64_t* const mask = sc.mask + s0;
   const V* const pv = ws.pv.data();
   const int32_t* const pgv = ws.pgv.data();
@@ -510,7 +500,8 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
     const uint64_t m = mask[k] & alive;
     if (!m) continue;
     if (STATS) ++stt.gaussians;
-    const T* __restrict g = gs + k * GS;
+    if (k + AHEAD < n) prefetch_record(sc.rec + ids[k + AHEAD] * GS, GS);
+    const T* __restrict g = sc.rec + ids[k] * GS;
     const int nv = ws.template first_pass<false>(g, m, ty0, st, FS, I{});
     const V kv = (V)splat<I>(static_cast<IS>(k + 1));
     V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
@@ -614,8 +605,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
   std::sort(order, order + nseg, [&](int x, int y) { return segmax[x] > segmax[y]; });
   T* const bk = buf + s0 * NG;
   std::fill(bk + maxnc * NG, bk + n * NG, T(0));  // entries behind every pixel's last one
-  ws.template load<CT>(sc, s0, maxnc);
-  const T* const gs = ws.gs.data();
+  const int32_t* const ids = sc.ids + s0;
   const uint64_t* const mask = sc.mask + s0;
   V* const pv = ws.pv.data();
   const T* const pdy = ws.pdy.data();
@@ -636,7 +626,8 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       continue;
     }
     if (STATS) ++stt.gaussians;
-    const T* __restrict g = gs + k * GS;
+    if (k >= AHEAD) prefetch_record(sc.rec + ids[k - AHEAD] * GS, GS);
+    const T* __restrict g = sc.rec + ids[k] * GS;
     const int nv = ws.template first_pass<true>(g, m, ty0, st, FS, splat<I>(static_cast<IS>(k)));
     const T mx = g[G_MX];
     V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
