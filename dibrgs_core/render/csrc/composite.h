@@ -409,15 +409,20 @@ struct Workspace {
   std::vector<int32_t> pgv;
   V xs[G::NS];      // pixel centre columns
   I inside[G::NS];  // lanes whose column lies inside the image
+  V yc[TILE / G::L];  // pixel centre rows, L rows a vector
+  V rdy[TILE / G::L], rb[TILE / G::L], rc[TILE / G::L];  // first_pass's per-row terms
 
   Workspace() : pv(G::NV), pdy(G::NV), pgv(G::NV) {}
 
-  void columns(int tx0, int64_t W) {
+  // Pixel centres of the tile at (tx0, ty0).
+  void columns(int tx0, int ty0, int64_t W) {
     for (int s = 0; s < G::NS; ++s)
       for (int l = 0; l < G::L; ++l) {
         xs[s][l] = T(tx0 + s * G::L + l) + T(0.5);
         inside[s][l] = tx0 + s * G::L + l < W ? -1 : 0;
       }
+    for (int j = 0; j < TILE / G::L; ++j)
+      for (int l = 0; l < G::L; ++l) yc[j][l] = T(ty0 + j * G::L + l) + T(0.5);
   }
 
   // First pass of Gaussian g over the tile's vectors in segment mask m:
@@ -425,38 +430,45 @@ struct Workspace {
   // the backward, k < n_contrib), else 0; pgv = vector index, pdy = row
   // offset my - y. Returns the vector count.
   template <bool BACKWARD>
-  int first_pass(const T* g, uint64_t m, int ty0, const V* st, int64_t FS, I kv) {
-    constexpr unsigned SEG = (1u << G::MS) - 1;
-    const T mx = g[G_MX], my = g[G_MY], B = g[G_B], Cq = g[G_C], LO = g[G_LO];
+  int first_pass(const T* g, uint64_t m, const V* st, int64_t FS, I kv) {
+    const T mx = g[G_MX], my = g[G_MY], LO = g[G_LO];
     const V A = splat<V>(g[G_A]), lo = splat<V>(LO);
     const V tlow = splat<V>(Exp<T>::tlow), amin = splat<V>(T(ALPHA_MIN));
+    // Per row: dy = my - y, B dy and Cq dy^2 + LO, all rows at once.
+    {
+      const V B = splat<V>(g[G_B]), Cq = splat<V>(g[G_C]);
+      for (int j = 0; j < TILE / G::L; ++j) {
+        const V dy = my - yc[j];
+        rdy[j] = dy;
+        rb[j] = B * dy;
+        rc[j] = fmadd(Cq * dy, dy, lo);
+      }
+    }
+    const T* const dyr = reinterpret_cast<const T*>(rdy);
+    const T* const bdyr = reinterpret_cast<const T*>(rb);
+    const T* const cdyr = reinterpret_cast<const T*>(rc);
     V* __restrict out = pv.data();
     T* __restrict dys = pdy.data();
     int32_t* __restrict gvs = pgv.data();
     int nv = 0;
     // [hot] first pass
     do {
-      const int r = __builtin_ctzll(m) >> G::LMS;
-      const unsigned rb = static_cast<unsigned>(m >> (r * G::MS)) & SEG;
-      m &= ~(uint64_t(SEG) << (r * G::MS));
-      const T dy = my - (T(ty0 + r) + T(0.5));
-      const V bdy = splat<V>(B * dy), cdy2 = splat<V>(Cq * dy * dy + LO);
+      const int bit = __builtin_ctzll(m);
+      m &= m - 1;
+      const int r = bit >> G::LMS, ms = bit & (G::MS - 1);
+      const V bdy = splat<V>(bdyr[r]), cdy2 = splat<V>(cdyr[r]);
 #pragma GCC unroll 4
-      for (int ms = 0; ms < G::MS; ++ms) {
-        if (G::MS > 1 && !((rb >> ms) & 1)) continue;
-#pragma GCC unroll 4
-        for (int v = 0; v < G::VPM; ++v) {
-          const int s = ms * G::VPM + v, gv = r * G::NS + s;
-          const V dx = mx - xs[s];
-          const V t = fmadd(dx, fmadd(A, dx, bdy), cdy2);  // k power + LO
-          const V oG = Exp<T>::eval(vmax(vmin(t, lo), tlow));
-          I ok = (t <= lo) & (oG >= amin);  // power <= 0, alpha >= 1/255
-          if (BACKWARD) ok &= kv < (I)st[gv * FS + 1];
-          out[nv] = keep(ok, oG);
-          dys[nv] = dy;
-          gvs[nv] = gv;
-          ++nv;
-        }
+      for (int v = 0; v < G::VPM; ++v) {
+        const int s = ms * G::VPM + v, gv = r * G::NS + s;
+        const V dx = mx - xs[s];
+        const V t = fmadd(dx, fmadd(A, dx, bdy), cdy2);  // k power + LO
+        const V oG = Exp<T>::eval(vmax(vmin(t, lo), tlow));
+        I ok = (t <= lo) & (oG >= amin);  // power <= 0, alpha >= 1/255
+        if (BACKWARD) ok &= kv < (I)st[gv * FS + 1];
+        out[nv] = keep(ok, oG);
+        dys[nv] = dyr[r];
+        gvs[nv] = gv;
+        ++nv;
       }
     } while (m);
     // [/hot]
@@ -477,7 +489,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
   const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 3 + C;  // state: T, done, last, acc[C]
   const int ty0 = static_cast<int>((tile / sc.tx) * TILE), tx0 = static_cast<int>((tile % sc.tx) * TILE);
   const int nrows = static_cast<int>(std::min<int64_t>(TILE, sc.H - ty0));
-  ws.columns(tx0, sc.W);
+  ws.columns(tx0, ty0, sc.W);
   ws.st.assign(G::NV * FS, V{});
   V* const st = ws.st.data();
   uint64_t alive = 0;
@@ -502,7 +514,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
     if (STATS) ++stt.gaussians;
     if (k + AHEAD < n) prefetch_record(sc.rec + ids[k + AHEAD] * GS, GS);
     const T* __restrict g = sc.rec + ids[k] * GS;
-    const int nv = ws.template first_pass<false>(g, m, ty0, st, FS, I{});
+    const int nv = ws.template first_pass<false>(g, m, st, FS, I{});
     const V kv = (V)splat<I>(static_cast<IS>(k + 1));
     V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
     if constexpr (CT > 0)
@@ -574,7 +586,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
   if (n == 0) return;
   const int ty0 = static_cast<int>((tile / sc.tx) * TILE), tx0 = static_cast<int>((tile % sc.tx) * TILE);
   const int nrows = static_cast<int>(std::min<int64_t>(TILE, sc.H - ty0));
-  ws.columns(tx0, sc.W);
+  ws.columns(tx0, ty0, sc.W);
   ws.st.assign(G::NV * FS, V{});
   V* const st = ws.st.data();
   // A segment joins once k drops below the largest n_contrib of its pixels.
@@ -628,11 +640,8 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
     if (STATS) ++stt.gaussians;
     if (k >= AHEAD) prefetch_record(sc.rec + ids[k - AHEAD] * GS, GS);
     const T* __restrict g = sc.rec + ids[k] * GS;
-    const int nv = ws.template first_pass<true>(g, m, ty0, st, FS, splat<I>(static_cast<IS>(k)));
+    const int nv = ws.template first_pass<true>(g, m, st, FS, splat<I>(static_cast<IS>(k)));
     const T mx = g[G_MX];
-    V fv[CT > 0 ? CT : 1];  // the features, broadcast once per Gaussian
-    if constexpr (CT > 0)
-      for (int ch = 0; ch < CT; ++ch) fv[ch] = splat<V>(g[G_F + ch]);
     V M1 = zero, My = zero, Mxx = zero, Mxy = zero, Myy = zero, M0 = zero;
     // Second pass: transmittance, colour behind, dL/dpower and its moments;
     // leaves the weights in pv for the feature gradients (a third pass keeps
@@ -660,7 +669,9 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
       const V* D = p + 2 + C;
       for (int64_t ch = 0; ch < C; ++ch) {
         const V Sr = S[ch];
-        const V diff = (CT > 0 ? fv[ch] : splat<V>(g[G_F + ch])) - Sr;
+        // (broadcast from the record each time: kept in registers, the
+        // features would push the accumulators out to the stack)
+        const V diff = splat<V>(g[G_F + ch]) - Sr;
         dsum = fmadd(D[ch], diff, dsum);
         S[ch] = fmadd(va, diff, Sr);
       }
