@@ -296,21 +296,31 @@ void backward_tiles(const dibrgs::Scene<T>& sc, const T* gout, const T* tfin, co
 template <typename T>
 void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int64_t C, T* gm, T* gc, T* go, T* gf) {
   const int64_t G = 6 + C;
-  // Deterministic: each Gaussian sums its entries in list order; threads own
-  // ranges of Gaussians (and each reads the whole list).
+  // Deterministic: each Gaussian sums its entries in list order into one
+  // interleaved row (one cache line to miss, prefetched), threads owning
+  // ranges of Gaussians (each reads the whole list); then the rows are split.
+  std::vector<T> acc(N * G, T(0));
   const int64_t nt = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), N / 1024));
   at::parallel_for(0, nt, 1, [&](int64_t tb, int64_t te) {
     for (int64_t t = tb; t < te; ++t) {
       const int64_t g0 = N * t / nt, g1 = N * (t + 1) / nt;
       for (int64_t k = 0; k < M; ++k) {
+        if (k + 16 < M) __builtin_prefetch(acc.data() + pg[k + 16] * G, 1);
         const int64_t g = pg[k];
         if (g < g0 || g >= g1) continue;
         const T* b = buf + k * G;
-        gm[2 * g] += b[0], gm[2 * g + 1] += b[1];
-        gc[3 * g] += b[2], gc[3 * g + 1] += b[3], gc[3 * g + 2] += b[4];
-        go[g] += b[5];
-        for (int64_t ch = 0; ch < C; ++ch) gf[g * C + ch] += b[6 + ch];
+        T* a = acc.data() + g * G;
+        for (int64_t j = 0; j < G; ++j) a[j] += b[j];
       }
+    }
+  });
+  at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t g = b; g < e; ++g) {
+      const T* a = acc.data() + g * G;
+      gm[2 * g] = a[0], gm[2 * g + 1] = a[1];
+      gc[3 * g] = a[2], gc[3 * g + 1] = a[3], gc[3 * g + 2] = a[4];
+      go[g] = a[5];
+      for (int64_t ch = 0; ch < C; ++ch) gf[g * C + ch] = a[6 + ch];
     }
   });
 }
@@ -321,8 +331,8 @@ std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, to
                                     torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
   const int64_t N = rec.size(0), C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
   auto opts = rec.options();
-  auto gm = torch::zeros({N, 2}, opts), gc = torch::zeros({N, 3}, opts);
-  auto go = torch::zeros({N}, opts), gf = torch::zeros({N, C}, opts);
+  auto gm = torch::empty({N, 2}, opts), gc = torch::empty({N, 3}, opts);
+  auto go = torch::empty({N}, opts), gf = torch::empty({N, C}, opts);  // every row is written
   auto buf = torch::empty({M * (6 + C)}, opts);  // every entry is written
   auto go_c = gout.contiguous();
   AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_backward", [&] {
