@@ -427,8 +427,8 @@ struct Workspace {
 
   // First pass of Gaussian g over the tile's vectors in segment mask m:
   // pv = o exp(power) where power <= 0 and o exp(power) >= 1/255 (and, in
-  // the backward, k < n_contrib), else 0; pgv = vector index, pdy = row
-  // offset my - y. Returns the vector count.
+  // the backward, k < n_contrib), else 0; pgv = vector index, pdy (in the
+  // backward) = row offset my - y. Returns the vector count.
   template <bool BACKWARD>
   int first_pass(const T* g, uint64_t m, const V* st, int64_t FS, I kv) {
     const T mx = g[G_MX], my = g[G_MY], LO = g[G_LO];
@@ -466,7 +466,7 @@ struct Workspace {
         I ok = (t <= lo) & (oG >= amin);  // power <= 0, alpha >= 1/255
         if (BACKWARD) ok &= kv < (I)st[gv * FS + 1];
         out[nv] = keep(ok, oG);
-        dys[nv] = dyr[r];
+        if (BACKWARD) dys[nv] = dyr[r];
         gvs[nv] = gv;
         ++nv;
       }
