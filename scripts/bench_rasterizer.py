@@ -5,29 +5,130 @@ paths, forward and forward+backward, on 1 and 2 threads. Each configuration
 runs in its own subprocess so that its peak memory (``ru_maxrss``, whole
 process: python + torch + the scene) is its own. Quaternions, scales (from the
 mean distance to the 3 nearest neighbours, times a log-normal factor) and
-opacities are drawn with a fixed seed. Times are medians over repeats, after
-one warm-up call (which also compiles the C++ path on first use); the process
-CPU time of the same calls (all threads) is printed too, since wall times on a
-shared machine depend on the other jobs. Workers wait passively at OpenMP
+opacities are drawn with a fixed seed. Each call is timed after one warm-up
+call (which also compiles the C++ path on first use); the table gives the
+minimum and the median wall time and the minimum process CPU time (all
+threads) over the repeats: on a shared machine the minimum is the least
+disturbed figure, and CPU time does not count the time other jobs held the
+cores. Speed-ups are ratios of minima. Workers wait passively at OpenMP
 barriers (``OMP_WAIT_POLICY=PASSIVE`` unless set): spinning threads slow a
 contended machine down several times.
 
+The kernel section (``--kernels``, on by default) times the C++ stages one by
+one on 1 thread at the largest size (minimum CPU time of ``--repeats`` calls):
+projection, binning, compositing forward and backward (the extension's
+``forward`` and ``backward``: records, tiles, gradient reduction), counts the
+(Gaussian, pixel) pairs the kernels evaluate, and compares the arithmetic they
+do with this core's FMA peak, measured by a small C program compiled here
+(``cc -O2 -march=native``, independent FMA chains). The FLOPs per evaluated
+pair (one lane of a vector) are counted from ``csrc/composite.h``: add, sub,
+mul, div = 1, FMA = 2; compares, min/max, blends and bit operations are not
+counted.
+
     python scripts/bench_rasterizer.py                 # 256 and 512, 1 and 2 threads
-    python scripts/bench_rasterizer.py --sizes 512 --threads 2 --repeats 5
+    python scripts/bench_rasterizer.py --sizes 512 --threads 1 --repeats 5
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import platform
+import re
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # benchmark this checkout's package, not an installed one
+
+
+def flops_per_lane(C: int) -> tuple[int, int]:
+    """Arithmetic per evaluated (Gaussian, pixel) lane of the compositing kernels with C channels.
+
+    Forward: first pass 20 (dx 1, power 2 FMA = 4, exp2: 3 + 6 FMA = 15), second
+    pass 3 + 2C (T (1 - alpha): 2, weight 1, C FMA). Backward: first pass 20, second
+    17 + 5C (T / (1 - alpha): 2, weight 1, per channel 1 + 2 FMA, dL/dalpha 1,
+    dL/dpower 1, moments 1 + 1 + 1 + 1 + 1 + 1 + 3 FMA), third pass 2C.
+    """
+    return 23 + 2 * C, 37 + 7 * C
+
+
+FMA_PEAK_C = r"""
+#include <immintrin.h>
+#include <stdio.h>
+#include <time.h>
+static double now(void) { struct timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
+#if defined(__AVX512F__)
+typedef __m512 V; enum { L = 16 };
+#define SET(x) _mm512_set1_ps(x)
+#define FMA(a, b, c) _mm512_fmadd_ps(a, b, c)
+#elif defined(__FMA__)
+typedef __m256 V; enum { L = 8 };
+#define SET(x) _mm256_set1_ps(x)
+#define FMA(a, b, c) _mm256_fmadd_ps(a, b, c)
+#else
+#error "no FMA"
+#endif
+int main(void) {
+  V a0 = SET(1.0f), a1 = SET(1.1f), a2 = SET(1.2f), a3 = SET(1.3f), a4 = SET(1.4f);
+  V a5 = SET(1.5f), a6 = SET(1.6f), a7 = SET(1.7f), a8 = SET(1.8f), a9 = SET(1.9f);
+  const V m = SET(0.999999f), c = SET(1e-7f);
+  const long n = 20000000;
+  double best = 1e30;
+  for (int rep = 0; rep < 7; ++rep) {
+    double t0 = now();
+    for (long i = 0; i < n; ++i) {
+      a0 = FMA(a0, m, c); a1 = FMA(a1, m, c); a2 = FMA(a2, m, c); a3 = FMA(a3, m, c); a4 = FMA(a4, m, c);
+      a5 = FMA(a5, m, c); a6 = FMA(a6, m, c); a7 = FMA(a7, m, c); a8 = FMA(a8, m, c); a9 = FMA(a9, m, c);
+      __asm__ volatile("" : "+x"(a0), "+x"(a1), "+x"(a2), "+x"(a3), "+x"(a4));
+    }
+    double t = now() - t0;
+    if (t < best) best = t;
+  }
+  float s[L];
+  V sum = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7 + a8 + a9;
+  __builtin_memcpy(s, &sum, sizeof s);
+  printf("%.3f %d %g\n", n * 10.0 * L * 2.0 / best / 1e9, L, s[0]);
+  return 0;
+}
+"""
+
+
+def fma_peak() -> tuple[float, int] | None:
+    """(GFLOP/s, float lanes) of one core's FMA units, or None without a compiler/FMA."""
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        src, exe = Path(tmp) / "fma.c", Path(tmp) / "fma"
+        src.write_text(FMA_PEAK_C)
+        if subprocess.run([cc, "-O2", "-march=native", str(src), "-o", str(exe)], capture_output=True,
+                          check=False).returncode != 0:
+            return None
+        out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()
+    return float(out[0]), int(out[1])
+
+
+def machine() -> dict:
+    """CPU model, its vector extensions, the build's vector path and the load."""
+    model, flags = "", []
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and not model:
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and not flags:
+                flags = line.split(":", 1)[1].split()
+    except OSError:
+        pass
+    model = model or platform.processor() or platform.machine()
+    vec = [f for f in flags if re.fullmatch(r"sse4_2|avx|avx2|fma|avx512\w*", f)]
+    return {"model": model, "cores": os.cpu_count(), "vector": " ".join(vec), "load": os.getloadavg()}
 
 
 def garden(size: int):
@@ -54,6 +155,16 @@ def garden(size: int):
     return torch.tensor(pts, dtype=torch.float32), quats, scales, opac, cols, vm, K
 
 
+def _timed(fn, repeats: int) -> tuple[list[float], list[float]]:
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return wall, cpu
+
+
 def worker(backend: str, size: int, threads: int, repeats: int) -> dict:
     import torch
 
@@ -75,17 +186,89 @@ def worker(backend: str, size: int, threads: int, repeats: int) -> dict:
 
     meta = fwd_bwd()  # warm-up (and compile)
     out = {"backend": backend, "size": size, "threads": threads, "visible": int(meta["visible"].sum())}
+    if backend == "fast":
+        from dibrgs_core.render import fast
+
+        out["simd"] = fast.extension().simd()
     for name, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
-        times, cpu = [], []
-        for _ in range(repeats):
-            t0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        out[f"{name}_s"] = statistics.median(times)
-        out[f"{name}_cpu_s"] = statistics.median(cpu)
+        wall, cpu = _timed(fn, repeats)
+        out[f"{name}_s"] = min(wall)
+        out[f"{name}_med_s"] = statistics.median(wall)
+        out[f"{name}_cpu_s"] = min(cpu)
     out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
+
+
+def kernel_worker(size: int, repeats: int) -> dict:
+    """Stage CPU times (1 thread, minimum over repeats) and pair counts of the C++ path."""
+    import torch
+
+    torch.set_num_threads(1)
+    from dibrgs_core.render import fast
+
+    means, quats, scales, opac, cols, vm, K = garden(size)
+    mod = fast.extension()
+    ps = [p.clone().requires_grad_() for p in (means, quats, scales)]
+    res: dict = {"size": size, "simd": mod.simd()}
+    times: dict[str, float] = {}
+
+    def stage(name, fn):
+        out = fn()
+        times[name] = min(_timed(fn, repeats)[1])
+        return out
+
+    proj = stage("project_fwd", lambda: fast.project_fast(*ps, vm, K, size, size))
+    feats = torch.cat([cols, proj.depths[:, None].detach(), torch.ones(len(cols), 1)], 1).contiguous()
+    m2, con, dep = proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(), proj.depths.detach()
+    offsets, gids, masks = stage("bin", lambda: mod.bin_tiles(m2, con, opac, dep, proj.radii, size, size))
+    _, tfin, ncon, rec = stage("composite_fwd", lambda: mod.forward(m2, con, opac, feats, offsets, gids, masks, size,
+                                                                    size))
+    gout = torch.rand(size, size, feats.shape[1], generator=torch.Generator().manual_seed(1))
+    stage("composite_bwd", lambda: mod.backward(rec, offsets, gids, masks, gout, tfin, ncon, size, size))
+    g = [torch.randn_like(t) for t in (proj.means2d, proj.conics, proj.depths)]
+
+    def proj_bwd():
+        p2 = fast.project_fast(*ps, vm, K, size, size)
+        torch.autograd.backward([p2.means2d, p2.conics, p2.depths], g)
+
+    proj_bwd()
+    times["project_fwd_bwd"] = min(_timed(proj_bwd, repeats)[1])
+    stats = mod.composite_stats(rec, offsets, gids, masks, gout, size, size).tolist()
+    res.update(times=times, channels=int(feats.shape[1]), entries=int(offsets[-1]))
+    for row, name in zip(stats, ("fwd", "bwd")):
+        res[name] = dict(zip(("vectors", "lanes", "contrib", "gaussians", "entries"), row))
+    return res
+
+
+def run_child(args: list[str], threads: int) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    res = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env, cwd=REPO,
+                         check=False)
+    if res.returncode != 0:
+        sys.stderr.write(res.stderr)
+        raise SystemExit(1)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def report_kernels(k: dict, peak: tuple[float, int] | None) -> None:
+    t = k["times"]
+    print(f"\nC++ stages at {k['size']}x{k['size']}, 1 thread, min CPU time of the calls ({k['simd']}):")
+    for name in ("project_fwd", "bin", "composite_fwd", "composite_bwd", "project_fwd_bwd"):
+        print(f"  {name:<16} {t[name] * 1e3:8.1f} ms")
+    ffl, bfl = flops_per_lane(k["channels"])
+    lanes = int(re.search(r" x(\d+)$", k["simd"]).group(1))
+    for name, fl, tt in (("fwd", ffl, t["composite_fwd"]), ("bwd", bfl, t["composite_bwd"])):
+        s = k[name]
+        ev = s["vectors"] * lanes
+        line = (f"  compositing {name}: {s['vectors']:,} vectors = {ev:,} lanes evaluated ({s['lanes']:,} inside the "
+                f"image), {s['contrib']:,} pairs composite ({s['contrib'] / ev:.0%} of lanes), {s['gaussians']:,} "
+                f"of {s['entries']:,} list entries reach a vector; {fl} FLOP/lane -> {ev * fl / tt / 1e9:.1f} GFLOP/s")
+        if peak:
+            line += f" = 1/{peak[0] / (ev * fl / tt / 1e9):.1f} of the FMA peak"
+        print(line)
+    if peak:
+        print(f"  FMA peak of one core: {peak[0]:.1f} GFLOP/s ({peak[1]} float lanes, 2 FLOP per FMA)")
 
 
 def main() -> int:
@@ -93,41 +276,50 @@ def main() -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--backends", nargs="+", default=["fast", "reference"])
-    ap.add_argument("--repeats", type=int, default=3, help="timed calls per configuration (reference: 1)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed calls per configuration (fast path)")
+    ap.add_argument("--ref-repeats", type=int, default=1, help="timed calls per configuration (reference path)")
+    ap.add_argument("--kernels", action=argparse.BooleanOptionalAction, default=True,
+                    help="C++ stage times, pair counts and FLOP rate against the FMA peak")
     ap.add_argument("--worker", nargs=4, metavar=("BACKEND", "SIZE", "THREADS", "REPEATS"), help=argparse.SUPPRESS)
+    ap.add_argument("--kernel-worker", nargs=2, metavar=("SIZE", "REPEATS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         b, s, t, r = args.worker
         print(json.dumps(worker(b, int(s), int(t), int(r))))
         return 0
+    if args.kernel_worker:
+        print(json.dumps(kernel_worker(*map(int, args.kernel_worker))))
+        return 0
 
+    m = machine()
+    print(f"machine: {m['model']}, {m['cores']} cores, vector extensions: {m['vector']}")
+    print(f"load average before: {m['load'][0]:.2f} {m['load'][1]:.2f} {m['load'][2]:.2f}")
     rows = []
-    print(f"{'backend':>9} {'size':>5} {'thr':>3} {'fwd s':>8} {'fwd+bwd s':>10} {'fwd cpu s':>10} "
-          f"{'f+b cpu s':>10} {'peak MiB':>9}", flush=True)
+    print(f"{'backend':>9} {'size':>5} {'thr':>3} {'fwd s':>8} {'(median)':>8} {'f+b s':>8} {'(median)':>8} "
+          f"{'fwd cpu':>8} {'f+b cpu':>8} {'peak MiB':>9}", flush=True)
     for size in args.sizes:
         for threads in args.threads:
             for backend in args.backends:
-                reps = args.repeats if backend == "fast" else 1
-                env = dict(os.environ, OMP_NUM_THREADS=str(threads))
-                env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-                res = subprocess.run(
-                    [sys.executable, __file__, "--worker", backend, str(size), str(threads), str(reps)],
-                    capture_output=True, text=True, env=env, cwd=REPO,
-                )
-                if res.returncode != 0:
-                    print(res.stderr, file=sys.stderr)
-                    return 1
-                r = json.loads(res.stdout.strip().splitlines()[-1])
+                reps = args.repeats if backend == "fast" else args.ref_repeats
+                r = run_child(["--worker", backend, str(size), str(threads), str(reps)], threads)
                 rows.append(r)
-                print(f"{backend:>9} {size:>5} {threads:>3} {r['fwd_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} "
-                      f"{r['fwd_cpu_s']:>10.3f} {r['fwd_bwd_cpu_s']:>10.3f} {r['peak_rss_mib']:>9.0f}", flush=True)
+                print(f"{backend:>9} {size:>5} {threads:>3} {r['fwd_s']:>8.3f} {r['fwd_med_s']:>8.3f} "
+                      f"{r['fwd_bwd_s']:>8.3f} {r['fwd_bwd_med_s']:>8.3f} {r['fwd_cpu_s']:>8.3f} "
+                      f"{r['fwd_bwd_cpu_s']:>8.3f} {r['peak_rss_mib']:>9.0f}", flush=True)
     by = {(r["backend"], r["size"], r["threads"]): r for r in rows}
     for size in args.sizes:
         for threads in args.threads:
             f, ref = by.get(("fast", size, threads)), by.get(("reference", size, threads))
             if f and ref:
-                print(f"speed-up fast vs reference at {size}x{size}, {threads} thread(s): "
-                      f"forward {ref['fwd_s'] / f['fwd_s']:.1f}x, forward+backward {ref['fwd_bwd_s'] / f['fwd_bwd_s']:.1f}x")
+                print(f"speed-up fast ({f['simd']}) vs reference at {size}x{size}, {threads} thread(s), min wall: "
+                      f"forward {ref['fwd_s'] / f['fwd_s']:.1f}x, forward+backward "
+                      f"{ref['fwd_bwd_s'] / f['fwd_bwd_s']:.1f}x; min CPU: forward "
+                      f"{ref['fwd_cpu_s'] / f['fwd_cpu_s']:.1f}x, forward+backward "
+                      f"{ref['fwd_bwd_cpu_s'] / f['fwd_bwd_cpu_s']:.1f}x")
+    if args.kernels and "fast" in args.backends:
+        report_kernels(run_child(["--kernel-worker", str(max(args.sizes)), str(max(args.repeats, 3))], 1), fma_peak())
+    load = os.getloadavg()
+    print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     return 0
 
 

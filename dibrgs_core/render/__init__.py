@@ -6,6 +6,13 @@ and :mod:`reference`, autograd, any device) or with the C++ CPU path
 (:mod:`fast`, compiled on first use, hand-written backward). Both implement
 the same rules and agree to 1e-5.
 
+Backend choice: ``backend="auto"`` (the default) uses the C++ path for CPU
+tensors and the reference for others; ``"fast"`` insists on the C++ path;
+``"reference"`` never compiles anything. A failed C++ build is an error
+(:class:`fast.BuildError`, saying how to fix it), never a silent switch to
+the ~100x slower reference. The process-wide default is
+:func:`set_backend`'s, else ``$DIBRGS_RASTERIZER``, else ``"auto"``.
+
 Conventions: ``viewmat`` is world-to-camera with OpenCV axes (x right, y down,
 z forward); ``K`` is in pixels with pixel centres at +0.5 (``cx = W / 2`` is a
 centred camera); quaternions are ``(w, x, y, z)`` and normalised inside;
@@ -14,7 +21,8 @@ scales are world-unit standard deviations; opacities are in [0, 1].
 from __future__ import annotations
 
 import logging
-from typing import Any
+import os
+from typing import Any, Literal, get_args
 
 import torch
 from torch import Tensor
@@ -22,9 +30,44 @@ from torch import Tensor
 from .projection import Projected, project_gaussians, quat_to_rotmat
 from .reference import composite_reference
 
-__all__ = ["rasterize", "project_gaussians", "quat_to_rotmat", "Projected", "composite"]
+__all__ = [
+    "ENV_BACKEND",
+    "Backend",
+    "Projected",
+    "composite",
+    "get_backend",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "set_backend",
+]
 
 log = logging.getLogger("dibrgs.render")
+
+Backend = Literal["auto", "fast", "reference"]
+ENV_BACKEND = "DIBRGS_RASTERIZER"
+_backend: Backend | None = None
+
+
+def _check(backend: str, where: str) -> Backend:
+    if backend not in get_args(Backend):
+        raise ValueError(f"{where}: unknown rasterizer backend {backend!r} (expected auto, fast or reference)")
+    return backend  # type: ignore[return-value]
+
+
+def set_backend(backend: Backend | None) -> None:
+    """Process-wide default backend of :func:`rasterize` and :func:`composite`; None restores
+    ``$DIBRGS_RASTERIZER`` / ``"auto"``. A CLI ``--rasterizer`` option maps onto this."""
+    global _backend
+    _backend = None if backend is None else _check(backend, "set_backend")
+
+
+def get_backend() -> Backend:
+    """The default backend: :func:`set_backend`'s, else ``$DIBRGS_RASTERIZER``, else ``"auto"``."""
+    if _backend is not None:
+        return _backend
+    env = os.environ.get(ENV_BACKEND, "").strip()
+    return _check(env, f"${ENV_BACKEND}") if env else "auto"
 
 
 def composite(
@@ -36,12 +79,12 @@ def composite(
     radii: Tensor,
     width: int,
     height: int,
-    backend: str = "auto",
+    backend: Backend | None = None,
 ) -> Tensor:
     """Front-to-back alpha compositing of screen-space Gaussians -> (H, W, C).
 
-    ``backend`` is ``"auto"`` (C++ on CPU tensors when it compiles, else the
-    reference), ``"fast"`` (C++, CPU only) or ``"reference"``.
+    ``backend``: ``"auto"`` (C++ on CPU tensors, the reference on others),
+    ``"fast"`` (C++, CPU only) or ``"reference"``; None is :func:`get_backend`.
     """
     if _use_fast(backend, feats):
         from . import fast
@@ -50,10 +93,10 @@ def composite(
     return composite_reference(means2d, conics, opacities, feats, depths, radii, width, height)
 
 
-def _use_fast(backend: str, like: Tensor) -> bool:
-    """Whether ``backend`` resolves to the C++ path for tensors like ``like``."""
-    if backend not in ("auto", "fast", "reference"):
-        raise ValueError(f"unknown backend {backend!r}")
+def _use_fast(backend: Backend | None, like: Tensor) -> bool:
+    """Whether ``backend`` resolves to the C++ path for tensors like ``like`` (building it if
+    needed: a failed build raises :class:`fast.BuildError`)."""
+    backend = get_backend() if backend is None else _check(backend, "rasterizer")
     if backend == "reference":
         return False
     if like.device.type != "cpu":
@@ -62,7 +105,8 @@ def _use_fast(backend: str, like: Tensor) -> bool:
         return False
     from . import fast
 
-    return fast.available(required=backend == "fast")
+    fast.extension()
+    return True
 
 
 def rasterize(
@@ -78,7 +122,7 @@ def rasterize(
     background: Tensor | None = None,
     near: float = 0.01,
     far: float = 1e10,
-    backend: str = "auto",
+    backend: Backend | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render N 3D Gaussians with one pinhole camera.
 
@@ -95,9 +139,10 @@ def rasterize(
         background: optional (C,) colour blended as ``image + T * background``
             where ``T = 1 - alpha`` is the final transmittance.
         near, far: camera-z clipping planes (world units), ``near > 0``.
-        backend: ``"auto"``, ``"fast"`` or ``"reference"``. The fast path
-            projects in C++ too, unless ``viewmat`` or ``K`` requires grad
-            (then the torch projection carries their gradients).
+        backend: ``"auto"``, ``"fast"`` or ``"reference"``; None is
+            :func:`get_backend`. The fast path projects in C++ too, unless
+            ``viewmat`` or ``K`` requires grad (then the torch projection
+            carries their gradients).
 
     Returns:
         ``(image (H, W, C), alpha (H, W, 1), depth (H, W, 1), meta)``.

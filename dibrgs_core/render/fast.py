@@ -1,21 +1,54 @@
 """Fast CPU path: projection and compositing in a C++ torch extension compiled on first use.
 
-The extension (``csrc/rasterize.cpp``) is built with
-``torch.utils.cpp_extension.load`` (ninja) into ``$DIBRGS_EXT_DIR`` or
-``~/.cache/dibrgs/ext``, in a folder named after a hash of the source, the
-torch version and the CPU's instruction-set flags: it is compiled with
-``-march=native`` for the machine that runs it, and a cache copied to another
-CPU is rebuilt rather than reused. When ``-march=native`` does not build the
-portable ``-O3`` flags are tried; when nothing builds (no compiler) a warning
-says so and :func:`available` is False, so ``rasterize`` uses the reference.
+Build and cache
+    The extension (``csrc/rasterize.cpp`` and ``csrc/composite.h``) is compiled
+    for the machine that runs it (``-march=native``: 16-lane float vectors with
+    AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on
+    first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
+    ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source
+    bytes, the compiler (``$CXX``, default ``c++``), the flags, the torch and
+    Python versions and the CPU's instruction-set flags - not of the source's
+    path: the sources are copied into that folder and compiled there, so two
+    copies of the package (a git checkout and the installed Blender add-on)
+    share one build, and a cache copied to another CPU is rebuilt. Once built,
+    loading it is an import (no compiler, no ninja).
+
+    The first build takes one to two minutes. Callers that want to say so
+    first check :func:`is_built` (cheap: hashes the sources, compiles nothing)
+    or pass ``on_start`` to :func:`build`; a build also logs a warning on the
+    ``dibrgs.render`` logger before it starts.
+
+Failures
+    When the extension cannot be built, :func:`build` raises
+    :class:`BuildError`, whose message says what is missing (the compiler and
+    the package that provides it, ninja, the Python headers, or the flags the
+    compiler rejects) and how to choose the torch reference path instead
+    (``DIBRGS_RASTERIZER=reference`` or ``render.set_backend("reference")``,
+    about 100x slower). Nothing falls back silently: see
+    :func:`dibrgs_core.render.set_backend`.
+
+Environment
+    ``DIBRGS_EXT_DIR`` cache root; ``CXX`` compiler; ``DIBRGS_EXT_FLAGS``
+    replaces the default compile flags (``-O3 -march=native -fopenmp
+    -fno-math-errno``) for compilers that reject them.
 """
 from __future__ import annotations
 
 import hashlib
+import importlib.machinery
+import importlib.util
+import json
 import logging
 import os
 import platform
+import shlex
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -26,83 +59,238 @@ from .projection import Projected
 
 log = logging.getLogger("dibrgs.render")
 
-_SRC = Path(__file__).with_name("csrc") / "rasterize.cpp"
+_CSRC = Path(__file__).with_name("csrc")
+_SOURCES = ("rasterize.cpp", "composite.h")
+_NAME = "dibrgs_rasterize"
+_MARKER = "built.json"
+BUILD_TIME = "about 1-2 minutes"
+REFERENCE_HINT = (
+    "or render with the slower torch reference path (about 100x slower): set DIBRGS_RASTERIZER=reference "
+    "(the dibrgs command: --rasterizer reference)"
+)
+
 _lock = threading.Lock()
 _module: ModuleType | None = None
-_error: str | None = None
+_error: BuildError | None = None
+
+
+class BuildError(RuntimeError):
+    """The C++ rasterizer could not be built; the message says how to fix it."""
 
 
 def _cpu_flags() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
+            if line.startswith(("flags", "Features")):
                 return " ".join(sorted(line.split(":", 1)[1].split()))
     except OSError:
         pass
     return platform.processor() or platform.machine()
 
 
-def _build_dir(tag: str, flags: list[str]) -> Path:
-    root = Path(os.environ.get("DIBRGS_EXT_DIR", Path.home() / ".cache" / "dibrgs" / "ext"))
+def _compiler() -> str:
+    return os.environ.get("CXX", "c++")
+
+
+def default_flags() -> list[str]:
+    """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept."""
+    native = "-mcpu=native" if platform.machine().lower() in ("arm64", "aarch64") else "-march=native"
+    # -fopenmp: at::parallel_for (an inline header template) runs serially without it.
+    # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.
+    return ["-O3", native, "-fopenmp", "-fno-math-errno"]
+
+
+def build_flags() -> list[str]:
+    """The compile flags in use: ``$DIBRGS_EXT_FLAGS`` when set, else :func:`default_flags`."""
+    env = os.environ.get("DIBRGS_EXT_FLAGS")
+    return shlex.split(env) if env is not None else default_flags()
+
+
+def _digest(flags: list[str]) -> str:
     h = hashlib.sha256()
-    for part in (_SRC.read_bytes(), torch.__version__.encode(), _cpu_flags().encode(), " ".join(flags).encode()):
-        h.update(part)
-    d = root / f"rasterize_{tag}_{h.hexdigest()[:16]}"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    for name in _SOURCES:
+        h.update(name.encode() + b"\0" + (_CSRC / name).read_bytes() + b"\0")
+    for part in (
+        torch.__version__,
+        sys.implementation.cache_tag or "",
+        sysconfig.get_config_var("EXT_SUFFIX") or "",
+        platform.machine(),
+        _cpu_flags(),
+        _compiler(),
+        " ".join(flags),
+    ):
+        h.update(part.encode() + b"\0")
+    return h.hexdigest()[:20]
 
 
-def _load() -> ModuleType:
+def build_dir() -> Path:
+    """The cache folder of this source, compiler, flags, torch, Python and CPU (not created)."""
+    root = Path(os.environ.get("DIBRGS_EXT_DIR", Path.home() / ".cache" / "dibrgs" / "ext"))
+    return root / f"rasterize_{_digest(build_flags())}"
+
+
+def _so_path(d: Path) -> Path | None:
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES + [".so"]:
+        p = d / f"{_NAME}{suffix}"
+        if p.is_file():
+            return p
+    return None
+
+
+def is_built() -> bool:
+    """Whether the extension is loaded or compiled in the cache (no compiling, no import)."""
+    if _module is not None:
+        return True
+    d = build_dir()
+    return (d / _MARKER).is_file() and _so_path(d) is not None
+
+
+def _import(path: Path) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(_NAME, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _probe(cxx: str, flags: list[str], workdir: Path) -> list[str]:
+    """The flags that the compiler rejects, each tried alone on a small program (OpenMP's for -fopenmp)."""
+    plain, omp = workdir / "probe.cpp", workdir / "probe_omp.cpp"
+    plain.write_text("int main() { return 0; }\n")
+    omp.write_text("#include <omp.h>\nint main() { return omp_get_max_threads() > 0 ? 0 : 1; }\n")
+    rejected = []
+    for flag in flags:
+        src = omp if flag == "-fopenmp" else plain
+        res = subprocess.run(
+            [cxx, flag, "-c", str(src), "-o", str(workdir / "probe.o")], capture_output=True, text=True, timeout=120,
+            check=False,
+        )
+        if res.returncode != 0:
+            rejected.append(flag)
+    return rejected
+
+
+def _check_prerequisites(cxx: str, flags: list[str]) -> None:
+    """Raise BuildError naming what is missing before starting a build that would fail."""
+    if shutil.which(cxx) is None:
+        raise BuildError(
+            f"cannot build the C++ rasterizer: no C++ compiler found (looked for {cxx!r}"
+            f"{', from $CXX' if 'CXX' in os.environ else ''}). Install one - Debian/Ubuntu: "
+            "'sudo apt install g++', Fedora/RHEL: 'sudo dnf install gcc-c++', macOS: 'xcode-select --install' "
+            f"(and 'brew install libomp'), conda: 'conda install gxx_linux-64' - or point CXX at one; {REFERENCE_HINT}."
+        )
+    try:
+        from torch.utils.cpp_extension import verify_ninja_availability
+
+        verify_ninja_availability()
+    except RuntimeError:
+        raise BuildError(
+            f"cannot build the C++ rasterizer: the ninja build tool is missing; install it with "
+            f"'{sys.executable} -m pip install ninja'; {REFERENCE_HINT}."
+        ) from None
+    inc = sysconfig.get_paths().get("include", "")
+    if not (Path(inc) / "Python.h").is_file():
+        raise BuildError(
+            f"cannot build the C++ rasterizer: the Python development headers are missing ({inc}/Python.h); "
+            f"install them (Debian/Ubuntu: 'sudo apt install python3-dev', Fedora: 'sudo dnf install python3-devel'); "
+            f"{REFERENCE_HINT}."
+        )
+    with tempfile.TemporaryDirectory(prefix="dibrgs_probe_") as tmp:
+        rejected = _probe(cxx, flags, Path(tmp))
+    if rejected:
+        raise BuildError(
+            f"cannot build the C++ rasterizer: the compiler {cxx!r} rejects the flag(s) {' '.join(rejected)} "
+            f"(of {' '.join(flags)}). Use GCC >= 9 or Clang with OpenMP (libomp), e.g. CXX=g++; or set "
+            f"DIBRGS_EXT_FLAGS to flags it accepts (slower without -march=native and -fopenmp); {REFERENCE_HINT}."
+        )
+
+
+def _compile(d: Path, flags: list[str], on_start: Callable[[str], None] | None) -> ModuleType:
     from torch.utils.cpp_extension import load
 
-    errors = []
-    # -fopenmp is needed for at::parallel_for (an inline header template) to
-    # run in parallel at all; torch's own OpenMP runtime is the one linked.
-    # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.
-    common = ["-O3", "-fopenmp", "-fno-math-errno"]
-    for tag, flags in (("native", common + ["-march=native", "-mprefer-vector-width=512"]), ("portable", common)):
-        try:
-            return load(
-                name=f"dibrgs_rasterize_{tag}",
-                sources=[str(_SRC)],
-                extra_cflags=flags,
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(_build_dir(tag, flags)),
-                verbose=False,
-            )
-        except Exception as exc:  # compiler missing or rejecting the flags
-            errors.append(f"{tag}: {exc}")
-    raise RuntimeError("; ".join(errors))
+    cxx = _compiler()
+    _check_prerequisites(cxx, flags)
+    msg = f"compiling the C++ rasterizer for this machine (first run, {BUILD_TIME}) in {d}"
+    log.warning(msg)
+    if on_start is not None:
+        on_start(msg)
+    src = d / "src"
+    src.mkdir(parents=True, exist_ok=True)
+    for name in _SOURCES:  # compile a copy: the build's command lines name d only
+        data = (_CSRC / name).read_bytes()
+        if not (src / name).is_file() or (src / name).read_bytes() != data:
+            tmp = src / f".{name}.tmp"
+            tmp.write_bytes(data)
+            tmp.replace(src / name)
+    try:
+        mod = load(
+            name=_NAME,
+            sources=[str(src / "rasterize.cpp")],
+            extra_cflags=flags,
+            extra_ldflags=["-fopenmp"] if "-fopenmp" in flags else [],
+            build_directory=str(d),
+            verbose=False,
+        )
+    except Exception as exc:
+        tail = "\n".join(str(exc).strip().splitlines()[-25:])
+        raise BuildError(
+            f"building the C++ rasterizer with {cxx!r} failed in {d} (a too old compiler? C++17 and the "
+            f"flags {' '.join(flags)} are needed); compiler output:\n{tail}\n{REFERENCE_HINT}."
+        ) from exc
+    info = {"simd": mod.simd(), "compiler": cxx, "flags": flags, "torch": torch.__version__}
+    tmp = d / f".{_MARKER}.{os.getpid()}"
+    tmp.write_text(json.dumps(info, indent=1))
+    tmp.replace(d / _MARKER)
+    return mod
 
 
-def extension() -> ModuleType:
-    """The compiled extension module (compiling it on first call).
+def build(on_start: Callable[[str], None] | None = None) -> ModuleType:
+    """The compiled extension, compiling it first when the cache has none.
+
+    Args:
+        on_start: called with a one-line message (what is compiled, where,
+            how long it takes) just before a compile starts; not called when
+            the cached build is used.
 
     Raises:
-        RuntimeError: when it cannot be built.
+        BuildError: when it cannot be built (again on later calls in this process).
     """
     global _module, _error
     with _lock:
-        if _module is None and _error is None:
+        if _module is not None:
+            return _module
+        if _error is not None:
+            raise _error
+        flags = build_flags()
+        d = build_dir()
+        so = _so_path(d)
+        if so is not None and (d / _MARKER).is_file():
             try:
-                _module = _load()
-            except Exception as exc:
-                _error = str(exc)
-                log.warning(
-                    "could not build the C++ rasterizer (%s); using the slower torch reference path",
-                    _error.splitlines()[0][:500],
-                )
-        if _module is None:
-            raise RuntimeError(f"C++ rasterizer unavailable: {_error}")
+                _module = _import(so)
+                return _module
+            except ImportError as exc:  # a damaged cache: build again
+                log.warning("rebuilding the C++ rasterizer: cached %s does not load (%s)", so, exc)
+                (d / _MARKER).unlink(missing_ok=True)
+        d.mkdir(parents=True, exist_ok=True)
+        try:
+            _module = _compile(d, flags, on_start)
+        except BuildError as exc:
+            _error = exc
+            raise
         return _module
 
 
+def extension() -> ModuleType:
+    """The compiled extension module (compiling it on first call); raises :class:`BuildError`."""
+    return _module if _module is not None else build()
+
+
 def available(required: bool = False) -> bool:
-    """Whether the C++ path can be used; with ``required`` raise instead of returning False."""
+    """Whether the C++ path builds (compiling it if needed); with ``required`` raise instead of returning False."""
     try:
         extension()
         return True
-    except RuntimeError:
+    except BuildError:
         if required:
             raise
         return False
@@ -110,20 +298,17 @@ def available(required: bool = False) -> bool:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, ext, width, height):  # type: ignore[override]
-        mod = extension()
-        out, tfin, ncon = mod.forward(means2d, conics, opacities, feats, offsets, gids, ext, width, height)
-        ctx.save_for_backward(means2d, conics, opacities, feats, offsets, gids, ext, tfin, ncon)
+    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width, height):  # type: ignore[override]
+        out, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width, height)
+        ctx.save_for_backward(rec, offsets, gids, masks, tfin, ncon)
         ctx.size = (width, height)
         return out
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
-        means2d, conics, opacities, feats, offsets, gids, ext, tfin, ncon = ctx.saved_tensors
+        rec, offsets, gids, masks, tfin, ncon = ctx.saved_tensors
         width, height = ctx.size
-        gm, gc, go, gf = extension().backward(
-            means2d, conics, opacities, feats, offsets, gids, ext, gout.contiguous(), tfin, ncon, width, height
-        )
+        gm, gc, go, gf = extension().backward(rec, offsets, gids, masks, gout.contiguous(), tfin, ncon, width, height)
         return gm, gc, go, gf, None, None, None, None, None
 
 
@@ -144,8 +329,8 @@ def composite_fast(
     con = conics.to(dt).contiguous()
     op = opacities.to(dt).contiguous()
     fe = feats.contiguous()
-    offsets, gids, ext = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
-    return _Composite.apply(m2, con, op, fe, offsets, gids, ext, width, height)
+    offsets, gids, masks = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
+    return _Composite.apply(m2, con, op, fe, offsets, gids, masks, width, height)
 
 
 class _Project(torch.autograd.Function):

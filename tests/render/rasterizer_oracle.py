@@ -15,8 +15,9 @@ import math
 import numpy as np
 
 
-def brute_composite(means2d, conics, opacities, feats, depths, radii, width, height):
-    """(H, W, C) float64 composite of the given per-Gaussian arrays (numpy or torch)."""
+def brute_composite(means2d, conics, opacities, feats, depths, radii, width, height, return_count=False):
+    """(H, W, C) float64 composite of the given per-Gaussian arrays (numpy or torch); with
+    ``return_count`` also the number of (pixel, Gaussian) pairs composited."""
     m = np.asarray(means2d, dtype=np.float64)
     con = np.asarray(conics, dtype=np.float64)
     op = np.asarray(opacities, dtype=np.float64)
@@ -25,6 +26,7 @@ def brute_composite(means2d, conics, opacities, feats, depths, radii, width, hei
     r = np.asarray(radii).astype(np.float64)
     order = [i for i in np.argsort(z, kind="stable") if r[i] > 0]
     out = np.zeros((height, width, f.shape[1]))
+    count = 0
     x0 = np.floor((m[:, 0] - r) / 16)
     x1 = np.ceil((m[:, 0] + r) / 16)
     y0 = np.floor((m[:, 1] - r) / 16)
@@ -49,5 +51,6 @@ def brute_composite(means2d, conics, opacities, feats, depths, radii, width, hei
                     break
                 acc += a * T * f[i]
                 T *= 1 - a
+                count += 1
             out[py, px] = acc
-    return out
+    return (out, count) if return_count else out

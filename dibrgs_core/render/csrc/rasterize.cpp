@@ -1,121 +1,29 @@
-// CPU tile rasterizer for 3D Gaussian Splatting: binning, forward compositing
-// and the hand-written backward. Same rules as reference.py (see there).
-// Tiles are spread dynamically over torch's intra-op threads (the extension is
-// built with -fopenmp: at::parallel_for is a header template and would run
-// serially otherwise). One tile row of 16 pixels is one SIMD vector (GCC/Clang
-// vector extensions: a single AVX-512 register in float), and each tile's
-// Gaussians are first gathered into contiguous per-tile arrays.
+// CPU tile rasterizer for 3D Gaussian Splatting: binning, compositing (the
+// per-tile kernels are in composite.h) and the fused EWA projection, as a torch
+// extension. Same rules as reference.py (see there). Tiles are spread
+// dynamically over torch's intra-op threads (the extension is built with
+// -fopenmp: at::parallel_for is a header template and would run serially
+// otherwise).
 #include <torch/extension.h>
 
+#include <ATen/Parallel.h>
+
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <mutex>
+#include <string>
+#include <type_traits>
 #include <cstdint>
 #include <cstring>
 #include <numeric>
 #include <vector>
 
-#include <ATen/Parallel.h>
+#include "composite.h"
 
-#include <atomic>
-
-#ifdef __AVX512F__
-#include <immintrin.h>
-#endif
+using dibrgs::TILE;
 
 namespace {
-
-constexpr int TILE = 16;
-constexpr int TP = TILE * TILE;
-constexpr double ALPHA_MIN = 1.0 / 255.0;
-constexpr double ALPHA_MAX = 0.99;
-constexpr double T_MIN = 1e-4;
-
-// 16 lanes = one tile row, with the matching integer (mask) vector type.
-template <typename T>
-struct Vec;
-template <>
-struct Vec<float> {
-  typedef float V __attribute__((vector_size(64)));
-  typedef int32_t I __attribute__((vector_size(64)));
-};
-template <>
-struct Vec<double> {
-  typedef double V __attribute__((vector_size(128)));
-  typedef int64_t I __attribute__((vector_size(128)));
-};
-
-template <typename V, typename S>
-inline V splat(S x) {
-  V v;
-  for (int i = 0; i < TILE; ++i) v[i] = x;
-  return v;
-}
-
-// Whether any lane of a 0 / -1 mask is set.
-inline bool any(Vec<float>::I m) {
-#ifdef __AVX512F__
-  __m512i x;
-  std::memcpy(&x, &m, sizeof(x));
-  return _mm512_test_epi32_mask(x, x) != 0;
-#else
-  int32_t r = 0;
-  for (int i = 0; i < TILE; ++i) r |= m[i];
-  return r != 0;
-#endif
-}
-inline bool any(Vec<double>::I m) {
-  int64_t r = 0;
-  for (int i = 0; i < TILE; ++i) r |= m[i];
-  return r != 0;
-}
-
-template <typename V>
-inline auto hsum(V v) {
-  auto s = v[0];
-  for (int i = 1; i < TILE; ++i) s += v[i];
-  return s;
-}
-
-// exp in float: Cephes-style range reduction and polynomial (relative error
-// ~1e-7), on whole vectors with plain arithmetic (no -ffast-math needed).
-// Arguments under -87 give ~0 (alpha is skipped there).
-inline Vec<float>::V vexp(Vec<float>::V x) {
-  typedef Vec<float>::V V;
-  typedef Vec<float>::I I;
-  x = x < -87.0f ? splat<V>(-87.0f) : x;
-  x = x > 88.0f ? splat<V>(88.0f) : x;
-  const V t = x * 1.44269504088896341f;
-  const I n = __builtin_convertvector(t - 0.5f, I);  // rounds to nearest for t <= 0.5
-  const V nf = __builtin_convertvector(n, V);
-  V r = x - nf * 0.693359375f;
-  r = r - nf * -2.12194440e-4f;
-  const V z = r * r;
-  V y = splat<V>(1.9875691500E-4f);
-  y = y * r + 1.3981999507E-3f;
-  y = y * r + 8.3334519073E-3f;
-  y = y * r + 4.1665795894E-2f;
-  y = y * r + 1.6666665459E-1f;
-  y = y * r + 5.0000001201E-1f;
-  y = y * z + r + 1.0f;
-  const I bits = (n + 127) << 23;
-  V scale;
-  std::memcpy(&scale, &bits, sizeof(V));
-  return y * scale;
-}
-inline Vec<double>::V vexp(Vec<double>::V x) {
-  for (int i = 0; i < TILE; ++i) x[i] = std::exp(x[i]);
-  return x;
-}
-
-// Rows [r0, r1] (inclusive, tile-local) where the Gaussian may reach
-// alpha >= 1/255, given its half-extent ey (already widened).
-inline void row_range(double my, double ey, int ty0, int H, int& r0, int& r1) {
-  const double lo = std::ceil(my - ey - 0.5) - ty0;
-  const double hi = std::floor(my + ey - 0.5) - ty0;
-  const int last = std::min(TILE - 1, H - 1 - ty0);
-  r0 = lo < 0 ? 0 : (lo > TILE ? TILE : static_cast<int>(lo));
-  r1 = hi > last ? last : (hi < -1 ? -1 : static_cast<int>(hi));
-}
 
 // The alpha >= 1/255 region is the ellipse q <= 2 ln(255 o) with
 // q = a dx^2 + 2 b dx dy + c dy^2. Culling uses a slightly larger level so that
@@ -125,34 +33,6 @@ inline double cull_level(double o) {
   if (!(o * 255.0 >= 1.0)) return -1.0;
   return 2.0 * std::log(o * 255.0) * 1.01 + 0.01;
 }
-
-// A tile's Gaussians in list order, copied contiguously (structure of arrays).
-template <typename T>
-struct TileData {
-  std::vector<T> mx, my, a, b, c, o, f;
-  std::vector<int32_t> r0, r1;
-  void load(const T* pm, const T* pc, const T* po, const T* pf, const double* pe, const int32_t* ids, int64_t n,
-            int64_t C, int ty0, int H) {
-    for (auto* v : {&mx, &my, &a, &b, &c, &o}) v->resize(n);
-    f.resize(n * C);
-    r0.resize(n);
-    r1.resize(n);
-    for (int64_t k = 0; k < n; ++k) {
-      const int32_t g = ids[k];
-      mx[k] = pm[2 * g];
-      my[k] = pm[2 * g + 1];
-      a[k] = pc[3 * g];
-      b[k] = pc[3 * g + 1];
-      c[k] = pc[3 * g + 2];
-      o[k] = po[g];
-      std::memcpy(&f[k * C], pf + g * C, C * sizeof(T));
-      int lo, hi;
-      row_range(static_cast<double>(my[k]), pe[3 * g + 1], ty0, H, lo, hi);
-      r0[k] = lo;
-      r1[k] = hi;
-    }
-  }
-};
 
 // Runs worker(next) on every torch intra-op thread; workers pull tile indices
 // from the shared counter (dynamic scheduling: tile costs vary a lot).
@@ -166,29 +46,44 @@ void run_workers(F&& worker) {
 
 }  // namespace
 
-// Whether the ellipse q(d) <= lvl around (mx, my), q = a dx^2 + 2 b dx dy +
-// c dy^2 (a, c > 0), reaches the box of tile (x, y)'s pixel centres widened by
-// a pixel: the convex q is minimised over the box, on its edges when the centre
-// is outside. Like the other culls it only skips tiles without any pixel of
-// alpha >= 1/255.
-inline bool ellipse_meets_tile(double mx, double my, const double* con, double lvl, int32_t x, int32_t y) {
-  const double x0 = x * TILE + 0.5 - 1.0 - mx, x1 = x * TILE + TILE - 0.5 + 1.0 - mx;
-  const double y0 = y * TILE + 0.5 - 1.0 - my, y1 = y * TILE + TILE - 0.5 + 1.0 - my;
-  if (x0 <= 0 && x1 >= 0 && y0 <= 0 && y1 >= 0) return true;
-  const double a = con[0], b = con[1], c = con[2];
-  // min over t in [lo, hi] of p s^2 + 2 b s t + r t^2 with s fixed.
-  auto edge = [b](double s, double lo, double hi, double p, double r) {
-    const double t = std::min(std::max(-b * s / r, lo), hi);
-    return p * s * s + 2.0 * b * s * t + r * t * t;
-  };
-  const double q = std::min(std::min(edge(x0, y0, y1, a, c), edge(x1, y0, y1, a, c)),
-                            std::min(edge(y0, x0, x1, c, a), edge(y1, x0, x1, c, a)));
-  return !(q > lvl);  // NaN (degenerate conic) keeps the tile
+namespace {
+
+// Indices sorted by increasing key, ties in their given order (LSD radix sort
+// on the keys' bytes; bytes that all keys share are skipped).
+void radix_sort(std::vector<uint64_t>& key, std::vector<int32_t>& idx) {
+  const size_t n = key.size();
+  std::vector<uint64_t> k2(n);
+  std::vector<int32_t> i2(n);
+  for (int shift = 0; shift < 64; shift += 8) {
+    size_t cnt[256] = {0};
+    for (size_t i = 0; i < n; ++i) ++cnt[(key[i] >> shift) & 0xFF];
+    if (n == 0 || cnt[(key[0] >> shift) & 0xFF] == n) continue;
+    size_t pos[256], sum = 0;
+    for (int b = 0; b < 256; ++b) pos[b] = sum, sum += cnt[b];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t p = pos[(key[i] >> shift) & 0xFF]++;
+      k2[p] = key[i];
+      i2[p] = idx[i];
+    }
+    key.swap(k2);
+    idx.swap(i2);
+  }
 }
 
-// Tile lists. Returns (offsets int64 (tiles+1), gauss_ids int32 (isects),
-// extents float64 (N, 3)): Gaussians of a tile in increasing depth (ties by
-// index); extents are the half-sizes (+1 px) of the culling ellipse and its level.
+// Order-preserving map of a double to an unsigned integer.
+inline uint64_t depth_key(double d) {
+  uint64_t u;
+  std::memcpy(&u, &d, sizeof(u));
+  return (u >> 63) ? ~u : (u | (uint64_t(1) << 63));
+}
+
+}  // namespace
+
+// Tile lists. Returns (offsets int64 (tiles + 1), gauss_ids int32 (M), masks
+// int64 (M)): Gaussians of a tile in increasing depth (ties by index), and the
+// row segments of its tile that each one reaches (dibrgs::segment_mask, laid
+// out for the dtype of means2d). A Gaussian is listed in the tiles of its
+// 3-sigma square that its culling ellipse reaches.
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                      torch::Tensor depths, torch::Tensor radii, int64_t W, int64_t H) {
   auto m = means2d.to(torch::kFloat64).contiguous();
@@ -197,303 +92,288 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   auto dep = depths.to(torch::kFloat64).contiguous();
   auto rad = radii.to(torch::kInt64).contiguous();
   const int64_t N = m.size(0);
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
+  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
   const double* pm = m.data_ptr<double>();
   const double* pc = con.data_ptr<double>();
   const double* po = op.data_ptr<double>();
   const double* pd = dep.data_ptr<double>();
   const int64_t* pr = rad.data_ptr<int64_t>();
-  auto ext = torch::zeros({N, 3}, torch::kFloat64);
-  double* pe = ext.data_ptr<double>();
-  std::vector<int32_t> rect(4 * N, 0);
-  std::vector<int64_t> live;
-  live.reserve(N);
-  for (int64_t i = 0; i < N; ++i) {
-    const double r = static_cast<double>(pr[i]);
-    const double mx = pm[2 * i], my = pm[2 * i + 1];
-    const double t = cull_level(po[i]);
-    if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) continue;
-    double det = pc[3 * i] * pc[3 * i + 2] - pc[3 * i + 1] * pc[3 * i + 1];
-    if (!(det > 0)) det = 1.0;
-    const double ex = std::sqrt(t * pc[3 * i + 2] / det) + 1.0;
-    const double ey = std::sqrt(t * pc[3 * i] / det) + 1.0;
-    pe[3 * i] = ex;
-    pe[3 * i + 1] = ey;
-    pe[3 * i + 2] = t;
-    auto clampt = [](double v, int64_t hi) {
-      return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
-    };
-    const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
-    const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
-    const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
-    const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
-    if (x1 <= x0 || y1 <= y0) continue;
-    rect[4 * i] = x0;
-    rect[4 * i + 1] = x1;
-    rect[4 * i + 2] = y0;
-    rect[4 * i + 3] = y1;
-    live.push_back(i);
-  }
-  std::stable_sort(live.begin(), live.end(), [pd](int64_t a, int64_t b) { return pd[a] < pd[b]; });
+  // What the tile emission needs of a Gaussian, in one cache line: gathered
+  // in depth order below, so that the emission reads memory sequentially.
+  struct Bin {
+    double mx, my;
+    dibrgs::Chords ch;
+    int32_t x0, x1, y0, y1, id, pad;
+  };
+  std::vector<Bin> bins(N);  // filled for live Gaussians only
+  std::vector<uint8_t> alive(N, 0);
+  at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      const double r = static_cast<double>(pr[i]);
+      const double mx = pm[2 * i], my = pm[2 * i + 1];
+      const double t = cull_level(po[i]);
+      if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) continue;
+      double det = pc[3 * i] * pc[3 * i + 2] - pc[3 * i + 1] * pc[3 * i + 1];
+      if (!(det > 0)) det = 1.0;
+      const double ex = std::sqrt(t * pc[3 * i + 2] / det) + 1.0;
+      const double ey = std::sqrt(t * pc[3 * i] / det) + 1.0;
+      auto clampt = [](double v, int64_t hi) {
+        return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
+      };
+      const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
+      const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
+      const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
+      const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
+      if (x1 <= x0 || y1 <= y0) continue;
+      bins[i] = Bin{mx, my, dibrgs::Chords(pc[3 * i], pc[3 * i + 1], pc[3 * i + 2], t),
+                    x0, x1, y0, y1, static_cast<int32_t>(i), 0};
+      alive[i] = 1;
+    }
+  });
+  std::vector<uint64_t> key;
+  std::vector<int32_t> live;
+  for (int64_t i = 0; i < N; ++i)
+    if (alive[i]) {
+      key.push_back(depth_key(pd[i]));
+      live.push_back(static_cast<int32_t>(i));
+    }
+  radix_sort(key, live);
+  const int64_t nlive = static_cast<int64_t>(live.size());
+  std::vector<Bin> order(nlive);
+  at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t j = b; j < e; ++j) order[j] = bins[live[j]];
+  });
   // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in
-  // depth order (the rectangle's corner tiles are often missed).
-  std::vector<int32_t> hits, hit_ids;
-  hits.reserve(4 * live.size());
-  hit_ids.reserve(4 * live.size());
-  auto offsets = torch::zeros({tx * ty + 1}, torch::kInt64);
-  int64_t* off = offsets.data_ptr<int64_t>();
-  for (int64_t i : live) {
-    // A one-tile-wide (or tall) rectangle already spans the ellipse's extent.
-    const bool test = rect[4 * i + 1] - rect[4 * i] > 1 && rect[4 * i + 3] - rect[4 * i + 2] > 1;
-    for (int32_t y = rect[4 * i + 2]; y < rect[4 * i + 3]; ++y)
-      for (int32_t x = rect[4 * i]; x < rect[4 * i + 1]; ++x)
-        if (!test || ellipse_meets_tile(pm[2 * i], pm[2 * i + 1], pc + 3 * i, pe[3 * i + 2], x, y)) {
-          hits.push_back(static_cast<int32_t>(y * tx + x));
-          hit_ids.push_back(static_cast<int32_t>(i));
-          off[y * tx + x + 1] += 1;
-        }
-  }
-  for (int64_t t = 0; t < tx * ty; ++t) off[t + 1] += off[t];
-  auto gids = torch::empty({off[tx * ty]}, torch::kInt32);
-  int32_t* pg = gids.data_ptr<int32_t>();
-  std::vector<int64_t> pos(off, off + tx * ty);
-  for (size_t h = 0; h < hits.size(); ++h) pg[pos[hits[h]]++] = hit_ids[h];
-  return {offsets, gids, ext};
-}
-
-template <typename T>
-static void forward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
-                         const double* pe, int64_t C, int64_t W, int64_t H, T* out, T* tfin, int32_t* ncon) {
-  typedef typename Vec<T>::V V;
-  typedef typename Vec<T>::I I;
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
-  run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<V> acc(C * TILE);
-    V Tv[TILE];
-    I done[TILE], last[TILE];
-    bool alive[TILE];
-    TileData<T> td;
-    V lane;
-    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
-    for (int64_t tile = next++; tile < tx * ty; tile = next++) {
-      const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
-      const V xs = lane + (T(tx0) + T(0.5));  // pixel centres of a row
-      const I outx = __builtin_convertvector(lane, I) >= static_cast<int>(W - tx0);
-      int nalive = 0;
-      for (int r = 0; r < TILE; ++r) {
-        Tv[r] = splat<V>(T(1));
-        last[r] = splat<I>(0);
-        done[r] = ty0 + r >= H ? splat<I>(-1) : outx;
-        alive[r] = ty0 + r < H;
-        nalive += alive[r];
-      }
-      std::fill(acc.begin(), acc.end(), splat<V>(T(0)));
-      const int64_t s = off[tile], n = off[tile + 1] - s;
-      td.load(pm, pc, po, pf, pe, pg + s, n, C, ty0, static_cast<int>(H));
-      for (int64_t k = 0; k < n && nalive > 0; ++k) {
-        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
-        const T* fk = td.f.data() + k * C;
-        const V dx = mx - xs;
-        const V adx2 = a * dx * dx;
-        const V bdx = b * dx;
-        const I kk = splat<I>(static_cast<int32_t>(k + 1));
-        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
-          if (!alive[r]) continue;
-          const T dy = my - (T(ty0 + r) + T(0.5));
-          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
-          const V oG = o * vexp(power);
-          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
-          const I cand = ~done[r] & (power <= T(0)) & (al >= T(ALPHA_MIN));
-          if (!any(cand)) continue;
-          const V testT = Tv[r] * (T(1) - al);
-          const I stop = cand & (testT < T(T_MIN));
-          const I valid = cand & ~stop;
-          const V w = valid ? al * Tv[r] : splat<V>(T(0));
-          Tv[r] = valid ? testT : Tv[r];
-          last[r] = valid ? kk : last[r];
-          if (any(stop)) {
-            done[r] |= stop;
-            if (!any(~done[r])) {
-              alive[r] = false;
-              --nalive;
-            }
+  // depth order, with the segments it reaches there: chunks of the depth
+  // order list their hits in parallel, then scatter them.
+  const int64_t nchunk = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads() * 4, nlive / 4096));
+  struct Hit {
+    int32_t tile, id;
+    uint64_t mask;
+  };
+  std::vector<std::vector<Hit>> hits(nchunk);
+  std::vector<std::vector<int64_t>> counts(nchunk);
+  const bool dbl = means2d.scalar_type() == torch::kFloat64;
+  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      auto& ht = hits[c];
+      auto& cnt = counts[c];
+      cnt.assign(ntiles, 0);
+      const int64_t j0 = nlive * c / nchunk, j1 = nlive * (c + 1) / nchunk;
+      ht.reserve(4 * (j1 - j0));
+      for (int64_t j = j0; j < j1; ++j) {
+        const Bin& g = order[j];
+        for (int32_t y = g.y0; y < g.y1; ++y)
+          for (int32_t x = g.x0; x < g.x1; ++x) {
+            const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
+            const uint64_t mk = dbl ? dibrgs::segment_mask<double>(g.ch, mxr, myr)
+                                    : dibrgs::segment_mask<float>(g.ch, mxr, myr);
+            if (mk == 0) continue;  // no pixel of this tile can reach alpha >= 1/255
+            ht.push_back(Hit{static_cast<int32_t>(y * tx + x), g.id, mk});
+            ++cnt[y * tx + x];
           }
-          for (int64_t ch = 0; ch < C; ++ch) acc[ch * TILE + r] += w * fk[ch];
-        }
-      }
-      for (int r = 0; r < TILE; ++r) {
-        const int64_t Y = ty0 + r;
-        if (Y >= H) break;
-        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
-          const int64_t pix = Y * W + tx0 + x;
-          for (int64_t ch = 0; ch < C; ++ch) out[pix * C + ch] = acc[ch * TILE + r][x];
-          tfin[pix] = Tv[r][x];
-          ncon[pix] = static_cast<int32_t>(last[r][x]);
-        }
       }
     }
+  });
+  auto offsets = torch::zeros({ntiles + 1}, torch::kInt64);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  // Start of each chunk's run in each tile: tiles in order, chunks in order.
+  for (int64_t t = 0; t < ntiles; ++t) {
+    int64_t pos = off[t];
+    for (int64_t c = 0; c < nchunk; ++c) {
+      const int64_t n = counts[c][t];
+      counts[c][t] = pos;
+      pos += n;
+    }
+    off[t + 1] = pos;
+  }
+  auto gids = torch::empty({off[ntiles]}, torch::kInt32);
+  auto masks = torch::empty({off[ntiles]}, torch::kInt64);
+  int32_t* pg = gids.data_ptr<int32_t>();
+  uint64_t* pk = reinterpret_cast<uint64_t*>(masks.data_ptr<int64_t>());
+  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      auto& pos = counts[c];
+      for (const Hit& h : hits[c]) {
+        const int64_t p = pos[h.tile]++;
+        pg[p] = h.id;
+        pk[p] = h.mask;
+      }
+    }
+  });
+  return {offsets, gids, masks};
+}
+
+// Compositing: per-Gaussian records (make_records), then the tiles.
+
+template <typename T>
+dibrgs::Scene<T> scene(const torch::Tensor& rec, const torch::Tensor& offsets, const torch::Tensor& gids,
+                       const torch::Tensor& masks, int64_t W, int64_t H) {
+  return dibrgs::Scene<T>{rec.data_ptr<T>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
+                          reinterpret_cast<const uint64_t*>(masks.data_ptr<int64_t>()), rec.size(1) - dibrgs::G_F,
+                          W, H, (W + TILE - 1) / TILE};
+}
+
+// Records (N, G_F + C) of the Gaussians for the kernels (see composite.h).
+torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats) {
+  const int64_t N = feats.size(0), C = feats.size(1);
+  auto rec = torch::empty({N, dibrgs::G_F + C}, feats.options());
+  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_records", [&] {
+    const scalar_t *pm = means2d.data_ptr<scalar_t>(), *pc = conics.data_ptr<scalar_t>();
+    const scalar_t *po = opac.data_ptr<scalar_t>(), *pf = feats.data_ptr<scalar_t>();
+    scalar_t* pr = rec.data_ptr<scalar_t>();
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pf, b, e, C, pr); });
+  });
+  return rec;
+}
+
+// Compile-time channel counts of the kernels (RGB / 1 channel + depth +
+// alpha in rasterize); others run with the count at run time.
+template <typename F>
+void by_channels(int64_t C, F&& f) {
+  switch (C) {
+    case 5: f(std::integral_constant<int, 5>()); break;
+    case 3: f(std::integral_constant<int, 3>()); break;
+    default: f(std::integral_constant<int, 0>());
+  }
+}
+
+template <typename T, bool STATS>
+void forward_tiles(const dibrgs::Scene<T>& sc, T* out, T* tfin, int32_t* ncon, dibrgs::Stats* stats) {
+  const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
+  by_channels(sc.C, [&](auto ct) {
+    std::mutex mu;
+    run_workers([&](std::atomic<int64_t>& next) {
+      dibrgs::Workspace<T> ws;
+      dibrgs::Stats st;
+      for (int64_t t = next++; t < tiles; t = next++)
+        dibrgs::forward_tile<T, decltype(ct)::value, STATS>(sc, t, ws, out, tfin, ncon, &st);
+      if (STATS) {
+        std::lock_guard<std::mutex> lock(mu);
+        stats->add(st);
+      }
+    });
   });
 }
 
 // Forward compositing. Returns (out (H, W, C), T_final (H, W), n_contrib
-// (H, W) int32: 1 + tile-list position of the last Gaussian composited).
+// (H, W) int32: 1 + tile-list position of the last Gaussian composited, the
+// Gaussian records for backward).
 std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                   torch::Tensor ext, int64_t W, int64_t H) {
+                                   torch::Tensor masks, int64_t W, int64_t H) {
   const int64_t C = feats.size(1);
-  auto out = torch::zeros({H, W, C}, feats.options());
-  auto tfin = torch::ones({H, W}, feats.options());
-  auto ncon = torch::zeros({H, W}, torch::dtype(torch::kInt32));
+  auto rec = records(means2d, conics, opac, feats);
+  auto out = torch::empty({H, W, C}, feats.options());
+  auto tfin = torch::empty({H, W}, feats.options());
+  auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_forward", [&] {
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           feats.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
-                           ext.data_ptr<double>(), C, W, H, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
-                           ncon.data_ptr<int32_t>());
+    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), out.data_ptr<scalar_t>(),
+                                   tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), nullptr);
   });
-  return {out, tfin, ncon};
+  return {out, tfin, ncon, rec};
+}
+
+template <typename T, bool STATS>
+void backward_tiles(const dibrgs::Scene<T>& sc, const T* gout, const T* tfin, const int32_t* ncon, T* buf,
+                    dibrgs::Stats* stats) {
+  const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
+  by_channels(sc.C, [&](auto ct) {
+    std::mutex mu;
+    run_workers([&](std::atomic<int64_t>& next) {
+      dibrgs::Workspace<T> ws;
+      dibrgs::Stats st;
+      for (int64_t t = next++; t < tiles; t = next++)
+        dibrgs::backward_tile<T, decltype(ct)::value, STATS>(sc, t, ws, gout, tfin, ncon, buf, &st);
+      if (STATS) {
+        std::lock_guard<std::mutex> lock(mu);
+        stats->add(st);
+      }
+    });
+  });
 }
 
 template <typename T>
-static void backward_impl(const T* pm, const T* pc, const T* po, const T* pf, const int64_t* off, const int32_t* pg,
-                          const double* pe, const T* gout, const T* tfin, const int32_t* ncon, int64_t C, int64_t W,
-                          int64_t H, T* gm, T* gc, T* go, T* gf) {
-  typedef typename Vec<T>::V V;
-  typedef typename Vec<T>::I I;
-  const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE;
-  const int64_t G = 6 + C;  // per intersection: mx, my, a, b, c, o, feats
-  const int64_t M = off[tx * ty];
-  std::vector<T> buf(M * G);
-  run_workers([&](std::atomic<int64_t>& next) {
-    std::vector<V> S(C * TILE), D(C * TILE), gfv(C);
-    V Tv[TILE];
-    I last[TILE];
-    int rowmax[TILE];
-    TileData<T> td;
-    V lane;
-    for (int i = 0; i < TILE; ++i) lane[i] = static_cast<T>(i);
-    const V zero = splat<V>(T(0));
-    for (int64_t tile = next++; tile < tx * ty; tile = next++) {
-      const int64_t s = off[tile], e = off[tile + 1];
-      if (e == s) continue;
-      const int ty0 = static_cast<int>((tile / tx) * TILE), tx0 = static_cast<int>((tile % tx) * TILE);
-      const V xs = lane + (T(tx0) + T(0.5));
-      int maxnc = 0;
-      for (int r = 0; r < TILE; ++r) {
-        Tv[r] = splat<V>(T(1));
-        last[r] = splat<I>(0);
-        rowmax[r] = 0;
-        for (int64_t ch = 0; ch < C; ++ch) S[ch * TILE + r] = D[ch * TILE + r] = zero;
-        const int64_t Y = ty0 + r;
-        if (Y >= H) continue;
-        for (int x = 0; x < TILE && tx0 + x < W; ++x) {
-          const int64_t pix = Y * W + tx0 + x;
-          Tv[r][x] = tfin[pix];
-          last[r][x] = ncon[pix];
-          rowmax[r] = std::max(rowmax[r], ncon[pix]);
-          for (int64_t ch = 0; ch < C; ++ch) D[ch * TILE + r][x] = gout[pix * C + ch];
-        }
-        maxnc = std::max(maxnc, rowmax[r]);
-      }
-      td.load(pm, pc, po, pf, pe, pg + s, maxnc, C, ty0, static_cast<int>(H));
-      for (int64_t k = maxnc - 1; k >= 0; --k) {
-        const T mx = td.mx[k], my = td.my[k], a = td.a[k], b = td.b[k], c = td.c[k], o = td.o[k];
-        const T* fk = td.f.data() + k * C;
-        const V dx = mx - xs;
-        const V adx2 = a * dx * dx;
-        const V bdx = b * dx;
-        const I kk = splat<I>(static_cast<int32_t>(k));
-        V gmx = zero, gmy = zero, ga = zero, gb = zero, gcc = zero, gop = zero;
-        bool any_row = false;
-        for (int r = td.r0[k]; r <= td.r1[k]; ++r) {
-          if (k >= rowmax[r]) continue;
-          const T dy = my - (T(ty0 + r) + T(0.5));
-          const V power = T(-0.5) * (adx2 + c * dy * dy) - bdx * dy;
-          const V Gv = vexp(power);
-          const V oG = o * Gv;
-          const V al = oG < T(ALPHA_MAX) ? oG : splat<V>(T(ALPHA_MAX));
-          const I valid = (kk < last[r]) & (power <= T(0)) & (al >= T(ALPHA_MIN));
-          if (!any(valid)) continue;
-          if (!any_row) {
-            std::fill(gfv.begin(), gfv.end(), zero);
-            any_row = true;
-          }
-          // T before this Gaussian, from the one after it.
-          Tv[r] = valid ? Tv[r] / (T(1) - al) : Tv[r];
-          const V va = valid ? al : zero;
-          const V wgt = va * Tv[r];  // this Gaussian's weight at each pixel
-          // dL/dalpha = T * sum_ch D (f - S), S = what lies behind it (masked below).
-          V dsum = zero;
-          for (int64_t ch = 0; ch < C; ++ch) {
-            V& Sr = S[ch * TILE + r];
-            const V Dr = D[ch * TILE + r];
-            const V diff = fk[ch] - Sr;
-            dsum += Dr * diff;
-            gfv[ch] += wgt * Dr;
-            Sr += va * diff;
-          }
-          // No gradient through the 0.99 clamp (as torch.clamp).
-          const V dla = (valid & (oG <= T(ALPHA_MAX))) ? dsum * Tv[r] : zero;
-          const V dp = oG * dla;
-          gop += Gv * dla;
-          gmx -= dp * (a * dx + b * dy);
-          gmy -= dp * (c * dy + bdx);
-          ga -= T(0.5) * dp * dx * dx;
-          gb -= dp * dx * dy;
-          gcc -= T(0.5) * dp * dy * dy;
-        }
-        T* bk = buf.data() + (s + k) * G;
-        if (!any_row) continue;  // buf is zero-initialised
-        bk[0] = hsum(gmx);
-        bk[1] = hsum(gmy);
-        bk[2] = hsum(ga);
-        bk[3] = hsum(gb);
-        bk[4] = hsum(gcc);
-        bk[5] = hsum(gop);
-        for (int64_t ch = 0; ch < C; ++ch) bk[6 + ch] = hsum(gfv[ch]);
+void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int64_t C, T* gm, T* gc, T* go, T* gf) {
+  const int64_t G = 6 + C;
+  // Deterministic: each Gaussian sums its entries in list order into one
+  // interleaved row (one cache line to miss, prefetched), threads owning
+  // ranges of Gaussians (each reads the whole list); then the rows are split.
+  std::vector<T> acc(N * G, T(0));
+  const int64_t nt = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), N / 1024));
+  at::parallel_for(0, nt, 1, [&](int64_t tb, int64_t te) {
+    for (int64_t t = tb; t < te; ++t) {
+      const int64_t g0 = N * t / nt, g1 = N * (t + 1) / nt;
+      for (int64_t k = 0; k < M; ++k) {
+        if (k + 16 < M) __builtin_prefetch(acc.data() + pg[k + 16] * G, 1);
+        const int64_t g = pg[k];
+        if (g < g0 || g >= g1) continue;
+        const T* b = buf + k * G;
+        T* a = acc.data() + g * G;
+        for (int64_t j = 0; j < G; ++j) a[j] += b[j];
       }
     }
   });
-  // Deterministic reduction (fixed order per Gaussian), parallel over columns.
-  at::parallel_for(0, G, 1, [&](int64_t cb, int64_t ce) {
-    for (int64_t col = cb; col < ce; ++col) {
-      T* dst;
-      int64_t stride, base;
-      if (col < 2) {
-        dst = gm, stride = 2, base = col;
-      } else if (col < 5) {
-        dst = gc, stride = 3, base = col - 2;
-      } else if (col == 5) {
-        dst = go, stride = 1, base = 0;
-      } else {
-        dst = gf, stride = C, base = col - 6;
-      }
-      for (int64_t k = 0; k < M; ++k) dst[pg[k] * stride + base] += buf[k * G + col];
+  at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t g = b; g < e; ++g) {
+      const T* a = acc.data() + g * G;
+      gm[2 * g] = a[0], gm[2 * g + 1] = a[1];
+      gc[3 * g] = a[2], gc[3 * g + 1] = a[3], gc[3 * g + 2] = a[4];
+      go[g] = a[5];
+      for (int64_t ch = 0; ch < C; ++ch) gf[g * C + ch] = a[6 + ch];
     }
   });
 }
 
 // Backward: gradients (means2d (N, 2), conics (N, 3), opac (N,), feats (N, C))
 // from the gradient of the composited features (H, W, C).
-std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                    torch::Tensor ext, torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon,
-                                    int64_t W, int64_t H) {
-  const int64_t C = feats.size(1);
-  auto gm = torch::zeros_like(means2d);
-  auto gc = torch::zeros_like(conics);
-  auto go = torch::zeros_like(opac);
-  auto gf = torch::zeros_like(feats);
+std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor masks,
+                                    torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
+  const int64_t N = rec.size(0), C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
+  auto opts = rec.options();
+  auto gm = torch::empty({N, 2}, opts), gc = torch::empty({N, 3}, opts);
+  auto go = torch::empty({N}, opts), gf = torch::empty({N, C}, opts);  // every row is written
+  auto buf = torch::empty({M * (6 + C)}, opts);  // every entry is written
   auto go_c = gout.contiguous();
-  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_backward", [&] {
-    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                            feats.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), gids.data_ptr<int32_t>(),
-                            ext.data_ptr<double>(), go_c.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
-                            ncon.data_ptr<int32_t>(), C, W, H, gm.data_ptr<scalar_t>(), gc.data_ptr<scalar_t>(),
-                            go.data_ptr<scalar_t>(), gf.data_ptr<scalar_t>());
+  AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_backward", [&] {
+    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), go_c.data_ptr<scalar_t>(),
+                                    tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(),
+                                    nullptr);
+    reduce_gradients<scalar_t>(buf.data_ptr<scalar_t>(), gids.data_ptr<int32_t>(), M, N, C, gm.data_ptr<scalar_t>(),
+                               gc.data_ptr<scalar_t>(), go.data_ptr<scalar_t>(), gf.data_ptr<scalar_t>());
   });
   return {gm, gc, go, gf};
 }
 
+// Instrumented forward and backward (for benchmarks): int64 (2, 5), rows
+// forward / backward, columns (Gaussian, vector) pairs evaluated, (Gaussian,
+// pixel) pairs evaluated, pairs that composited / carried a gradient, list
+// entries that reached a vector, list entries.
+torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor masks,
+                              torch::Tensor gout, int64_t W, int64_t H) {
+  const int64_t C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
+  auto opts = rec.options();
+  auto out = torch::empty({H, W, C}, opts), tfin = torch::empty({H, W}, opts);
+  auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
+  auto buf = torch::empty({M * (6 + C)}, opts);
+  auto res = torch::zeros({2, 5}, torch::kInt64);
+  int64_t* r = res.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_stats", [&] {
+    const auto sc = scene<scalar_t>(rec, offsets, gids, masks, W, H);
+    dibrgs::Stats f, b;
+    forward_tiles<scalar_t, true>(sc, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), &f);
+    backward_tiles<scalar_t, true>(sc, gout.contiguous().data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
+                                   ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(), &b);
+    int i = 0;
+    for (const auto* s : {&f, &b}) {
+      r[i++] = s->vectors, r[i++] = s->lanes, r[i++] = s->contrib, r[i++] = s->gaussians, r[i++] = s->entries;
+    }
+  });
+  return res;
+}
+
+// The vector code path this build uses, and its float lanes.
+std::string simd() { return std::string(dibrgs::simd_name()) + " x" + std::to_string(dibrgs::VBYTES / 4); }
 
 // ---------------------------------------------------------------------------
 // Projection (EWA splatting), fused forward and backward. Same maths as
@@ -632,6 +512,15 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
     at::parallel_for(0, N, 4096, [&](int64_t b0, int64_t b1) {
       ProjState st;
       for (int64_t i = b0; i < b1; ++i) {
+        // The backward is linear in the incoming gradients: none (a Gaussian
+        // no tile lists) gives zeros, without the projection's work.
+        if (gm2[2 * i] == 0 && gm2[2 * i + 1] == 0 && gc[3 * i] == 0 && gc[3 * i + 1] == 0 && gc[3 * i + 2] == 0 &&
+            gd[i] == 0) {
+          std::fill(om + 3 * i, om + 3 * i + 3, scalar_t(0));
+          std::fill(oq + 4 * i, oq + 4 * i + 4, scalar_t(0));
+          std::fill(os + 3 * i, os + 3 * i + 3, scalar_t(0));
+          continue;
+        }
         project_one(cm, pm + 3 * i, pq + 4 * i, ps + 3 * i, near, far, st);
         const double g0 = gc[3 * i], g1 = gc[3 * i + 1], g2 = gc[3 * i + 2];
         const double ids = 1.0 / st.det_s;
@@ -697,6 +586,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
   m.def("backward", &backward, "gradients of the compositing");
+  m.def("composite_stats", &composite_stats, "instrumented compositing (pair counts)");
+  m.def("simd", &simd, "vector code path of this build");
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
   m.def("project_backward", &project_backward, "gradients of the projection");
 }
