@@ -267,14 +267,20 @@ class IBRFeatures(nn.Module):
     # -- the factorised path -------------------------------------------------------
     @torch.no_grad()
     def _sample_rows(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`anchor_rows` of positions ``X`` (M,3), computed."""
-        R, t = self.w2c[:, :3, :3], self.w2c[:, :3, 3]
-        Xc = torch.einsum("vij,nj->vni", R, X) + t[:, None, :]  # (V,M,3)
-        z = Xc[..., 2]
+        """:meth:`anchor_rows` of positions ``X`` (M,3), computed.
+
+        Element-wise arithmetic only (no matmul, whose blocking depends on M), so a row is
+        bit-identical whichever anchors it is computed with: a resumed run, which samples
+        every anchor at once, matches one that sampled them as they appeared.
+        """
+        R, t, K = self.w2c[:, None, :3, :3], self.w2c[:, None, :3, 3], self.K[:, None]
+        x, y, zz = X[:, 0], X[:, 1], X[:, 2]
+        xc, yc, z = (R[..., i, 0] * x + R[..., i, 1] * y + R[..., i, 2] * zz + t[..., i] for i in range(3))
         front = z > 1e-6
         zs = torch.where(front, z, torch.ones_like(z))
-        pix = torch.einsum("vij,vnj->vni", self.K, Xc / zs[..., None])
-        u, v = pix[..., 0], pix[..., 1]
+        xn, yn = xc / zs, yc / zs
+        u = K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2]
+        v = K[..., 1, 0] * xn + K[..., 1, 1] * yn + K[..., 1, 2]
         ok = front & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
         grid = torch.stack([2.0 * u / self.width - 1.0, 2.0 * v / self.height - 1.0], dim=-1)
         grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into the taps
