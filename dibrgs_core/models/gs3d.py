@@ -38,26 +38,39 @@ def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb - 0.5) / _C0
 
 
-def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Colour from SH coefficients ``sh`` (N, 16, 3) for unit directions ``dirs`` (N, 3)."""
-    res = _C0 * sh[:, 0]
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Real SH basis (N, (degree+1)^2) at unit directions ``dirs`` (N, 3), 3DGS's sign convention."""
+    x, y, z = dirs.unbind(1)
+    cols = [torch.full_like(x, _C0)]
+    if degree >= 1:
+        cols += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        cols += [_C2[0] * xy, _C2[1] * yz, _C2[2] * (2.0 * zz - xx - yy), _C2[3] * xz, _C2[4] * (xx - yy)]
+    if degree >= 3:
+        cols += [_C3[0] * y * (3 * xx - yy), _C3[1] * xy * z, _C3[2] * y * (4 * zz - xx - yy),
+                 _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
+                 _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(cols, 1)
+
+
+def eval_sh_split(degree: int, sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Colour (N, 3) from the DC coefficient ``sh_dc`` (N, 1, 3) and the higher ones ``sh_rest``
+    (N, K-1, 3), K >= (degree+1)^2, at unit directions ``dirs`` (N, 3).
+
+    One basis matrix times the coefficients (a batched matmul): the backward pass allocates
+    one gradient of ``sh_rest``'s active part, not one full-size gradient per coefficient.
+    """
+    res = _C0 * sh_dc.squeeze(1)
     if degree < 1:
         return res
-    x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-    res = res - _C1 * y * sh[:, 1] + _C1 * z * sh[:, 2] - _C1 * x * sh[:, 3]
-    if degree < 2:
-        return res
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    res = (res + _C2[0] * xy * sh[:, 4] + _C2[1] * yz * sh[:, 5]
-           + _C2[2] * (2.0 * zz - xx - yy) * sh[:, 6] + _C2[3] * xz * sh[:, 7]
-           + _C2[4] * (xx - yy) * sh[:, 8])
-    if degree < 3:
-        return res
-    return (res + _C3[0] * y * (3 * xx - yy) * sh[:, 9] + _C3[1] * xy * z * sh[:, 10]
-            + _C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
-            + _C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-            + _C3[4] * x * (4 * zz - xx - yy) * sh[:, 13] + _C3[5] * z * (xx - yy) * sh[:, 14]
-            + _C3[6] * x * (xx - 3 * yy) * sh[:, 15])
+    nc = (degree + 1) ** 2
+    return res + torch.einsum("nk,nkc->nc", sh_basis(degree, dirs)[:, 1:], sh_rest[:, :nc - 1])
+
+
+def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Colour from SH coefficients ``sh`` (N, 16, 3) for unit directions ``dirs`` (N, 3)."""
+    return eval_sh_split(degree, sh[:, :1], sh[:, 1:], dirs)
 
 
 class Gaussians3D(nn.Module):
@@ -93,8 +106,7 @@ class Gaussians3D(nn.Module):
         """(means, quats wxyz unit, scales, opacities, colours) for one camera centre."""
         d = self.means - cam_center
         d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)
-        rgb = (eval_sh(self.active_sh_degree, sh, d) + 0.5).clamp_min(0.0)
+        rgb = (eval_sh_split(self.active_sh_degree, self.sh_dc, self.sh_rest, d) + 0.5).clamp_min(0.0)
         q = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return (self.means, q, torch.exp(self.log_scales.clamp(-30.0, 20.0)),
                 torch.sigmoid(self.opacity), rgb)

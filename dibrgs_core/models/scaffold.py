@@ -133,16 +133,18 @@ class NeuralGaussians(nn.Module):
         # visibility mask (N,) -> IBR features (M, C_r) of the visible anchors, or None
         self._ibr: Callable[[torch.Tensor], torch.Tensor] | None = None
 
-    def set_ibr(self, source: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor | None) -> None:
-        """Where IBR features come from: a module mapping anchor positions (M,3) to features
-        (M, C_r) (evaluated on the visible anchors, positions detached), or a tensor (N, C_r)
-        of per-anchor features (indexed by visibility), or None."""
+    def set_ibr(self, source: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | torch.Tensor | None
+                ) -> None:
+        """Where IBR features come from: a module mapping every anchor position (N,3)
+        (detached) and a mask (N,) to the features (M, C_r) of the masked anchors (it may
+        cache per anchor), or a tensor (N, C_r) of per-anchor features (indexed by the
+        mask), or None."""
         if source is None:
             self._ibr = None
         elif isinstance(source, torch.Tensor):
             self._ibr = lambda vis: source[vis]
         else:
-            self._ibr = lambda vis: source(self.anchor[vis].detach())
+            self._ibr = lambda vis: source(self.anchor.detach(), vis)
 
     @property
     def num_anchors(self) -> int:

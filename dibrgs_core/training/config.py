@@ -148,7 +148,9 @@ class TrainConfig:
     # Book-keeping
     checkpoint_every_s: float = 300.0
     curve_every_s: float = 60.0         # training wall-clock seconds between curve points
-    curve_max_views: int | None = None  # evaluate at most this many held-out views per point
+    # Held-out views a curve point evaluates (evenly spread, the same at every point; None = all);
+    # the last point evaluates all of them.
+    curve_max_views: int | None = 4
     progress_every: int = 10
     model: ModelConfig = field(default_factory=ModelConfig)
     growth: GrowthConfig = field(default_factory=GrowthConfig)
@@ -227,7 +229,7 @@ def preset(name: PresetName) -> TrainConfig:
         return c
     if name == "test":
         c = TrainConfig(preset="test", iterations=300, checkpoint_every_s=30.0, curve_every_s=10.0,
-                        curve_max_views=4, progress_every=25)
+                        progress_every=25)
         c.model.max_init_anchors = 800
         c.growth.max_anchors = 2000
         c.pseudo.n_views = 4

@@ -1,5 +1,9 @@
 """Error against run time: held-out PSNR / SSIM at points of the training wall-clock.
 
+Each point evaluates a fixed, evenly spread subset of the held-out views
+(``TrainConfig.curve_max_views``), the last point all of them; rendering runs without
+autograd and its time is not training time.
+
 ``curve.csv`` has one row a point (``seconds`` of training, evaluation and checkpoint time
 excluded; ``iteration``; ``psnr`` in dB; ``ssim``); ``curve.png`` plots both against seconds.
 """
@@ -21,21 +25,33 @@ from .losses import psnr, ssim
 CURVE_COLUMNS = ["seconds", "iteration", "psnr", "ssim"]
 
 
+def curve_views(n: int, max_views: int | None) -> list[int]:
+    """Indices of the held-out views a curve point evaluates: all ``n``, or ``max_views`` of
+    them evenly spread (the same ones at every point, so points compare)."""
+    if not max_views or n <= max_views:
+        return list(range(n))
+    return np.unique(np.linspace(0, n - 1, max_views).round().astype(int)).tolist()
+
+
 @torch.no_grad()
-def evaluate_heldout(model: Any, frames: list[Frame], background: torch.Tensor,
-                     max_views: int | None = None) -> tuple[float, float]:
-    """Mean PSNR and SSIM of ``model`` on ``frames`` (at most ``max_views`` of them, evenly spread)."""
-    if max_views and len(frames) > max_views:
-        idx = np.linspace(0, len(frames) - 1, max_views).round().astype(int)
-        frames = [frames[i] for i in idx]
-    if not frames:
-        return float("nan"), float("nan")
+def heldout_scores(model: Any, frames: list[Frame], background: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """PSNR and SSIM of ``model`` on each of ``frames`` (no autograd)."""
     ps, ss = [], []
     for f in frames:
         img = render_model(model, f.cam, background)[0].clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
         ss.append(float(ssim(img, f.image)))
-    return float(np.mean(ps)), float(np.mean(ss))
+    return np.asarray(ps, dtype=np.float64), np.asarray(ss, dtype=np.float64)
+
+
+def evaluate_heldout(model: Any, frames: list[Frame], background: torch.Tensor,
+                     max_views: int | None = None) -> tuple[float, float]:
+    """Mean PSNR and SSIM of ``model`` on ``frames`` (at most ``max_views`` of them, evenly spread)."""
+    frames = [frames[i] for i in curve_views(len(frames), max_views)]
+    if not frames:
+        return float("nan"), float("nan")
+    ps, ss = heldout_scores(model, frames, background)
+    return float(ps.mean()), float(ss.mean())
 
 
 def write_curve(path: Path, rows: list[dict[str, float]]) -> None:

@@ -47,7 +47,7 @@ from ..data.scene import Scene, require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig
-from .curve import evaluate_heldout, plot_curve, write_curve
+from .curve import curve_views, heldout_scores, plot_curve, write_curve
 from .frames import Frame, views_to_frames
 from .losses import photometric_loss
 from .methods import TrainingMethod
@@ -161,11 +161,22 @@ class Trainer:
         return ckpt
 
     # -- the curve -------------------------------------------------------------------
-    def _curve_point(self, it: int) -> None:
-        p, s = evaluate_heldout(self.method.model, self.test_frames, self.bg, self.cfg.curve_max_views)
+    def _curve_point(self, it: int, final: bool = False) -> None:
+        """A curve point: the configured subset of held-out views, all of them when ``final``
+        (the subset's mean is reported beside it). Called outside the training clock."""
+        t0 = time.perf_counter()
+        sub = curve_views(len(self.test_frames), self.cfg.curve_max_views)
+        idx = list(range(len(self.test_frames))) if final else sub
+        ps, ss = heldout_scores(self.method.model, [self.test_frames[i] for i in idx], self.bg)
+        p, s = (float(ps.mean()), float(ss.mean())) if len(idx) else (float("nan"), float("nan"))
         self.curve.append({"seconds": round(self.elapsed, 3), "iteration": it, "psnr": p, "ssim": s})
         write_curve(self.work / "curve.csv", self.curve)
-        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f", self.elapsed, it, p, s)
+        c = self.report.values.setdefault("curve", {"views_per_point": len(sub), "eval_seconds": 0.0})
+        c["eval_seconds"] += time.perf_counter() - t0  # this process's points
+        if final and len(idx):
+            c.update(views_final=len(idx), final_psnr_on_point_views=float(ps[sub].mean()))
+        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", self.elapsed, it, p, s,
+                 len(idx))
 
     # -- checkpoints ---------------------------------------------------------------
     def _save_checkpoint(self, it: int) -> None:
@@ -336,14 +347,17 @@ class Trainer:
                                 "elapsed_s": self.elapsed})
                 if self.elapsed >= self.next_curve_at and it < T:
                     self._curve_point(it)
-                    while self.next_curve_at <= self.elapsed:
-                        self.next_curve_at += cfg.curve_every_s
+                    # the next multiple of the interval (0: a point after every iteration)
+                    every = cfg.curve_every_s
+                    self.next_curve_at = (math.floor(self.elapsed / every) + 1) * every if every > 0 else 0.0
                 if time.monotonic() - last_ckpt >= cfg.checkpoint_every_s:
                     self._save_checkpoint(it)
                     last_ckpt = time.monotonic()
         bar.close()
-        if status == "done" and (not self.curve or self.curve[-1]["iteration"] != it):
-            self._curve_point(it)
+        if status == "done":
+            if self.curve and self.curve[-1]["iteration"] == it:
+                self.curve.pop()  # the last point evaluates every held-out view
+            self._curve_point(it, final=True)
         self._save_checkpoint(it)
         self.report.values["sizes"] = model.sizes()
         self.report.values["skipped_steps"] = self.skipped
@@ -366,21 +380,32 @@ class Trainer:
         log.warning("iteration %d: %s; step skipped", it, why)
 
     def _grads_finite(self) -> bool:
-        for p in self.method.parameters():
-            if p.grad is not None and not torch.isfinite(p.grad).all():
-                return False
-        return True
+        return all_finite([p.grad for p in self.method.parameters()])
 
     @torch.no_grad()
     def _sanitize_params(self) -> None:
         """Keep parameters finite even under absurd learning rates (logged once per step)."""
-        bad = False
-        for p in self.method.parameters():
-            if not torch.isfinite(p).all():
-                torch.nan_to_num_(p, nan=0.0, posinf=1e6, neginf=-1e6)
-                bad = True
+        params = self.method.parameters()
+        if all_finite(params):
+            return
+        bad = [p for p in params if not torch.isfinite(p).all()]
+        for p in bad:
+            torch.nan_to_num_(p, nan=0.0, posinf=1e6, neginf=-1e6)
         if bad:
             log.warning("non-finite parameters replaced by finite values")
+
+
+def all_finite(tensors: list[torch.Tensor | None]) -> bool:
+    """Whether every element of ``tensors`` (None entries skipped) is finite.
+
+    One vectorised sum a tensor: a NaN or an infinity makes its sum non-finite, so a finite
+    sum proves the tensor finite. Only when a sum is not finite (a non-finite element, or
+    finite values overflowing float32) does the exact per-element test decide.
+    """
+    ts = [t for t in tensors if t is not None]
+    if not ts or bool(torch.isfinite(torch.stack([t.sum() for t in ts])).all()):
+        return True
+    return all(bool(torch.isfinite(t).all()) for t in ts)
 
 
 def train(scene_root: str | Path, work: str | Path, cfg: TrainConfig, **kw: Any) -> TrainResult:

@@ -4,7 +4,10 @@ Each training image goes once through a frozen encoder; a learnable projection
 ``P`` maps the encoder outputs to ``C_r`` channels and fuses them into one
 reference map per view of size ``(H//2, W//2)``. An anchor's IBR feature is the
 bilinear sample of that map at its projection, averaged over the training views
-where it lies in front of the camera and inside the image.
+where it lies in front of the camera and inside the image. Training never builds
+the maps: ``P`` is affine and the upsampling, sampling and averaging are blends
+with weights summing to 1, so each anchor's raw encoder features are sampled once
+(:mod:`.sampling`) and ``P`` is one small matmul an iteration (:meth:`IBRFeatures.forward`).
 
 Encoders (``IBRFeatures(encoder=...)``):
 
@@ -45,6 +48,7 @@ from ...common.errors import InputError
 from ...common.modes import IbrEncoder, choices
 from .pyramid import image_pyramid
 from .resnet import dino_resnet50
+from .sampling import upsampled_taps
 from .vit import dino_vitb8
 from .weights import load_backbone_weights
 
@@ -102,6 +106,7 @@ class IBRFeatures(nn.Module):
                              persistent=False)
 
         self._levels: list[str] = []
+        self._raw_dim = 0
         if encoder == "pyramid":
             feats = image_pyramid(images)
             self.proj = nn.ModuleDict({f"level{i}": nn.Conv2d(f.shape[1], self.c_r, 1)
@@ -120,12 +125,18 @@ class IBRFeatures(nn.Module):
                 self._add_feature(f"stage{i + 1}", f)
             self._add_feature("vit_tokens", tokens)
             self.register_buffer("feat_vit_cls", cls, persistent=False)
-        self._cache: tuple[tuple, torch.Tensor] | None = None
+        # anchor_rows cache: (position bits (N,3) int32, rows (N,D+1), view weights (N,V))
+        self._rows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._rows_generation = 0
+        self._projected: tuple[tuple, torch.Tensor] | None = None
 
     # -- construction helpers ----------------------------------------------
     def _add_feature(self, name: str, f: torch.Tensor) -> None:
-        self.register_buffer(f"feat_{name}", f.contiguous(), persistent=False)
+        # channels-last memory: (V*h*w, C) rows for the per-anchor gathers are a view
+        self.register_buffer(f"feat_{name}", f.contiguous(memory_format=torch.channels_last),
+                             persistent=False)
         self._levels.append(name)
+        self._raw_dim += f.shape[1]
 
     @staticmethod
     def _backbones(resnet_path, vit_path, resnet, vit) -> tuple[nn.Module, nn.Module]:
@@ -180,15 +191,9 @@ class IBRFeatures(nn.Module):
         ``P`` is applied at each level's own resolution (a 1x1 convolution is a
         per-pixel linear map), then ResNet/pyramid levels are upsampled
         bilinearly, ViT tokens repeated (nearest) and the CLS projection added
-        everywhere. Cached while no gradient can flow into ``P`` (frozen or
-        under ``torch.no_grad``); the cache key holds the parameters' versions,
-        so loading or changing weights invalidates it.
+        everywhere. :meth:`forward` gives what bilinear sampling of these maps
+        gives, without building them; this is its definition (tests, inspection).
         """
-        params = self.projection_parameters()
-        needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
-        key = tuple(p._version for p in params) + tuple(p.data_ptr() for p in params)
-        if not needs_grad and self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
         out = None
         for name in self._levels:
             f = getattr(self, f"feat_{name}").permute(0, 2, 3, 1)  # channels last
@@ -201,41 +206,110 @@ class IBRFeatures(nn.Module):
             out = y if out is None else out + y
         if self.encoder == "dino":
             out = out + self.proj["vit_cls"](self.feat_vit_cls)[:, :, None, None]
-        if needs_grad:
-            self._cache = None
-        else:
-            out = out.detach()
-            self._cache = (key, out)
         return out
 
-    def forward(self, anchors: torch.Tensor) -> torch.Tensor:
-        """IBR feature (N, C_r) of anchors (N,3) in world coordinates.
+    def forward(self, anchors: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """IBR features (M, C_r) of ``anchors[mask]`` ((N,3) world coordinates; all when
+        ``mask`` is None).
 
-        Bilinear ``grid_sample`` (align_corners=False, border) of
-        :meth:`feature_maps` at each anchor's projection, averaged over the
-        views where it is in front (z > 0) and inside the image; anchors seen
-        by no view get zeros. Anchor positions receive no gradient from here
-        (the features serve appearance, not geometry).
+        Equal (to float rounding) to bilinear ``grid_sample`` (align_corners=False, border)
+        of :meth:`feature_maps` at each anchor's projection, averaged over the views where
+        it is in front (z > 0) and inside the image; anchors seen by no view get zeros.
+        Computed the other way round: ``P`` is affine and the upsampling, the sampling and
+        the view average are blends whose weights sum to 1, so the anchor's raw encoder
+        features are sampled and averaged once (:meth:`anchor_rows`, cached per anchor
+        position) and ``P`` is one matmul per call. Anchor positions receive no gradient
+        from here (the features serve appearance, not geometry).
         """
-        maps = self.feature_maps()
-        X = anchors.detach().to(device=maps.device, dtype=maps.dtype)
-        if X.shape[0] == 0:
-            return maps.new_zeros((0, self.c_r))
-        R, t = self.w2c[:, :3, :3], self.w2c[:, :3, 3]
-        Xc = torch.einsum("vij,nj->vni", R, X) + t[:, None, :]  # (V,N,3)
-        z = Xc[..., 2]
+        rows, omega = self.anchor_rows(anchors)
+        params = self.projection_parameters()
+        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+            return self._project(rows if mask is None else rows[mask], omega if mask is None else omega[mask])
+        # No gradient can reach P (frozen, or evaluation): project every anchor once and
+        # keep it while neither P (its versions) nor the anchors change.
+        key = (self._rows_generation,) + tuple((p._version, p.data_ptr()) for p in params)
+        if self._projected is None or self._projected[0] != key:
+            with torch.no_grad():
+                self._projected = (key, self._project(rows, omega))
+        out = self._projected[1]
+        return out if mask is None else out[mask]
+
+    def anchor_rows(self, anchors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw encoder features, view-averaged, of each anchor (N, D+1) (last column: 1 if
+        any view sees it, else 0) and its view weights (N, V) (1/count where seen, else 0).
+
+        Cached for the last anchor tensor by the bits of its positions; when anchors are
+        added, pruned or reordered, rows of positions already cached are carried over
+        and only new positions are sampled.
+        """
+        X = anchors.detach().to(dtype=torch.float32, device=self.K.device).contiguous()
+        bits = X.view(torch.int32)
+        c = self._rows
+        if c is not None and c[0].shape == bits.shape and torch.equal(c[0], bits):
+            return c[1], c[2]
+        n, V = X.shape[0], self.K.shape[0]
+        rows = X.new_zeros((n, self._raw_dim + 1))
+        omega = X.new_zeros((n, V))
+        todo = torch.ones(n, dtype=torch.bool)
+        if c is not None and c[0].shape[0] and n:
+            _, inv = torch.unique(torch.cat([c[0], bits]), dim=0, return_inverse=True)
+            slot = torch.full((int(inv.max()) + 1,), -1, dtype=torch.long)
+            slot[inv[:c[0].shape[0]]] = torch.arange(c[0].shape[0])
+            src = slot[inv[c[0].shape[0]:]]
+            todo = src < 0
+            rows[~todo], omega[~todo] = c[1][src[~todo]], c[2][src[~todo]]
+        if todo.any():
+            rows[todo], omega[todo] = self._sample_rows(X[todo])
+        self._rows = (bits.clone(), rows, omega)
+        self._rows_generation += 1
+        return rows, omega
+
+    # -- the factorised path -------------------------------------------------------
+    @torch.no_grad()
+    def _sample_rows(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`anchor_rows` of positions ``X`` (M,3), computed.
+
+        Element-wise arithmetic only (no matmul, whose blocking depends on M), so a row is
+        bit-identical whichever anchors it is computed with: a resumed run, which samples
+        every anchor at once, matches one that sampled them as they appeared.
+        """
+        R, t, K = self.w2c[:, None, :3, :3], self.w2c[:, None, :3, 3], self.K[:, None]
+        x, y, zz = X[:, 0], X[:, 1], X[:, 2]
+        xc, yc, z = (R[..., i, 0] * x + R[..., i, 1] * y + R[..., i, 2] * zz + t[..., i] for i in range(3))
         front = z > 1e-6
         zs = torch.where(front, z, torch.ones_like(z))
-        pix = torch.einsum("vij,vnj->vni", self.K, Xc / zs[..., None])
-        u, v = pix[..., 0], pix[..., 1]
+        xn, yn = xc / zs, yc / zs
+        u = K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2]
+        v = K[..., 1, 0] * xn + K[..., 1, 1] * yn + K[..., 1, 2]
         ok = front & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
         grid = torch.stack([2.0 * u / self.width - 1.0, 2.0 * v / self.height - 1.0], dim=-1)
-        grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into grid_sample
-        s = F.grid_sample(maps, grid[:, None], mode="bilinear", padding_mode="border",
-                          align_corners=False)[:, :, 0]  # (V,C,N)
-        w = ok.to(maps.dtype)
-        total = (s * w[:, None]).sum(0)  # (C,N)
-        return (total / w.sum(0).clamp(min=1.0)).T
+        grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into the taps
+        w = ok.float()
+        omega = (w / w.sum(0).clamp(min=1.0)).T.contiguous()  # (M,V)
+        cols = []
+        for name in self._levels:
+            f = getattr(self, f"feat_{name}")  # (V,C,h,w), channels-last memory
+            V, C, h, wd = f.shape
+            mode = "nearest" if name == "vit_tokens" else "bilinear"
+            idx, wt = upsampled_taps(grid, (h, wd), self.map_size, mode)  # (V,M,16)
+            idx = idx + (torch.arange(V) * (h * wd))[:, None, None]
+            wt = wt * omega.T[..., None]
+            flat = f.permute(0, 2, 3, 1).reshape(V * h * wd, C)  # a view: no copy
+            cols.append(F.embedding_bag(idx.permute(1, 0, 2).reshape(X.shape[0], -1), flat,
+                                        per_sample_weights=wt.permute(1, 0, 2).reshape(X.shape[0], -1),
+                                        mode="sum"))
+        cols.append((omega.sum(1, keepdim=True) > 0).float())
+        return torch.cat(cols, 1), omega
+
+    def _project(self, rows: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+        """``P`` applied to :meth:`anchor_rows`: one matmul (weights of every level side by
+        side, their biases summed on the "seen" column) plus, for DINO, the CLS term."""
+        ws = [self.proj[n].weight.reshape(self.c_r, -1) for n in self._levels]
+        bias = torch.stack([self.proj[n].bias for n in self._levels]).sum(0)
+        out = F.linear(rows, torch.cat(ws + [bias[:, None]], 1))
+        if self.encoder == "dino":
+            out = out + omega @ self.proj["vit_cls"](self.feat_vit_cls)
+        return out
 
 
 def resolve_encoder(requested: str, dino_paths: tuple[str | Path | None, str | Path | None]

@@ -1,0 +1,156 @@
+"""The trainer's cheap guards and curve points: non-finite gradients never reach the parameters
+(injected NaN), curve points evaluate a fixed subset of held-out views (all at the end) outside
+the training clock."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dibrgs_core.training import curve as curve_module
+from dibrgs_core.training import trainer as trainer_module
+from dibrgs_core.training.config import preset
+from dibrgs_core.training.curve import curve_views, evaluate_heldout
+from dibrgs_core.training.trainer import Trainer, all_finite
+from train_synth import make_synth_scene
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> Path:
+    return make_synth_scene(tmp_path_factory.mktemp("synth") / "s32", resolution=32)
+
+
+@pytest.fixture(scope="module")
+def init_cache(synth, tmp_path_factory) -> Path:
+    """``init/`` (geometry and SfM points) made once; every run below starts from a copy."""
+    work = tmp_path_factory.mktemp("runs") / "base"
+    for method in ("dibrgs", "3dgs"):
+        Trainer(synth, work, _cfg(1, method)).setup()
+    return work / "init"
+
+
+def _work(init_cache: Path, work: Path) -> Path:
+    shutil.copytree(init_cache, work / "init")
+    return work
+
+
+def _cfg(iterations: int, method: str = "dibrgs"):
+    cfg = preset("test")
+    cfg.iterations = iterations
+    cfg.method = method
+    cfg.curve_every_s = 1e9  # points at the start and the end only
+    cfg.model.max_init_anchors = 300
+    cfg.pseudo.mode = "off"
+    return cfg
+
+
+def test_all_finite():
+    big = torch.full((10,), 3e38)  # finite, but its sum overflows: the exact test decides
+    assert all_finite([]) and all_finite([None, torch.ones(3)]) and all_finite([big, torch.zeros(0, 3)])
+    for bad in (math.nan, math.inf, -math.inf):
+        t = torch.ones(1000)
+        t[517] = bad
+        assert not all_finite([torch.ones(4), None, t])
+    t = torch.ones(5, 3)
+    t[0, 0], t[1, 1] = math.inf, -math.inf  # +inf and -inf in one tensor
+    assert not all_finite([t])
+
+
+class PoisonedTrainer(Trainer):
+    """A real run whose chosen iterations get a NaN in one element of a parameter's gradient
+    (a gradient hook on the model's parameter, as a failing backward would produce)."""
+
+    poison: set[int] = set()
+
+    def setup(self):
+        ck = super().setup()
+        self.snapshot = {n: p.detach().clone() for n, p in self.method.model.named_parameters()}
+        self.backward_calls = 0
+        target = next(p for p in self.method.parameters() if p.requires_grad)
+
+        def hook(g):
+            self.backward_calls += 1
+            if self.backward_calls in self.poison:
+                g = g.clone()
+                g.view(-1)[0] = math.nan
+            return g
+
+        target.register_hook(hook)
+        return ck
+
+
+@pytest.mark.parametrize("method", ["dibrgs", "3dgs"])
+def test_nan_gradients_never_reach_the_parameters(synth, init_cache, tmp_path, method):
+    t = PoisonedTrainer(synth, _work(init_cache, tmp_path / "all"), _cfg(6, method))
+    t.poison = set(range(1, 100))  # every step
+    res = t.run()
+    assert res.skipped_steps == 6
+    # (3DGS's scheduled opacity reset changes opacities without any gradient)
+    for n, p in t.method.model.named_parameters():
+        if not (method == "3dgs" and n == "opacity"):
+            assert torch.equal(p, t.snapshot[n]), f"{n} changed although every step had a NaN gradient"
+    t2 = PoisonedTrainer(synth, _work(init_cache, tmp_path / "one"), _cfg(6, method))
+    t2.poison = {3}
+    res2 = t2.run()
+    assert res2.skipped_steps == 1
+    assert all(torch.isfinite(p).all() for p in t2.method.parameters())
+    assert any(not torch.equal(p, t2.snapshot[n]) for n, p in t2.method.model.named_parameters())
+
+
+def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_cache, tmp_path, monkeypatch):
+    assert curve_views(17, 4) == [0, 5, 11, 16] and curve_views(3, 4) == [0, 1, 2]
+    assert curve_views(17, None) == list(range(17))
+    seen: list[int] = []
+    real_scores, real_render = trainer_module.heldout_scores, curve_module.render_model
+
+    def recording(model, frames, bg):
+        seen.append(len(frames))
+        return real_scores(model, frames, bg)
+
+    def render_without_autograd(*a):
+        assert not torch.is_grad_enabled()
+        out = real_render(*a)
+        assert not out[0].requires_grad
+        return out
+
+    monkeypatch.setattr(trainer_module, "heldout_scores", recording)
+    monkeypatch.setattr(curve_module, "render_model", render_without_autograd)
+    cfg = _cfg(5)
+    cfg.curve_every_s = 0.0  # a point after every iteration
+    t = Trainer(synth, _work(init_cache, tmp_path / "c"), cfg)
+    t.run()
+    n = len(t.test_frames)
+    assert n > 4
+    assert seen == [4] * 5 + [n]  # iterations 0..4 on the subset, the last (5) on every view
+    rows = (tmp_path / "c" / "curve.csv").read_text().strip().splitlines()[1:]
+    assert [int(r.split(",")[1]) for r in rows] == [0, 1, 2, 3, 4, 5]
+    p_all, _ = evaluate_heldout(t.method.model, t.test_frames, t.bg)
+    assert float(rows[-1].split(",")[2]) == pytest.approx(p_all, abs=1e-6)
+    rep = json.loads((tmp_path / "c" / "report.json").read_text())["values"]["curve"]
+    assert rep["views_per_point"] == 4 and rep["views_final"] == n
+    p_sub, _ = evaluate_heldout(t.method.model, t.test_frames, t.bg, 4)
+    assert rep["final_psnr_on_point_views"] == pytest.approx(p_sub, abs=1e-6)
+
+
+def test_curve_time_is_not_training_time(synth, init_cache, tmp_path):
+    """Points on every held-out view after every iteration take most of the run's wall time;
+    the training clock leaves them out (were they counted, train + curve would exceed wall)."""
+    cfg = _cfg(8)
+    cfg.curve_every_s = 0.0
+    cfg.curve_max_views = None
+    t = Trainer(synth, _work(init_cache, tmp_path / "t"), cfg)
+    t0 = time.perf_counter()
+    res = t.run()
+    wall = time.perf_counter() - t0
+    curve_s = t.report.values["curve"]["eval_seconds"]
+    assert curve_s > 0.4 * wall, "the curve points should dominate this run"
+    assert res.seconds + curve_s <= wall
+    assert np.isfinite(res.seconds) and res.seconds > 0
