@@ -17,7 +17,7 @@ import pytest
 from dibrgs_core import render
 from dibrgs_core.render import fast
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CSRC = REPO / "dibrgs_core" / "render" / "csrc"
 
 RENDER = (
