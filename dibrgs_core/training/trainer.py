@@ -13,9 +13,11 @@ Run folder (``WORK``):
 
 Loss (paper Eq. "Optimization" + Scaffold-GS): ``(1 - 0.2) L1 + 0.2 D-SSIM`` on the
 iteration's view (a training view, or on pseudo-view iterations a pseudo view
-restricted to its filled pixels) plus ``0.01 *`` the method's regulariser (DIBR-GS: the
-mean ``prod(scales)`` of the rasterized neural Gaussians). A step whose loss or
-gradients are not finite is skipped and logged.
+restricted to its filled pixels), the render first put through the view's colour
+transform when the run learns them (:mod:`.appearance`; plus their penalty), plus
+``0.01 *`` the method's regulariser (DIBR-GS: the mean ``prod(scales)`` of the
+rasterized neural Gaussians, in paper units). A step whose loss or gradients are not
+finite is skipped and logged.
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ from ..common.report import Report
 from ..data.load import load_scene
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, save_model, save_torch
-from .config import TrainConfig
+from .config import TrainConfig, resolve_resolution
 from .curve import evaluate_heldout, plot_curve, write_curve
 from .frames import Frame, views_to_frames
 from .losses import photometric_loss
@@ -112,7 +114,9 @@ class Trainer:
         train_views, test_views = scene.train_views(), scene.test_views()
         if not train_views:
             raise InputError(self.scene_root, "the scene has no training views")
-        s = cfg.resolution_scale
+        s, budget, why = resolve_resolution(cfg, [(v.camera.width, v.camera.height) for v in train_views + test_views])
+        cfg.resolution_scale = s  # what evaluation and a resumed run use
+        self.report.decide("train", "pixel_budget", budget, why)
         self.train_frames = views_to_frames(train_views, s)
         self.test_frames = views_to_frames(test_views, s)
         self.report.values["scene"] = {"root": str(self.scene_root), "train": list(scene.train),
@@ -257,7 +261,9 @@ class Trainer:
                 frame = self._next_frame(it, pseudo)
                 img, _alpha, _depth, info = render_model(model, frame.cam, self.bg)
                 strategy.step_pre_backward(model, method.optimizer, it, info)
-                loss = photometric_loss(img, frame.image, lam=cfg.lambda_dssim, mask=frame.mask)
+                # Through the view's colour transform (new views render without one).
+                seen, colour_penalty = method.as_photographed(img, frame.cam)
+                loss = photometric_loss(seen, frame.image, lam=cfg.lambda_dssim, mask=frame.mask) + colour_penalty
                 if cfg.lambda_volume:
                     loss = loss + cfg.lambda_volume * method.regulariser(info)
                 lv = float(loss.detach())
