@@ -73,7 +73,7 @@ class TrainingMethod(ABC):
         self.step_colour(it)
 
     def step_colour(self, it: int) -> None:
-        if self.colour_optimizer is None:
+        if self.colour_optimizer is None or it < self.cfg.it(self.cfg.colour.start):
             return
         for g in self.colour_optimizer.param_groups:
             g["lr"] = expon_lr(it, self.cfg.iterations, *self.cfg.colour.lr)
