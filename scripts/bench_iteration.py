@@ -47,7 +47,7 @@ from dibrgs_core.training.losses import photometric_loss  # noqa: E402
 from dibrgs_core.training.trainer import Trainer, train  # noqa: E402
 
 try:  # the fused check (issue 17); the per-tensor test before it
-    from dibrgs_core.training.trainer import all_finite  # noqa: E402
+    from dibrgs_core.training.guard import all_finite  # noqa: E402
 except ImportError:  # pragma: no cover - measuring an older checkout
     def all_finite(ts):
         return all(t is None or bool(torch.isfinite(t).all()) for t in ts)

@@ -69,7 +69,7 @@ def plane_depth(cam, normal: np.ndarray, offset: float) -> np.ndarray:
 
 def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
     from dibrgs_core.data.load import read_any_scene
-    from dibrgs_core.evaluation.evaluate import load_trained
+    from dibrgs_core.evaluation.evaluate import load_trained, run_scale
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
     from dibrgs_core.training.frames import views_to_frames
 
@@ -79,7 +79,7 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
         t = load_trained(w)
         rep = json.loads((w / "report.json").read_text())["values"]["scene"]
         scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=False)
-        s = t.cfg.resolution_scale
+        s = run_scale(w, t, scene)
         train = views_to_frames(scene.train_views(), s)
         test = views_to_frames(scene.test_views(), s)
         sources = [(f.cam.cam, plane_depth(f.cam.cam, normal, offset)) for f in train]

@@ -100,6 +100,23 @@ def run_split(work: Path, scene_root: str) -> tuple[list[str] | None, list[str] 
         return None, None, None
 
 
+def run_scale(work: str | Path, tr: Trained, scene: Any) -> float:
+    """The resize factor the run in ``work`` trained at (``config.json``); for runs that did not
+    record it, resolved again from the configuration and the scene's image sizes."""
+    import json
+
+    from ..training.config import resolve_resolution
+
+    try:
+        s = (json.loads((Path(work) / "config.json").read_text()).get("run") or {}).get("resolution_scale")
+    except (OSError, ValueError, AttributeError):
+        s = None
+    if s is not None:
+        return float(s)
+    sizes = [(v.camera.width, v.camera.height) for v in scene.train_views() + scene.test_views()]
+    return resolve_resolution(tr.cfg, sizes)[0]
+
+
 def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_backbone: str | Path | None = None,
              fps_repeats: int = 3, write_renders: bool = True) -> dict[str, Any]:
     """Evaluate ``WORK`` on its run's held-out views; writes ``metrics.json`` and ``renders/``.
@@ -121,7 +138,7 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     if digest is not None and scene.digest() != digest:
         raise InputError(tr.scene, f"the scene changed since {work} was trained on it (its digest was {digest}, "
                                    f"now {scene.digest()}); train again to evaluate on it")
-    frames = views_to_frames(scene.test_views(), tr.cfg.resolution_scale)
+    frames = views_to_frames(scene.test_views(), run_scale(work, tr, scene))
     if not frames:
         raise InputError(tr.scene, "the run's split has no held-out views to evaluate")
     per_view: dict[str, dict[str, Any]] = {}

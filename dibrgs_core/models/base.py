@@ -59,6 +59,9 @@ class GaussianModel(Protocol):
     """
 
     kind: ClassVar[str]
+    #: Near clipping plane in scene units (a fixed fraction of a length of the scene, so it
+    #: does not depend on the scene's units).
+    near: float
 
     def gaussians(self, cam: CameraTensors) -> Gaussians:
         """The Gaussians this model shows ``cam`` (differentiable)."""
@@ -89,5 +92,5 @@ def render_model(model: GaussianModel, cam: CameraTensors, background: torch.Ten
         zero = torch.zeros(H, W, 1)
         return background.expand(H, W, 3).clone(), zero, zero, None
     img, alpha, depth, meta = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
-                                        cam.w2c, cam.K, W, H, background=background)
+                                        cam.w2c, cam.K, W, H, background=background, near=model.near)
     return img, alpha, depth, {**meta, "width": W, "height": H, "aux": g.aux, "gaussians": g}

@@ -10,6 +10,9 @@ Facts taken from graphdeco-inria/gaussian-splatting (read, not copied):
 
 Densification: :mod:`dibrgs_core.strategy.densify`; learning rates:
 :mod:`dibrgs_core.training.methods`.
+
+The near plane is a fraction of ``length``, the initial points' median distance from
+their median (stored with the model), so it follows the scene's units.
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ from ..camera.pinhole import Camera
 from .base import CameraTensors, Gaussians
 
 GAUSS_PARAMS = ("means", "sh_dc", "sh_rest", "opacity", "log_scales", "quats")
+NEAR_FRACTION = 1e-4  # near plane / ``length``
 
 # Real spherical-harmonics basis constants (degree 0-3).
 _C0 = 0.28209479177387814
@@ -97,6 +101,12 @@ class Gaussians3D(nn.Module):
         quats = torch.zeros(n, 4)
         quats[:, 0] = 1.0
         self.quats = nn.Parameter(quats)
+        self.length = scene_length(p)
+
+    @property
+    def near(self) -> float:
+        """Near plane (scene units) of rasterization."""
+        return NEAR_FRACTION * self.length
 
     @property
     def num_gaussians(self) -> int:
@@ -127,7 +137,7 @@ class Gaussians3D(nn.Module):
         return {"anchors": 0, "gaussians": self.num_gaussians}
 
     def state(self) -> dict[str, Any]:
-        return {"model": self.state_dict(), "active_sh_degree": self.active_sh_degree}
+        return {"model": self.state_dict(), "active_sh_degree": self.active_sh_degree, "length": self.length}
 
     @classmethod
     def from_state(cls, st: dict[str, Any], cfg: Any = None) -> "Gaussians3D":
@@ -139,4 +149,14 @@ class Gaussians3D(nn.Module):
         for name, t in sd.items():
             setattr(model, name, nn.Parameter(t.clone()))
         model.active_sh_degree = int(st["active_sh_degree"])
+        model.length = float(st["length"]) if "length" in st else scene_length(model.means.detach())
         return model
+
+
+def scene_length(points: torch.Tensor) -> float:
+    """The median distance of ``points`` (N,3) from their median: the scene's size in its units
+    (1 when the points give none)."""
+    if points.shape[0] == 0:
+        return 1.0
+    d = float((points - points.median(dim=0).values).norm(dim=1).median())
+    return d if math.isfinite(d) and d > 0 else 1.0

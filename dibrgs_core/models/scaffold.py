@@ -16,7 +16,10 @@ and ``k`` learned offsets ``O``) spawns ``k`` neural Gaussians per view:
 
 Distances fed to the MLPs are divided by ``dist_scale`` (the mean camera-to-scene
 distance at initialisation) so the decoders see O(1) inputs whatever the scene's
-units; Scaffold-GS feeds raw distances on scenes a few units across.
+units; Scaffold-GS feeds raw distances on scenes a few units across. The near plane
+of frustum culling and rasterization is ``NEAR_FRACTION`` of that distance, and
+``paper_unit`` (scene units per paper unit, below) lets training express the volume
+regulariser in the paper's units.
 
 Anchor voxel (documented rule): the paper's anchor grid is 0.03 in LEVIR-NVS units.
 Like the geometry stage (``init.py``), we convert paper units to scene units with
@@ -47,6 +50,9 @@ log = logging.getLogger("dibrgs.neural_gaussians")
 
 # Parameter tensors with one row per anchor (the growth strategy resizes them).
 ANCHOR_PARAMS = ("anchor", "offset", "anchor_feat", "scaling")
+# Near plane as a fraction of the camera-to-scene distance (the rasterizer's former 0.01 m
+# at the generated scenes' 210 m is 5e-5; anything nearer a camera than this is a floater).
+NEAR_FRACTION = 1e-4
 
 
 def _mlp(in_dim: int, hidden: int, out_dim: int, act: nn.Module | None) -> nn.Sequential:
@@ -106,7 +112,9 @@ class NeuralGaussians(nn.Module):
     kind: ClassVar[str] = "dibrgs"
 
     def __init__(self, anchors: torch.Tensor, voxel_size: float, dist_scale: float,
-                 cfg: ModelConfig, use_ibr: bool) -> None:
+                 cfg: ModelConfig, use_ibr: bool, paper_unit: float | None = None) -> None:
+        """``paper_unit``: scene units per paper unit (None: ``voxel_size / cfg.anchor_voxel``,
+        which model files written before it was stored imply)."""
         super().__init__()
         n = anchors.shape[0]
         k, fd = cfg.n_offsets, cfg.feat_dim
@@ -115,6 +123,7 @@ class NeuralGaussians(nn.Module):
         self.feat_dim = fd
         self.voxel_size = float(voxel_size)
         self.dist_scale = float(dist_scale)
+        self.paper_unit = float(paper_unit) if paper_unit else self.voxel_size / cfg.anchor_voxel
         self.use_ibr = bool(use_ibr)
         self.anchor = nn.Parameter(anchors.float().clone())
         self.offset = nn.Parameter(torch.zeros(n, k, 3))
@@ -150,6 +159,11 @@ class NeuralGaussians(nn.Module):
     def num_anchors(self) -> int:
         return int(self.anchor.shape[0])
 
+    @property
+    def near(self) -> float:
+        """Near plane (scene units) of culling and rasterization."""
+        return NEAR_FRACTION * self.dist_scale
+
     # -- per-anchor helpers ----------------------------------------------------
     def anchor_scaling(self) -> torch.Tensor:
         """(N,6) activated anchor scaling; the log is clamped so exp stays finite."""
@@ -164,13 +178,14 @@ class NeuralGaussians(nn.Module):
         return f
 
     def visible_anchors(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int,
-                        near: float = 1e-3) -> torch.Tensor:
+                        near: float | None = None) -> torch.Tensor:
         """(N,) bool: anchors whose Gaussians can reach the image (frustum culling).
 
         An anchor is kept when it is in front of the camera and its projection,
         grown by the largest extent its Gaussians can reach (3 sigma plus the
         offset span), overlaps the image.
         """
+        near = self.near if near is None else near
         with torch.no_grad():
             x = self.anchor @ w2c[:3, :3].T + w2c[:3, 3]
             z = x[:, 2]
@@ -248,14 +263,14 @@ class NeuralGaussians(nn.Module):
     def state(self) -> dict[str, Any]:
         return {"model": self.state_dict(),
                 "model_meta": {"voxel_size": self.voxel_size, "dist_scale": self.dist_scale,
-                               "use_ibr": self.use_ibr}}
+                               "use_ibr": self.use_ibr, "paper_unit": self.paper_unit}}
 
     @classmethod
     def from_state(cls, st: dict[str, Any], cfg: ModelConfig) -> "NeuralGaussians":
         """A model with the shapes and values of :meth:`state`'s output."""
         sd, meta = st["model"], st["model_meta"]
         model = cls(torch.zeros(sd["anchor"].shape[0], 3), meta["voxel_size"], meta["dist_scale"], cfg,
-                    meta["use_ibr"])
+                    meta["use_ibr"], meta.get("paper_unit"))
         model.load_state_dict(sd)
         return model
 
@@ -279,7 +294,10 @@ def init_log_scaling(points: torch.Tensor) -> torch.Tensor:
     kq = min(4, len(p))
     d, _ = cKDTree(p).query(p, k=kq)
     d2 = np.mean(d[:, 1:] ** 2, axis=1)
-    d2 = np.clip(d2, 1e-7 ** 2, None)
+    # Coincident points get a scale of 1e-3 x the median spacing (not a fixed length: units vary).
+    pos = d2[d2 > 0]
+    floor = 1e-3 * float(np.sqrt(np.median(pos))) if len(pos) else 1e-7
+    d2 = np.clip(d2, floor ** 2, None)
     return torch.from_numpy(np.log(np.sqrt(d2))).float()[:, None]
 
 
@@ -297,6 +315,6 @@ def build_model(points: np.ndarray, cam_centers: np.ndarray, cfg: ModelConfig, u
     anchors = torch.from_numpy(voxelize(pts, voxel))
     centre = np.median(pts, axis=0)
     dist_scale = float(np.mean(np.linalg.norm(np.asarray(cam_centers) - centre, axis=1)))
-    model = NeuralGaussians(anchors, voxel, max(dist_scale, 1e-6), cfg, use_ibr)
+    model = NeuralGaussians(anchors, voxel, max(dist_scale, 1e-6), cfg, use_ibr, paper_unit=scale)
     log.info("anchors: %d from %d points (voxel %s)", model.num_anchors, len(pts), why)
     return model, why

@@ -5,9 +5,13 @@ from 500 to 15,000 of 30,000, Gaussians whose mean NDC gradient >= 2e-4 are
 cloned (max scale <= 1% of the extent) or split in two (larger; samples from
 the Gaussian, scales / 1.6); pruning of opacity < 0.005 and, after the first
 opacity reset, of Gaussians larger than 20 px on screen or 10% of the extent;
-opacity reset to at most 0.01 every 3,000 its. Schedules are fractions of
-training (``GS3DConfig``); a preset may cap the number of Gaussians
-(``max_gaussians``), densification then stops adding.
+opacity reset to at most 0.01 every 3,000 its (resets stop with densification,
+so the last is at 12,000, 60 % of training before the end). Schedules are
+fractions of training (``GS3DConfig``), except that resets are at least
+``min_reset_every`` iterations apart: opacities need a few hundred iterations
+to recover from a reset, and a short run that reset every 10 % of training
+would never recover (its held-out curve dipped at every reset). A preset may
+cap the number of Gaussians (``max_gaussians``), densification then stops adding.
 """
 from __future__ import annotations
 
@@ -35,8 +39,13 @@ class DensifyStrategy(Strategy):
         self.start = max(1, round(cfg.densify_from * iterations))
         self.until = max(1, round(cfg.densify_until * iterations))
         self.every = max(cfg.min_every, round(cfg.densify_every * iterations))
-        self.reset_every = max(1, round(cfg.opacity_reset_every * iterations))
+        self.reset_every = max(1, cfg.min_reset_every, round(cfg.opacity_reset_every * iterations))
         self._reset_stats(model.num_gaussians)
+
+    @property
+    def resets(self) -> list[int]:
+        """The iterations at which opacities are reset (inside the densification window)."""
+        return list(range(self.reset_every, self.until, self.reset_every))
 
     def _reset_stats(self, n: int) -> None:
         self.grad_accum = torch.zeros(n)

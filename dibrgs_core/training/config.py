@@ -114,6 +114,13 @@ class GS3DConfig:
     densify_every: float = 100 / 30000
     min_every: int = 10                 # floor on the densification interval of short runs
     opacity_reset_every: float = 3000 / 30000
+    # Floor on the opacity-reset interval, in iterations. After a reset to 0.01 the opacities
+    # take a few hundred iterations to come back (logit -4.6 at lr 0.025, and only in the views
+    # that see a Gaussian); 3DGS leaves 3,000 between resets and 18,000 after the last. A
+    # short run that kept the fraction (every 200 of 2,000) would spend its whole
+    # densification window recovering from resets; the floor leaves one reset at 25 % of a
+    # 2,000-iteration run and none in runs shorter than twice the floor.
+    min_reset_every: int = 500
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
     min_opacity: float = 0.005
@@ -126,13 +133,34 @@ class GS3DConfig:
 
 
 @dataclass
+class ColourConfig:
+    """Per-training-view colour transforms (:mod:`.appearance`): a 3x3 matrix and an offset
+    applied to the render before the loss on that view, centred so that the median view's is
+    the identity, which renders new views."""
+
+    # auto: with two or more training views. Off by default: on three views with one photo
+    # 50 % over-exposed the transforms found that photo's gain but held-out PSNR fell from
+    # 21.3 to 18.1 dB (tests/training/test_appearance.py), so they are not yet a net gain.
+    mode: Switch = "off"
+    lr: tuple[float, float] = (0.005, 0.0005)   # Adam, exponential decay over the run
+    # Fraction of training before the transforms learn: a model that has not yet fitted the
+    # photos' colours would hand its own errors to them.
+    start: float = 0.0
+    # Weight of |A - I|^2 + |b|^2 of the iteration's view, beside the photometric loss.
+    weight: float = 0.01
+
+
+@dataclass
 class TrainConfig:
     """Everything a run needs. ``preset`` names the origin of the numbers."""
 
     preset: PresetName = "paper"
     method: MethodName = "dibrgs"
     iterations: int = 30000
-    resolution_scale: float = 1.0       # images are resized by this factor
+    # Images are resized by this factor; None = to the pixel budget ``max_long_side`` when
+    # one is set, else full resolution. The run records the factor it used.
+    resolution_scale: float | None = None
+    max_long_side: int | None = None    # pixel budget: long side of the largest image
     seed: int = 0
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
@@ -157,6 +185,7 @@ class TrainConfig:
     lr: LRConfig = field(default_factory=LRConfig)
     pseudo: PseudoConfig = field(default_factory=PseudoConfig)
     gs3d: GS3DConfig = field(default_factory=GS3DConfig)
+    colour: ColourConfig = field(default_factory=ColourConfig)
 
     # -- schedules in iterations ------------------------------------------------
     def it(self, frac: float, minimum: int = 0) -> int:
@@ -170,7 +199,7 @@ class TrainConfig:
         """The configuration ``to_dict`` gave (JSON lists back to tuples); ``ValueError`` names
         any key, top-level or nested, that no field has."""
         sub = {"model": ModelConfig, "growth": GrowthConfig, "lr": LRConfig,
-               "pseudo": PseudoConfig, "gs3d": GS3DConfig}
+               "pseudo": PseudoConfig, "gs3d": GS3DConfig, "colour": ColourConfig}
         kw: dict[str, Any] = {}
         names = {f.name for f in dataclasses.fields(TrainConfig)}
         for k, v in d.items():
@@ -192,7 +221,7 @@ PRESETS: tuple[str, ...] = choices(PresetName)
 #: One line on each preset, for menus (the Blender add-on); keys are :data:`PRESETS`.
 PRESET_SUMMARY: dict[str, str] = {
     "paper": "The paper's schedule: 30,000 iterations at full resolution",
-    "cpu": "Scaled for a CPU: a 256x256 3-view scene in under 20 minutes",
+    "cpu": "Scaled for a CPU: a 256x256 3-view scene in under 20 minutes; images at most 512 px",
     "test": "A few hundred iterations (checks the pipeline end to end)",
 }
 
@@ -211,13 +240,15 @@ def preset(name: PresetName) -> TrainConfig:
       anchors fit the three training views at the held-out views' expense);
       padded pseudo-view pixels (colour copied from the nearest warped pixel, no
       view saw them) at half the loss weight of warped ones; a curve point every
-      30 s.
+      30 s; images downscaled to a long side of 512 px unless a resolution scale is given
+      (a 4000x3000 photo would cost 45x the pixels of a 512x512 generated view).
     * ``test``: a 64x64 scene end to end in well under a minute (CI).
     """
     if name == "paper":
         return TrainConfig()
     if name == "cpu":
-        c = TrainConfig(preset="cpu", iterations=2000, checkpoint_every_s=120.0, curve_every_s=30.0)
+        c = TrainConfig(preset="cpu", iterations=2000, checkpoint_every_s=120.0, curve_every_s=30.0,
+                        max_long_side=512)
         c.model.max_init_anchors = 8000
         c.growth.max_anchors = 20000
         c.growth.grad_threshold = 4 * c.growth.grad_threshold
@@ -237,6 +268,25 @@ def preset(name: PresetName) -> TrainConfig:
         c.gs3d.random_points = 2000
         return c
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+
+def resolve_resolution(cfg: TrainConfig, sizes: list[tuple[int, int]]) -> tuple[float, bool, str]:
+    """The resize factor of a run whose images are ``sizes`` (width, height), whether the pixel
+    budget set it, and why.
+
+    An explicit ``resolution_scale`` wins; else a pixel budget ``max_long_side`` shrinks the
+    largest image's long side to it (never enlarges); else full resolution.
+    """
+    if cfg.resolution_scale is not None:
+        return float(cfg.resolution_scale), False, f"resolution scale {cfg.resolution_scale:g} as given"
+    long_side = max((max(w, h) for w, h in sizes), default=0)
+    if cfg.max_long_side is None or long_side <= cfg.max_long_side:
+        why = "full resolution" + (f" (long side {long_side} px is within the {cfg.max_long_side} px budget)"
+                                   if cfg.max_long_side is not None else "")
+        return 1.0, False, why
+    s = cfg.max_long_side / long_side
+    return s, True, (f"pixel budget of the {cfg.preset} preset: long side {long_side} px -> {cfg.max_long_side} px "
+               f"(scale {s:.4g}; --resolution-scale overrides)")
 
 
 def expon_lr(step: int, total: int, init: float, final: float) -> float:

@@ -13,11 +13,13 @@ from typing import Any
 import torch
 
 from ..common.report import Report
+from ..models.base import CameraTensors
 from ..models.gs3d import Gaussians3D
 from ..models.scaffold import NeuralGaussians
 from ..strategy.anchor import AnchorStrategy, HeightBound
 from ..strategy.base import Strategy
 from ..strategy.densify import DensifyStrategy
+from .appearance import ColourTransforms
 from .config import GS3DConfig, TrainConfig, expon_lr
 
 log = logging.getLogger("dibrgs.train")
@@ -28,14 +30,18 @@ class TrainingFailed(RuntimeError):
 
 
 class TrainingMethod(ABC):
-    """A model with its optimiser(s), schedule and densification strategy."""
+    """A model with its optimiser(s), schedule and densification strategy, and optionally the
+    training views' colour transforms (:mod:`.appearance`, their own Adam)."""
 
     model: Any
     optimizer: torch.optim.Optimizer
     strategy: Strategy
 
-    def __init__(self, cfg: TrainConfig) -> None:
+    def __init__(self, cfg: TrainConfig, colour: ColourTransforms | None = None) -> None:
         self.cfg = cfg
+        self.colour = colour
+        self.colour_optimizer = (torch.optim.Adam(colour.parameters(), lr=cfg.colour.lr[0])
+                                 if colour is not None else None)
 
     @abstractmethod
     def set_lr(self, it: int) -> None:
@@ -45,26 +51,56 @@ class TrainingMethod(ABC):
         """The method's regularisation term for this view (0 by default)."""
         return torch.zeros(())
 
+    def as_photographed(self, img: torch.Tensor, cam: CameraTensors) -> tuple[torch.Tensor, torch.Tensor]:
+        """The render ``img`` of ``cam`` through its training view's colour transform, and the
+        weighted penalty of that transform (the render and 0 without transforms)."""
+        if self.colour is None:
+            return img, torch.zeros(())
+        out, penalty = self.colour.apply(img, cam)
+        return out, self.cfg.colour.weight * penalty
+
     def parameters(self) -> list[torch.Tensor]:
-        return [p for g in self.optimizer.param_groups for p in g["params"]]
+        own = [p for g in self.optimizer.param_groups for p in g["params"]]
+        return own + (list(self.colour.parameters()) if self.colour is not None else [])
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
+        if self.colour_optimizer is not None:
+            self.colour_optimizer.zero_grad(set_to_none=True)
 
     def step(self, it: int) -> None:
         self.optimizer.step()
+        self.step_colour(it)
+
+    def step_colour(self, it: int) -> None:
+        if self.colour_optimizer is None or it < self.cfg.it(self.cfg.colour.start):
+            return
+        for g in self.colour_optimizer.param_groups:
+            g["lr"] = expon_lr(it, self.cfg.iterations, *self.cfg.colour.lr)
+        self.colour_optimizer.step()
 
     def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
         """After the strategy's post-backward hook (``changes``: what it did this step)."""
 
+    def report_colour(self, it: int, report: Report) -> None:
+        """At the last iteration, the learned colour transforms into the report."""
+        if self.colour is not None and it == self.cfg.iterations:
+            report.values["colour_transforms"] = self.colour.summary()
+
     def state(self) -> dict[str, Any]:
-        return {"model": self.model.state(), "optimizer": self.optimizer.state_dict(),
-                "strategy": self.strategy.state_dict()}
+        st = {"model": self.model.state(), "optimizer": self.optimizer.state_dict(),
+              "strategy": self.strategy.state_dict()}
+        if self.colour is not None:
+            st["colour"] = {"params": self.colour.state_dict(), "optimizer": self.colour_optimizer.state_dict()}
+        return st
 
     def load(self, st: dict[str, Any]) -> None:
         """Optimiser and strategy state from :meth:`state` (the model is rebuilt by the setup)."""
         self.optimizer.load_state_dict(st["optimizer"])
         self.strategy.load_state_dict(st["strategy"])
+        if self.colour is not None and st.get("colour") is not None:
+            self.colour.load_state_dict(st["colour"]["params"])
+            self.colour_optimizer.load_state_dict(st["colour"]["optimizer"])
 
     def model_file_extras(self) -> dict[str, Any]:
         """What the trained model file keeps beside ``model.state()``."""
@@ -77,12 +113,15 @@ class ScaffoldTraining(TrainingMethod):
     Learning rates are Scaffold-GS's with their exponential decays; the IBR projection P
     has its own AdamW and is frozen after ``lr.projection_freeze`` of training. Anchor
     positions are not optimised (Scaffold-GS: lr 0). Regulariser: the mean volume
-    ``prod(scales)`` of the rasterized neural Gaussians.
+    ``prod(scales)`` of the rasterized neural Gaussians, in the paper's units (scales
+    divided by the model's ``paper_unit``, scene units per LEVIR-NVS unit), so that it
+    weighs the same whatever the scene's units (unnormalised, a scene in units 10x
+    larger had a regulariser 1,000x stronger and trained 4 dB worse).
     """
 
     def __init__(self, model: NeuralGaussians, cfg: TrainConfig, ibr: Any | None,
-                 height_map: HeightBound | None) -> None:
-        super().__init__(cfg)
+                 height_map: HeightBound | None, colour: ColourTransforms | None = None) -> None:
+        super().__init__(cfg, colour)
         self.model = model
         self.ibr = ibr
         model.set_ibr(ibr)
@@ -110,7 +149,7 @@ class ScaffoldTraining(TrainingMethod):
     def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
         if info is None:
             return torch.zeros(())
-        return info["gaussians"].scales.prod(dim=1).mean()
+        return (info["gaussians"].scales / self.model.paper_unit).prod(dim=1).mean()
 
     def parameters(self) -> list[torch.Tensor]:
         return super().parameters() + self.p_params
@@ -122,6 +161,7 @@ class ScaffoldTraining(TrainingMethod):
 
     def step(self, it: int) -> None:
         self.optimizer.step()
+        self.step_colour(it)
         if self.p_optimizer is not None and it <= self.p_freeze_at:
             self.p_optimizer.step()
             if it == self.p_freeze_at:
@@ -130,6 +170,7 @@ class ScaffoldTraining(TrainingMethod):
                 log.info("IBR projection P frozen at iteration %d", it)
 
     def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
+        self.report_colour(it, report)
         if not changes:
             return
         growth = report.values.setdefault("growth", {"added": 0, "vetoed": 0, "pruned": 0})
@@ -178,10 +219,12 @@ def gs3d_optimizer(model: Gaussians3D, cfg: GS3DConfig, extent: float) -> torch.
 
 class GS3DTraining(TrainingMethod):
     """Vanilla 3DGS: position learning rate 1.6e-4 -> 1.6e-6 x extent, the SH degree rising by one
-    every ``sh_every`` of training, clone/split/prune with opacity resets; no regulariser."""
+    every ``sh_every`` of training, clone/split/prune with opacity resets (at least
+    ``min_reset_every`` iterations apart); no regulariser."""
 
-    def __init__(self, model: Gaussians3D, cfg: TrainConfig, extent: float) -> None:
-        super().__init__(cfg)
+    def __init__(self, model: Gaussians3D, cfg: TrainConfig, extent: float,
+                 colour: ColourTransforms | None = None) -> None:
+        super().__init__(cfg, colour)
         self.model = model
         self.extent = extent
         self.optimizer = gs3d_optimizer(model, cfg.gs3d, extent)
@@ -195,5 +238,8 @@ class GS3DTraining(TrainingMethod):
                 g["lr"] = expon_lr(it, self.cfg.iterations, init * self.extent, final * self.extent)
 
     def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
+        if "opacity_resets" not in report.values:
+            report.values["opacity_resets"] = self.strategy.resets
+        self.report_colour(it, report)
         if it % self.sh_every == 0 and self.model.active_sh_degree < self.model.sh_degree:
             self.model.active_sh_degree += 1

@@ -118,7 +118,14 @@ def build_3dgs(ctx: SetupContext) -> Setup:
             cols = np.concatenate([np.asarray(cols, np.float64).reshape(-1, 3) / 255.0, rc])
         model = Gaussians3D(pts, cols, cfg.gs3d.sh_degree)
     rep.values["extent"] = extent
-    return Setup(GS3DTraining(model, cfg, extent), [])
+    return Setup(GS3DTraining(model, cfg, extent, colour_transforms(ctx)), [])
+
+
+def colour_transforms(ctx: SetupContext) -> Any:
+    """The training views' colour transforms when they apply (:mod:`.appearance`)."""
+    from .appearance import build_colour_transforms
+
+    return build_colour_transforms(ctx.cfg.colour, [f.cam.cam for f in ctx.train_frames], ctx.report)
 
 
 def init_geometry(ctx: SetupContext) -> Any:
@@ -188,7 +195,7 @@ def build_dibrgs(ctx: SetupContext) -> Setup:
         centers = np.stack([f.cam.cam.center for f in ctx.train_frames])
         model, why = build_model(points, centers, cfg.model, use_ibr=ibr is not None, scale=float(scale))
         rep.values["anchor_voxel"] = why
-    method = ScaffoldTraining(model, cfg, ibr, hm)
+    method = ScaffoldTraining(model, cfg, ibr, hm, colour_transforms(ctx))
     return Setup(method, pseudo_frames(ctx, points))
 
 

@@ -13,9 +13,11 @@ Run folder (``WORK``):
 
 Loss (paper Eq. "Optimization" + Scaffold-GS): ``(1 - 0.2) L1 + 0.2 D-SSIM`` on the
 iteration's view (a training view, or on pseudo-view iterations a pseudo view
-restricted to its filled pixels) plus ``0.01 *`` the method's regulariser (DIBR-GS: the
-mean ``prod(scales)`` of the rasterized neural Gaussians). A step whose loss or
-gradients are not finite is skipped and logged.
+restricted to its filled pixels), the render first put through the view's colour
+transform when the run learns them (:mod:`.appearance`; plus their penalty), plus
+``0.01 *`` the method's regulariser (DIBR-GS: the mean ``prod(scales)`` of the
+rasterized neural Gaussians, in paper units). A step whose loss or gradients are not
+finite is skipped and logged.
 """
 from __future__ import annotations
 
@@ -46,9 +48,10 @@ from ..data.load import load_scene
 from ..data.scene import Scene, require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
-from .config import TrainConfig
+from .config import TrainConfig, resolve_resolution
 from .curve import curve_views, heldout_scores, plot_curve, write_curve
 from .frames import Frame, views_to_frames
+from .guard import all_finite, make_finite
 from .losses import photometric_loss
 from .methods import TrainingMethod
 from .run_folder import CONFIG, Identity, check_resumable, replace_earlier_run, resumed_config, stored_identity
@@ -100,7 +103,7 @@ class Trainer:
             raise InputError(None, f"unknown method {cfg.method!r} ({' or '.join(METHODS)})")
         if not (isinstance(cfg.iterations, int) and cfg.iterations >= 1):
             raise InputError(None, f"--iterations must be a positive integer, got {cfg.iterations!r}")
-        if not (0.0 < cfg.resolution_scale <= MAX_RESOLUTION_SCALE):
+        if cfg.resolution_scale is not None and not (0.0 < cfg.resolution_scale <= MAX_RESOLUTION_SCALE):
             raise InputError(None, f"--resolution-scale must be in (0, {MAX_RESOLUTION_SCALE:g}], "
                                    f"got {cfg.resolution_scale!r}")
         if self.work.exists() and not self.work.is_dir():
@@ -136,7 +139,10 @@ class Trainer:
         np.random.seed(cfg.seed)
         random.seed(cfg.seed)
         train_views, test_views = scene.train_views(), scene.test_views()
-        s = cfg.resolution_scale
+        # The configuration keeps what the user gave (None: the preset's pixel budget decides),
+        # so a resumed run compares like with like; evaluation resolves it the same way.
+        s, budget, why = resolve_resolution(cfg, [(v.camera.width, v.camera.height) for v in train_views + test_views])
+        self.report.decide("train", "pixel_budget", budget, why)
         self.train_frames = views_to_frames(train_views, s)
         self.test_frames = views_to_frames(test_views, s)
         h, w = self.train_frames[0].image.shape[:2]
@@ -144,9 +150,8 @@ class Trainer:
             raise InputError(None, f"--resolution-scale {s:g} gives {w}x{h} images; training needs at least "
                                    f"{MIN_RESOLUTION} pixels a side: use a larger scale")
         run = {"digest": digest, "train": list(scene.train), "test": list(scene.test),
-               "split_source": scene.split_source}
-        self.report.values["scene"] = {"root": str(self.scene_root), **run, "resolution_scale": s,
-                                       "resolution": [w, h]}
+               "split_source": scene.split_source, "resolution_scale": s}
+        self.report.values["scene"] = {"root": str(self.scene_root), **run, "resolution": [w, h]}
         log.info("scene %s (digest %s): train %s, %d test views; split from %s", self.scene_root, digest,
                  ", ".join(scene.train), len(scene.test), scene.split_source)
         write_json(self.work / CONFIG, {"scene": str(self.scene_root.resolve()), "run": run,
@@ -316,7 +321,9 @@ class Trainer:
                 frame = self._next_frame(it, pseudo)
                 img, _alpha, _depth, info = render_model(model, frame.cam, self.bg)
                 strategy.step_pre_backward(model, method.optimizer, it, info)
-                loss = photometric_loss(img, frame.image, lam=cfg.lambda_dssim, mask=frame.mask)
+                # Through the view's colour transform (new views render without one).
+                seen, colour_penalty = method.as_photographed(img, frame.cam)
+                loss = photometric_loss(seen, frame.image, lam=cfg.lambda_dssim, mask=frame.mask) + colour_penalty
                 if cfg.lambda_volume:
                     loss = loss + cfg.lambda_volume * method.regulariser(info)
                 lv = float(loss.detach())
@@ -382,30 +389,9 @@ class Trainer:
     def _grads_finite(self) -> bool:
         return all_finite([p.grad for p in self.method.parameters()])
 
-    @torch.no_grad()
     def _sanitize_params(self) -> None:
-        """Keep parameters finite even under absurd learning rates (logged once per step)."""
-        params = self.method.parameters()
-        if all_finite(params):
-            return
-        bad = [p for p in params if not torch.isfinite(p).all()]
-        for p in bad:
-            torch.nan_to_num_(p, nan=0.0, posinf=1e6, neginf=-1e6)
-        if bad:
+        if make_finite(self.method.parameters()):
             log.warning("non-finite parameters replaced by finite values")
-
-
-def all_finite(tensors: list[torch.Tensor | None]) -> bool:
-    """Whether every element of ``tensors`` (None entries skipped) is finite.
-
-    One vectorised sum a tensor: a NaN or an infinity makes its sum non-finite, so a finite
-    sum proves the tensor finite. Only when a sum is not finite (a non-finite element, or
-    finite values overflowing float32) does the exact per-element test decide.
-    """
-    ts = [t for t in tensors if t is not None]
-    if not ts or bool(torch.isfinite(torch.stack([t.sum() for t in ts])).all()):
-        return True
-    return all(bool(torch.isfinite(t).all()) for t in ts)
 
 
 def train(scene_root: str | Path, work: str | Path, cfg: TrainConfig, **kw: Any) -> TrainResult:

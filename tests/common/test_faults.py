@@ -446,7 +446,7 @@ RESUME_REFUSED = [
     ("preset", ["--preset", "cpu"], "preset: 'test' -> 'cpu'"),
     ("seed", ["--seed", "1"], "seed: 0 -> 1"),
     ("no-pseudo", ["--no-pseudo"], "pseudo.mode: 'auto' -> 'off'"),
-    ("resolution", ["--resolution-scale", "0.5"], "resolution_scale: 1.0 -> 0.5"),
+    ("resolution", ["--resolution-scale", "0.5"], "resolution_scale: None -> 0.5"),
 ]
 
 

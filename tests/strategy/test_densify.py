@@ -40,3 +40,39 @@ def test_gs3d_clone_split_prune_keep_optimizer_consistent():
         p = grp["params"][0]
         assert p is getattr(g, grp["name"]) and opt.state[p]["exp_avg"].shape == p.shape
     assert set(GAUSS_PARAMS) == {grp["name"] for grp in opt.param_groups}
+
+
+def test_opacity_resets_leave_a_short_run_time_to_recover():
+    """The paper's schedule keeps 3DGS's resets (every 3,000 of 30,000, none after densification
+    stops at half); a 2,000-iteration run resets once, at 500, instead of every 200; a run too short
+    for one full interval before densification stops never resets. A due reset caps opacities at
+    0.01 and zeroes their Adam moments."""
+    from dibrgs_core.models.gs3d import Gaussians3D
+    from dibrgs_core.strategy.densify import DensifyStrategy
+    from dibrgs_core.training.config import preset
+    from dibrgs_core.training.methods import gs3d_optimizer
+
+    rng = np.random.default_rng(0)
+    g = Gaussians3D(rng.uniform(-5, 5, (50, 3)), rng.uniform(0, 1, (50, 3)), 1)
+
+    def resets(name, iterations=None):
+        cfg = preset(name)
+        return DensifyStrategy(g, cfg.gs3d, iterations or cfg.iterations, extent=10.0).resets
+
+    assert resets("paper") == [3000, 6000, 9000, 12000]
+    assert resets("cpu") == [500]
+    assert resets("cpu", 5000) == [500, 1000, 1500, 2000]
+    assert resets("test") == []
+    cfg = preset("cpu").gs3d
+    st = DensifyStrategy(g, cfg, 2000, extent=10.0)
+    opt = gs3d_optimizer(g, cfg, extent=10.0)
+    with torch.no_grad():
+        g.opacity.fill_(2.0)
+    for p in g.parameters():
+        p.grad = torch.ones_like(p)
+    opt.step()
+    st.step_post_backward(g, opt, 400, None)
+    assert float(torch.sigmoid(g.opacity).min()) > 0.5  # not due
+    st.step_post_backward(g, opt, 500, None)
+    assert float(torch.sigmoid(g.opacity).max()) <= 0.01 + 1e-6
+    assert float(opt.state[g.opacity]["exp_avg"].abs().max()) == 0.0

@@ -17,7 +17,8 @@ from dibrgs_core.training import curve as curve_module
 from dibrgs_core.training import trainer as trainer_module
 from dibrgs_core.training.config import preset
 from dibrgs_core.training.curve import curve_views, evaluate_heldout
-from dibrgs_core.training.trainer import Trainer, all_finite
+from dibrgs_core.training.guard import all_finite
+from dibrgs_core.training.trainer import Trainer
 from train_synth import make_synth_scene
 
 torch.set_num_threads(1)

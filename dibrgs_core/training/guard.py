@@ -1,0 +1,29 @@
+"""Finite checks of a training step: gradients before the optimiser steps, parameters after."""
+from __future__ import annotations
+
+import torch
+
+
+def all_finite(tensors: list[torch.Tensor | None]) -> bool:
+    """Whether every element of ``tensors`` (None entries skipped) is finite.
+
+    One vectorised sum a tensor: a NaN or an infinity makes its sum non-finite, so a finite
+    sum proves the tensor finite. Only when a sum is not finite (a non-finite element, or
+    finite values overflowing float32) does the exact per-element test decide.
+    """
+    ts = [t for t in tensors if t is not None]
+    if not ts or bool(torch.isfinite(torch.stack([t.sum() for t in ts])).all()):
+        return True
+    return all(bool(torch.isfinite(t).all()) for t in ts)
+
+
+@torch.no_grad()
+def make_finite(params: list[torch.Tensor]) -> bool:
+    """Replace NaN by 0 and infinities by +-1e6 in place (so absurd learning rates cannot poison
+    a run); whether any parameter needed it."""
+    if all_finite(params):
+        return False
+    bad = [p for p in params if not torch.isfinite(p).all()]
+    for p in bad:
+        torch.nan_to_num_(p, nan=0.0, posinf=1e6, neginf=-1e6)
+    return bool(bad)
