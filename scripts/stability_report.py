@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
              "Extreme and stiff cases of the rasterizer, the geometry stage and training. Every case asserts",
              "finite outputs and gradients (and the expected value where one is known); a NaN or Inf fails",
              "the script instead of appearing here.", "",
-             f"Command: `python scripts/stability_report.py`  ",
+             "Command: `python scripts/stability_report.py`  ",
              f"Date: {time.strftime('%Y-%m-%d')}  ",
              f"Machine: {platform.machine()}, {__import__('os').cpu_count()} cores, Python "
              f"{platform.python_version()}; {len(rows)} cases in {time.perf_counter() - t0:.0f} s", "",

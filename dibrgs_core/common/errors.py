@@ -56,10 +56,11 @@ _OS_ADVICE: dict[int, tuple[str, str]] = {
 def explain(exc: BaseException) -> str | None:
     """One line for an error a user can act on, or None for an internal error (a bug).
 
-    ``InputError`` gives its own message; an ``OSError`` names its path(s), what happened
+    ``InputError`` (and an exception class marked ``user_error = True``, such as the
+    rasterizer's ``BuildError``) gives its own message; an ``OSError`` names its path(s), what happened
     and what to do.
     """
-    if isinstance(exc, InputError):
+    if isinstance(exc, InputError) or getattr(exc, "user_error", False):
         return str(exc)
     if isinstance(exc, OSError):
         what, todo = _OS_ADVICE.get(exc.errno or -1, (exc.strerror or type(exc).__name__, ""))

@@ -77,6 +77,8 @@ _error: BuildError | None = None
 class BuildError(RuntimeError):
     """The C++ rasterizer could not be built; the message says how to fix it."""
 
+    user_error = True  # the command line prints the message, not "internal error"
+
 
 def _cpu_flags() -> str:
     try:

@@ -18,7 +18,6 @@ oracle for the fast C++ path and implements exactly the same rules:
 """
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor

@@ -1,7 +1,16 @@
-"""Finite checks of a training step: gradients before the optimiser steps, parameters after."""
+"""Guards of the training loop: finite checks of a step (gradients before the optimiser steps,
+parameters after) and SIGINT / SIGTERM turned into a stop request."""
 from __future__ import annotations
 
+import contextlib
+import logging
+import signal
+import threading
+from collections.abc import Callable, Iterator
+
 import torch
+
+log = logging.getLogger("dibrgs.train")
 
 
 def all_finite(tensors: list[torch.Tensor | None]) -> bool:
@@ -27,3 +36,24 @@ def make_finite(params: list[torch.Tensor]) -> bool:
     for p in bad:
         torch.nan_to_num_(p, nan=0.0, posinf=1e6, neginf=-1e6)
     return bool(bad)
+
+
+@contextlib.contextmanager
+def stop_on_signals(request_stop: Callable[[], None]) -> Iterator[None]:
+    """While inside, SIGINT and SIGTERM call ``request_stop`` (the loop checkpoints and stops
+    after the iteration) instead of killing the process; only in the main thread, where Python
+    delivers signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        log.warning("signal %d: checkpointing and stopping after this iteration", signum)
+        request_stop()
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)

@@ -34,6 +34,7 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -199,7 +200,8 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
                        path: Sequence[Camera] | None = None, max_gap_px: float = 4.0,
                        surface: bool = False, consistency_tol: float = 0.0,
                        min_cloud_cover: float = MIN_CLOUD_COVER, min_warped: float = MIN_WARPED,
-                       jitter: float = 0.1, look_jitter_deg: float = 2.0) -> PseudoBuild:
+                       jitter: float = 0.1, look_jitter_deg: float = 2.0,
+                       on_progress: Callable[[int, int], None] | None = None) -> PseudoBuild:
     """Build (or load from ``cache_dir``) the progressive-DIBR pseudo views.
 
     Args:
@@ -230,6 +232,8 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         min_warped: a sampled view is dropped when less than this share of its pixels is
             warped (``valid``).
         jitter, look_jitter_deg: pose jitter (:func:`~dibrgs_core.camera.trajectory.sample_poses`).
+        on_progress: called with (views kept, views wanted) before the first and after each
+            kept view while views are built (not when they load from the cache).
 
     Sampled poses come from :func:`~dibrgs_core.camera.trajectory.classify` of the training
     cameras; up to :data:`CANDIDATES_PER_VIEW` x ``n`` are tried, in their seeded order,
@@ -273,7 +277,10 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete
     out, files = [], []
     tried = dropped_cloud = dropped_warped = 0
-    bar = tqdm(total=len(cams) if not filtered else n, desc="pseudo views", unit="view", leave=False)
+    total = len(cams) if not filtered else n
+    bar = tqdm(total=total, desc="pseudo views", unit="view", leave=False)
+    if on_progress is not None:
+        on_progress(0, total)
     for cam in cams:
         if filtered and len(out) >= n:
             break
@@ -292,6 +299,8 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         files.append(fname)
         out.append(pv)
         bar.update(1)
+        if on_progress is not None:
+            on_progress(len(out), total)
         log.info("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
                  100 * pv.valid.mean(), 100 * pv.padded.mean(), 0.0 if pv.rejected is None else 100 * pv.rejected.mean())
     bar.close()

@@ -45,6 +45,8 @@ class SetupContext:
     rng: np.random.Generator
     ckpt: dict[str, Any] | None
     depth_model: str | None = None
+    # Announces a long set-up stage: (what, done, total), counts None when unknown.
+    stage: Callable[[str, int | None, int | None], None] = lambda what, done=None, total=None: None
 
 
 @dataclass
@@ -140,7 +142,12 @@ def init_geometry(ctx: SetupContext) -> Any:
     if ctx.depth_model:
         icfg.depth_model = ctx.depth_model
     out = ctx.work / "init"
-    return load_result(out, icfg, init_inputs(ctx.scene, icfg)) or initialise(ctx.scene, out, icfg)
+    inputs = init_inputs(ctx.scene, icfg)
+    cached = load_result(out, icfg, inputs)
+    if cached is not None:
+        return cached
+    ctx.stage("geometry initialisation (SfM, depth, dense points)", None, None)
+    return initialise(ctx.scene, out, icfg)
 
 
 def _says_near_nadir(report: Report) -> bool | None:
@@ -241,7 +248,8 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
     surface, why = decide(cfg.pseudo.surface, cams)
     rep.decide("train", "pseudo_depth_height_field", surface, why)
     built = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed, ctx.work / "pseudo",
-                               path=path, surface=surface, consistency_tol=cfg.pseudo.consistency_tol)
+                               path=path, surface=surface, consistency_tol=cfg.pseudo.consistency_tol,
+                               on_progress=lambda done, total: ctx.stage("building pseudo views", done, total))
     pvs, traj = built.views, built.trajectory
     if traj is not None:
         rep.decide("train", "pseudo_trajectory", True, f"{traj.kind}: {traj.reason}", kind=traj.kind,

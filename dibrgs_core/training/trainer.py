@@ -28,9 +28,7 @@ import logging.handlers
 import math
 import random
 import resource
-import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,7 +49,7 @@ from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_tor
 from .config import TrainConfig, resolve_resolution
 from .curve import curve_views, heldout_scores, plot_curve, write_curve
 from .frames import Frame, views_to_frames
-from .guard import all_finite, make_finite
+from .guard import all_finite, make_finite, stop_on_signals
 from .losses import photometric_loss
 from .methods import TrainingMethod
 from .run_folder import CONFIG, Identity, check_resumable, replace_earlier_run, resumed_config, stored_identity
@@ -159,8 +157,9 @@ class Trainer:
                                         "forced_config": self.report.values.get("forced_config", [])})
         self.bg = torch.tensor(cfg.background, dtype=torch.float32)
         # set-up randomness only (random init), apart from the training streams
+        self._build_rasterizer()
         ctx = SetupContext(cfg, self.work, scene, self.train_frames, self.report,
-                           np.random.default_rng(cfg.seed + 1), ckpt, self.depth_model)
+                           np.random.default_rng(cfg.seed + 1), ckpt, self.depth_model, self._stage)
         built = METHODS[cfg.method](ctx)
         self.method, self.pseudo_frames = built.method, built.pseudo_frames
         return ckpt
@@ -212,26 +211,24 @@ class Trainer:
         return save_model(self.work / MODEL, self.method, self.cfg, self.scene_root,
                           [f.cam.cam for f in self.train_frames])
 
-    # -- signals -------------------------------------------------------------------
-    @contextlib.contextmanager
-    def _signals(self):
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-
-        def handler(signum, frame):
-            log.warning("signal %d: checkpointing and stopping after this iteration", signum)
-            self._stop = True
-
-        old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
-
     def request_stop(self) -> None:
         self._stop = True
+
+    def _stage(self, what: str, done: int | None = None, total: int | None = None) -> None:
+        """Announce a long set-up stage (``{"stage": ...}`` on the progress stream)."""
+        if not done:
+            log.info("%s", what)
+        self._emit({"stage": what} if total is None else {"stage": what, "done": done, "total": total})
+
+    def _build_rasterizer(self) -> None:
+        """Build the C++ rasterizer before set-up when it will be used, announcing a compile."""
+        from ..render import get_backend
+
+        if get_backend() == "reference":
+            return
+        from ..render import fast
+
+        fast.build(on_start=lambda msg: self._stage(f"compiling the C++ rasterizer (first run, {fast.BUILD_TIME})"))
 
     def _emit(self, obj: dict[str, Any]) -> None:
         if self.progress_json:
@@ -310,7 +307,7 @@ class Trainer:
         status = "done"
         bar = tqdm(total=T, initial=start_it, desc=f"train {cfg.method}", unit="it", dynamic_ncols=True,
                    disable=None)
-        with self._signals():
+        with stop_on_signals(self.request_stop):
             while it < T:
                 if self._stop or (stop_after is not None and it >= stop_after):
                     status = "interrupted"
@@ -332,14 +329,14 @@ class Trainer:
                     self._skip(it, "loss is not finite")
                 elif loss.requires_grad:
                     loss.backward()
-                    if self._grads_finite():
+                    if all_finite([p.grad for p in method.parameters()]):
                         method.step(it)
                         stepped = True
                     else:
                         self._skip(it, "gradients are not finite")
                 method.zero_grad()
-                if stepped:
-                    self._sanitize_params()
+                if stepped and make_finite(method.parameters()):
+                    log.warning("non-finite parameters replaced by finite values")
                 changes = strategy.step_post_backward(model, method.optimizer, it, info if stepped else None)
                 method.after_step(it, changes, self.report)
                 self.elapsed += time.perf_counter() - t0
@@ -385,13 +382,6 @@ class Trainer:
     def _skip(self, it: int, why: str) -> None:
         self.skipped += 1
         log.warning("iteration %d: %s; step skipped", it, why)
-
-    def _grads_finite(self) -> bool:
-        return all_finite([p.grad for p in self.method.parameters()])
-
-    def _sanitize_params(self) -> None:
-        if make_finite(self.method.parameters()):
-            log.warning("non-finite parameters replaced by finite values")
 
 
 def train(scene_root: str | Path, work: str | Path, cfg: TrainConfig, **kw: Any) -> TrainResult:

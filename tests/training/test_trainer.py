@@ -106,6 +106,35 @@ def test_progress_json_lines_and_report(synth, synth_init, tmp_path):
     assert 0.0 <= rep["values"]["pseudo_rejected_fraction"] < 0.9
 
 
+def test_progress_json_announces_the_long_set_up_stages(synth, tmp_path):
+    """A fresh run says what it is doing before the first iteration (geometry, then each pseudo
+    view built, counted up to the total): the add-on shows it instead of a frozen bar. A run
+    that reuses both caches announces neither."""
+    import io
+
+    from dibrgs_core.bridge.progress import Progress
+
+    buf = io.StringIO()
+    Trainer(synth, tmp_path / "fresh", _cfg(3), progress_json=True, stream=buf).run()
+    lines = [json.loads(x) for x in buf.getvalue().splitlines()]
+    first_it = next(i for i, x in enumerate(lines) if "iteration" in x)
+    stages = [x for x in lines if "stage" in x]
+    assert stages and all(lines.index(x) < first_it for x in stages)
+    assert stages[0]["stage"].startswith("geometry initialisation")
+    pv = [x for x in stages if x["stage"] == "building pseudo views"]
+    total = pv[0]["total"]
+    assert total > 0 and [x["done"] for x in pv] == list(range(total + 1))
+    state = Progress()
+    for x in lines[:first_it]:
+        state.update(x)
+    assert state.fraction == 1.0 and state.stage == "building pseudo views"
+
+    again = io.StringIO()
+    Trainer(synth, _with_caches(tmp_path / "fresh", tmp_path / "again"), _cfg(3), progress_json=True,
+            stream=again).run()
+    assert not [x for x in map(json.loads, again.getvalue().splitlines()) if "stage" in x]
+
+
 def test_ablation_flags_switch_components_off(synth, synth_init, tmp_path):
     work = _with_caches(synth_init, tmp_path / "abl")
     cfg = _cfg(12)
