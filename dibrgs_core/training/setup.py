@@ -83,14 +83,29 @@ def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
     return sc.points, sc.colors
 
 
-def random_init(cams: list[Camera], n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def random_init(cams: list[Camera], n: int, rng: np.random.Generator,
+                sparse_points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``n`` random points (and grey colours in [0,1]) in the volume the cameras look at.
 
-    A flat box around the cameras' common look-at point: horizontally as wide as
-    the mean image footprint there, vertically a quarter of that.
+    A flat box, horizontally as wide as the mean image footprint there and vertically a
+    quarter of that, around where the cameras' optical axes meet the ground
+    (:func:`~dibrgs_core.geometry.sweep_range.scene_ground`: their convergence point when the
+    axes determine one, else the SfM points' ground): on a mapping grid the axes are nearly
+    parallel and their least-squares meeting point lands anywhere. Without either, that
+    least-squares point.
     """
-    target = look_at_target(cams)
+    from ..geometry.sweep_range import scene_ground
+
     up, _ = estimate_up(cams)
+    n_up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    ground = scene_ground(cams, n_up, sparse_points)
+    hits = []
+    if ground is not None:
+        for c in cams:
+            down = -float(c.view_dir @ n_up)
+            if down > 0.1:  # the axis reaches the ground in front of the camera
+                hits.append(c.center + c.view_dir * (float(n_up @ c.center) - ground[0]) / down)
+    target = np.mean(hits, axis=0) if hits else look_at_target(cams)
     R = up_frame(up)
     half = float(np.mean([np.linalg.norm(c.center - target) * c.width / (2 * c.K[0, 0]) for c in cams]))
     local = rng.uniform(-1, 1, (n, 3)) * np.array([half, half, half / 4])
@@ -112,7 +127,8 @@ def build_3dgs(ctx: SetupContext) -> Setup:
             rep.decide("train", "sfm_init", True, f"3DGS baseline starts from {len(pts)} SfM points")
             cols = np.asarray(cols, np.float64) / 255.0
         else:
-            rp, rc = random_init([f.cam.cam for f in ctx.train_frames], cfg.gs3d.random_points, ctx.rng)
+            rp, rc = random_init([f.cam.cam for f in ctx.train_frames], cfg.gs3d.random_points, ctx.rng,
+                                 np.asarray(pts).reshape(-1, 3))
             rep.decide("train", "sfm_init", False,
                        f"SfM found only {len(pts)} points (< {cfg.gs3d.min_sfm_points}); "
                        f"3DGS starts from {len(rp)} random points in the viewed volume as well")
