@@ -12,7 +12,7 @@ rendered at its held-out cameras at its own resolution and scored:
 * ``unseen`` / ``one`` / ``two_plus``: pooled PSNR by how many training photos see the pixel.
 
     python scripts/eval_real_flight.py SCENE WORK [WORK ...] [--reference FILE] [--json FILE]
-        [--md FILE] [--png FILE] [--views NAME,NAME]
+        [--md FILE] [--png FILE] [--views NAME,NAME] [--curves FILE]
 
 ``--png`` writes a side-by-side of two held-out photos (ground truth, then each run) with the
 unseen part shaded.
@@ -158,6 +158,33 @@ def side_by_side(res: dict, path: Path, views: list[str] | None = None) -> None:
     plt.close(fig)
 
 
+def plot_curves(works: list[Path], path: Path) -> None:
+    """Held-out PSNR (the run's curve views) against training wall-clock seconds, one line a run."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dibrgs_core.common.fileio import atomic_path
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for w in works:
+        rows = list(csv.DictReader((w / "curve.csv").open()))
+        cfg = json.loads((w / "config.json").read_text())["config"]
+        ax.plot([float(r["seconds"]) for r in rows], [float(r["psnr"]) for r in rows], marker=".",
+                label=f"{w.name} ({cfg['method']}, {cfg['iterations']} it)")
+    ax.set_xlabel("training wall-clock seconds (evaluation excluded)")
+    ax.set_ylabel("held-out PSNR, whole image (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     from dibrgs_core.common.errors import InputError
     from dibrgs_core.common.fileio import write_json, write_text
@@ -170,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--md", type=Path, help="write the table here")
     ap.add_argument("--png", type=Path, help="side-by-side of two held-out photos")
     ap.add_argument("--views", default=None, help="comma-separated held-out photo names for --png")
+    ap.add_argument("--curves", type=Path, help="held-out PSNR against training time of every run (PNG)")
     a = ap.parse_args(argv)
     ref = a.reference or a.scene / "reference_points.txt"
     if not ref.is_file():
@@ -185,6 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         write_text(a.md, table(res) + "\n")
     if a.png:
         side_by_side(res, a.png, a.views.split(",") if a.views else None)
+    if a.curves:
+        plot_curves(a.works, a.curves)
     if a.json:
         write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
     return 0

@@ -37,8 +37,9 @@ def dibrgs(*argv: str | Path) -> tuple[int, str]:
 
 
 def dibrgs_subprocess(*argv: str | Path, prefix: tuple[str, ...] = (), timeout: float = 600,
-                      **kw) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+                      env: dict[str, str] | None = None, **kw) -> subprocess.CompletedProcess:
+    base = dict(os.environ if env is None else env)
+    env = dict(base, PYTHONPATH=str(REPO) + os.pathsep + base.get("PYTHONPATH", ""))
     return subprocess.run([*prefix, sys.executable, "-m", "dibrgs_core", *map(str, argv)], capture_output=True,
                           text=True, timeout=timeout, env=env, cwd=REPO, **kw)
 

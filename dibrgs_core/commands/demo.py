@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from ..common.modes import PresetName, SceneKind, choices
-from .options import add_threads, locked, positive_int, resolution, seed
+from .options import add_compute, locked, positive_int, resolution, seed
 
 log = logging.getLogger("dibrgs.demo")
 
@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--preset", default="cpu", choices=choices(PresetName), help="training preset")
     p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -40,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     scene = out / "scene"
     work = out / "work"
     t0 = time.perf_counter()
-    threads = [] if args.threads is None else ["--threads", str(args.threads)]
+    threads = ([] if args.threads is None else ["--threads", str(args.threads)]) + (
+        [] if args.rasterizer is None else ["--rasterizer", args.rasterizer])
     with locked(out, "demo"):
         if (scene / "Cams").is_dir() and (scene / "Images").is_dir():
             log.info("scene already rendered at %s, reusing it", scene)

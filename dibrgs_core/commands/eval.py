@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_threads, apply_threads, locked, positive_int
+from .options import add_compute, apply_compute, locked, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "weights/v0.1/vgg.pth with --lpips-backbone)")
     p.add_argument("--lpips-backbone", default=None, help="torchvision vgg16/alexnet state dict for the heads-only file")
     p.add_argument("--fps-repeats", type=positive_int, default=3, help="passes over the held-out views when timing")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(args.work, "no trained model here (no such folder); run `dibrgs train` first"
                          if not args.work.exists() else "is a file, not a run folder")
     with locked(args.work, "eval"):  # before torch is imported: a second writer hears at once
-        apply_threads(args)
+        apply_compute(args)
         from ..evaluation.evaluate import evaluate
 
         m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)

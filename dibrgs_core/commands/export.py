@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_threads, apply_threads
+from .options import add_compute, apply_compute
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("work", type=Path, help="run folder of `dibrgs train`")
     p.add_argument("--ply", type=Path, required=True, help="output PLY file")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.export import export_ply
 
     resolve_target(args.ply)  # refuse a folder or device before the model is read
-    apply_threads(args)
+    apply_compute(args)
     n = export_ply(args.work, args.ply)
     print(f"wrote {n} Gaussians to {args.ply}")
     return 0

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..common.modes import DepthMap, DepthPrior, Refine, choices
-from .options import add_split, add_threads, apply_threads, locked, name_list, nonnegative_float, positive_float
+from .options import add_split, add_compute, apply_compute, locked, name_list, nonnegative_float, positive_float
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="voxel size in paper units (default 1.0; 0 = off)")
     p.add_argument("--scale", type=positive_float, default=None,
                    help="world units per paper unit (default: from the cameras)")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from ..data.scene import require_train_views
 
     with locked(args.out, "init"):  # before torch is imported: a second writer hears at once
-        apply_threads(args)
+        apply_compute(args)
         scene = load_scene(args.scene, args.train, args.test, load_depth=args.depth_prior == "gt")
         require_train_views(scene)
         print(f"training views {', '.join(scene.train)} (split: {scene.split_source})")

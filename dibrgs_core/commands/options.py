@@ -2,6 +2,8 @@
 
 * ``--threads``: torch CPU threads, by default every core this process may run on
   (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's count);
+* ``--rasterizer``: the compiled C++ rasterizer (``auto``, the default) or the torch reference
+  path (``reference``: no compiler needed, about 100x slower);
 * ``--train`` / ``--test``: the split (comma-separated view names or LEVIR ids), overriding
   ``split.json`` and the default (:func:`dibrgs_core.data.scene.make_split`);
 * argparse types that refuse impossible numbers at parse time with one line naming the option.
@@ -28,17 +30,27 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def add_threads(p: argparse.ArgumentParser) -> None:
+def add_compute(p: argparse.ArgumentParser) -> None:
+    """``--threads`` and ``--rasterizer``."""
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help=f"torch CPU threads (default: the cores available to this process, {available_cores()} here)")
+    p.add_argument("--rasterizer", choices=["auto", "fast", "reference"], default=None,
+                   help="auto/fast: the compiled C++ rasterizer (built on first use; a failed build is an error "
+                        "saying why); reference: the torch path, no compiler needed, about 100x slower "
+                        "(default: $DIBRGS_RASTERIZER, else auto)")
 
 
-def apply_threads(args: argparse.Namespace) -> int:
-    """Set torch's thread count from ``--threads`` (default: the available cores); returns it."""
+def apply_compute(args: argparse.Namespace) -> int:
+    """Set torch's thread count from ``--threads`` (default: the available cores) and the rasterizer
+    backend from ``--rasterizer``; returns the thread count."""
     import torch
+
+    from ..render import set_backend
 
     n = args.threads or available_cores()
     torch.set_num_threads(n)
+    if getattr(args, "rasterizer", None) is not None:
+        set_backend(args.rasterizer)
     return n
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_threads, apply_threads, locked
+from .options import add_compute, apply_compute, locked
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", type=Path, required=True, help="Cams file, folder of Cams files or JSON list")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--no-depth", action="store_true", help="skip the depth EXR files")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     from ..common.errors import InputError
 
     with locked(args.out, "render"):
-        apply_threads(args)
+        apply_compute(args)
         from ..data.images import write_depth_exr, write_png
         from ..data.levir import read_cameras
         from ..evaluation.evaluate import load_trained

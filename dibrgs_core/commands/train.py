@@ -17,7 +17,7 @@ import logging
 from pathlib import Path
 
 from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
-from .options import (add_split, add_threads, apply_threads, locked, nonnegative_float, positive_int,
+from .options import (add_split, add_compute, apply_compute, locked, nonnegative_float, positive_int,
                       resolution_scale, seed)
 
 log = logging.getLogger("dibrgs.train")
@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--dino-resnet", default=None, help="dino_resnet50_pretrain.pth")
     w.add_argument("--dino-vit", default=None, help="dino_vitbase8_pretrain.pth")
     w.add_argument("--depth-model", default=None, help="local Depth Anything V2 transformers folder")
-    add_threads(p)
+    add_compute(p)
     p.set_defaults(func=run)
 
 
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
         raise InputError(None, "--force-config only applies with --resume")
     with locked(args.out, "train"):  # before torch is imported: a second writer hears at once
-        apply_threads(args)
+        apply_compute(args)
         from ..training.methods import TrainingFailed
         from ..training.trainer import Trainer
 

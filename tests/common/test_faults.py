@@ -307,7 +307,7 @@ def test_debug_shows_the_traceback(tmp_path):
 
 def test_threads_default_to_the_available_cores():
     from dibrgs_core.cli import build_parser
-    from dibrgs_core.commands.options import apply_threads, available_cores
+    from dibrgs_core.commands.options import apply_compute, available_cores
 
     n = torch.get_num_threads()
     try:
@@ -315,10 +315,10 @@ def test_threads_default_to_the_available_cores():
                     ["render", "W", "--cameras", "C", "--out", "O"], ["export", "W", "--ply", "P"], ["demo"]):
             args = build_parser().parse_args(cmd)
             assert args.threads is None, cmd
-            assert apply_threads(args) == available_cores() == len(os.sched_getaffinity(0))
+            assert apply_compute(args) == available_cores() == len(os.sched_getaffinity(0))
             assert torch.get_num_threads() == available_cores()
             args = build_parser().parse_args(cmd + ["--threads", "1"])
-            assert apply_threads(args) == 1 and torch.get_num_threads() == 1
+            assert apply_compute(args) == 1 and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(n)
 
@@ -798,3 +798,20 @@ def test_corrupt_lpips_backbone(finished_run, tmp_path):
     line = one_line(err)
     assert rc == 2 and f"{bb}: not a torch state dict" in line, err
     assert not (work / "metrics.json").exists()
+
+
+def test_no_compiler_is_one_line_naming_the_reference_switch(scene24, finished_run, tmp_path):
+    """A machine without a C++ compiler: `dibrgs render` stops with one line saying what is
+    missing and naming --rasterizer reference, writes nothing; with that switch it renders."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DIBRGS_RASTERIZER", "DIBRGS_EXT_FLAGS")}
+    env.update(CXX=str(tmp_path / "no-such-compiler"), DIBRGS_EXT_DIR=str(tmp_path / "ext"))
+    work = copy_run(finished_run, tmp_path / "w")
+    cams = scene24 / "Cams" / "002.txt"
+    r = dibrgs_subprocess("render", work, "--cameras", cams, "--out", tmp_path / "a", env=env)
+    line = one_line(r.stderr)
+    assert r.returncode != 0 and "no C++ compiler found" in line and "--rasterizer reference" in line, r.stderr
+    assert "internal error" not in line and not list((tmp_path / "a").glob("*.png"))
+    r = dibrgs_subprocess("render", work, "--cameras", cams, "--out", tmp_path / "b", "--rasterizer", "reference",
+                          env=env)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "b" / "002.png").is_file()

@@ -1,0 +1,35 @@
+"""scripts/eval_real_flight.py: held-out PSNR split by how many training photos see a pixel."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from dibrgs_core.data.ply import read_ply
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_scores_a_run_by_visibility_and_draws_its_figures(scene24, finished_run, tmp_path):
+    pts, _ = read_ply(finished_run / "init" / "points.ply")
+    ref = tmp_path / "reference_points.txt"
+    ref.write_text("# x y z\n" + "\n".join(" ".join(f"{v:.6f}" for v in p) for p in pts[:500]) + "\n")
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(scene24), str(finished_run),
+                          "--reference", str(ref), "--json", str(out / "r.json"), "--png", str(out / "views.png"),
+                          "--curves", str(out / "curves.png")], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    r = json.loads((out / "r.json").read_text())
+    (run,) = r["runs"]
+    assert run["method"] == "dibrgs" and np.isfinite(run["psnr"])
+    assert 0.0 < run["seen_fraction"] <= 1.0 and np.isfinite(run["seen"])
+    assert abs(sum(run["fractions"][k] for k in ("one", "two_plus")) - run["seen_fraction"]) < 1e-6
+    assert (out / "views.png").stat().st_size > 1000 and (out / "curves.png").stat().st_size > 1000
+    # A missing reference file is one line naming it.
+    bad = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(scene24),
+                          str(finished_run), "--reference", str(tmp_path / "none.txt")],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "none.txt" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
