@@ -44,6 +44,14 @@ def scene24(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def synth(tmp_path_factory) -> Path:
+    """The 32x32 synthetic scene (21 views, LEVIR layout, depth maps): training tests."""
+    from train_synth import make_synth_scene
+
+    return make_synth_scene(tmp_path_factory.mktemp("scenes") / "s32", resolution=32)
+
+
+@pytest.fixture(scope="session")
 def other_scene24(tmp_path_factory) -> Path:
     """Another scene of the same layout and size (another seed)."""
     from train_synth import make_synth_scene

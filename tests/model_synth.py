@@ -47,3 +47,15 @@ def check_optimizer_state(m: NeuralGaussians, opt: torch.optim.Adam):
         assert p is getattr(m, g["name"])
         st = opt.state[p]
         assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape
+
+
+def ring_views(W: int = 64, H: int = 48, V: int = 2) -> tuple[torch.Tensor, list[Camera]]:
+    """``V`` cameras on a ring looking at the origin, and random (V,3,H,W) images (seed 0)."""
+    K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
+    cams = []
+    for i in range(V):
+        a = 2 * np.pi * i / V
+        eye = np.array([4 * np.cos(a), 4 * np.sin(a), 3.0])
+        cams.append(Camera(K=K, w2c=look_at(eye, [0, 0, 0], [0, 0, 1]), width=W, height=H, name=f"{i:03d}"))
+    torch.manual_seed(0)
+    return torch.rand(V, 3, H, W), cams

@@ -11,6 +11,7 @@ from dibrgs_core.models.ibr.features import IBRFeatures, build_ibr, resolve_enco
 from dibrgs_core.models.ibr.resnet import ResNetFeatures, dino_resnet50
 from dibrgs_core.models.ibr.vit import ViTFeatures, dino_vitb8
 from dibrgs_core.models.ibr.weights import load_backbone_weights
+from model_synth import ring_views
 
 torch.set_num_threads(2)
 
@@ -113,21 +114,9 @@ def test_vit_interpolates_position_embeddings():
 
 
 # ---------------------------------------------------------------------------
-def _scene(W: int = 64, H: int = 48, V: int = 2):
-    """V cameras looking at the origin from different sides; random images."""
-    K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
-    cams = []
-    for i in range(V):
-        a = 2 * np.pi * i / V
-        eye = np.array([4 * np.cos(a), 4 * np.sin(a), 3.0])
-        cams.append(Camera(K=K, w2c=look_at(eye, [0, 0, 0], [0, 0, 1]), width=W, height=H, name=f"{i:03d}"))
-    torch.manual_seed(0)
-    return torch.rand(V, 3, H, W), cams
-
-
 @pytest.mark.parametrize("encoder", ["pyramid", "dino"])
 def test_anchor_samples_its_pixel_and_skips_behind(encoder):
-    images, cams = _scene()
+    images, cams = ring_views()
     kw = {}
     if encoder == "dino":
         kw = dict(zip(("resnet", "vit"), _tiny_backbones(0)))
@@ -156,7 +145,7 @@ def test_anchor_samples_its_pixel_and_skips_behind(encoder):
 
 
 def test_average_over_views_and_state_dict_small():
-    images, cams = _scene(V=3)
+    images, cams = ring_views(V=3)
     ibr = IBRFeatures("pyramid", images, cams, c_r=8)
     X = torch.zeros(1, 3)  # the look-at point, inside all three views
     maps = ibr.feature_maps().detach()
@@ -174,7 +163,7 @@ def test_average_over_views_and_state_dict_small():
 @pytest.mark.stability
 def test_gradients_reach_projection_and_are_finite():
     """IBR feature projection at extreme anchor positions: finite features and gradients reaching P."""
-    images, cams = _scene()
+    images, cams = ring_views()
     images[0].zero_()  # an all-black view
     ibr = build_ibr("pyramid", images, cams, c_r=8)
     assert build_ibr("none", images, cams) is None
@@ -200,7 +189,7 @@ def test_gradients_reach_projection_and_are_finite():
 @pytest.mark.parametrize("encoder", ["pyramid", "dino"])
 def test_forward_equals_sampling_the_fused_maps(encoder):
     """Averaging over views: matches grid_sample on each view's full map, sizes not divisible by 8/32."""
-    images, cams = _scene(W=70, H=52, V=3)  # sizes that do not divide evenly
+    images, cams = ring_views(W=70, H=52, V=3)  # sizes that do not divide evenly
     kw = dict(zip(("resnet", "vit"), _tiny_backbones(0))) if encoder == "dino" else {}
     ibr = IBRFeatures(encoder, images, cams, c_r=8, **kw)
     torch.manual_seed(1)

@@ -13,27 +13,20 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.camera.pinhole import Camera
 from dibrgs_core.models.base import CameraTensors
 from dibrgs_core.models.ibr.features import IBRFeatures
 from dibrgs_core.models.ibr.resnet import ResNetFeatures
 from dibrgs_core.models.ibr.sampling import upsampled_taps
 from dibrgs_core.models.ibr.vit import ViTFeatures
-from model_synth import small_camera, small_model
+from model_synth import ring_views, small_camera, small_model
 
 torch.set_num_threads(2)
 
 
 def _views(W: int = 70, H: int = 52, V: int = 3):
-    """V cameras around the origin, sizes not divisible by the pyramid's or the ViT's strides."""
-    K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
-    cams = []
-    for i in range(V):
-        a = 2 * np.pi * i / V
-        eye = np.array([4 * np.cos(a), 4 * np.sin(a), 3.0])
-        cams.append(Camera(K=K, w2c=look_at(eye, [0, 0, 0], [0, 0, 1]), width=W, height=H, name=f"{i:03d}"))
-    torch.manual_seed(0)
-    return torch.rand(V, 3, H, W), cams
+    """Sizes not divisible by the pyramid's or the ViT's strides."""
+    return ring_views(W, H, V)
 
 
 def _ibr(encoder: str, W: int = 70, H: int = 52) -> tuple[IBRFeatures, list[Camera]]:

@@ -19,14 +19,8 @@ from dibrgs_core.training.config import preset
 from dibrgs_core.training.curve import curve_views, evaluate_heldout
 from dibrgs_core.training.guard import all_finite
 from dibrgs_core.training.trainer import Trainer
-from train_synth import make_synth_scene
 
 torch.set_num_threads(1)
-
-
-@pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    return make_synth_scene(tmp_path_factory.mktemp("synth") / "s32", resolution=32)
 
 
 @pytest.fixture(scope="module")

@@ -22,11 +22,6 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    return make_synth_scene(tmp_path_factory.mktemp("synth") / "s32", resolution=32)
-
-
-@pytest.fixture(scope="module")
 def synth_init(synth, tmp_path_factory) -> Path:
     """A finished short run on the synthetic scene; later runs reuse its init/ and pseudo/ caches."""
     work = tmp_path_factory.mktemp("runs") / "base"
