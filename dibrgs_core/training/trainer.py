@@ -156,8 +156,8 @@ class Trainer:
                                         "config": cfg.to_dict(),
                                         "forced_config": self.report.values.get("forced_config", [])})
         self.bg = torch.tensor(cfg.background, dtype=torch.float32)
-        # set-up randomness only (random init), apart from the training streams
         self._build_rasterizer()
+        # set-up randomness only (random init), apart from the training streams
         ctx = SetupContext(cfg, self.work, scene, self.train_frames, self.report,
                            np.random.default_rng(cfg.seed + 1), ckpt, self.depth_model, self._stage)
         built = METHODS[cfg.method](ctx)
