@@ -24,9 +24,8 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.images import IMAGE_EXTS
 from ..data.scene import make_split, validate_camera_arrays
-from ..data.levir import read_cams_file
+from ..data.levir import paired_files, read_cams_file
 from .colmap_model import read_model
 from .imagesize import image_size
 
@@ -60,15 +59,7 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]
     img_dir, cam_dir = root / "Images", root / "Cams"
     if not img_dir.is_dir():
         raise InputError(img_dir, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
-    images = {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_EXTS and p.is_file()
-              and not p.name.startswith(".")}
-    cams = {p.stem: p for p in sorted(cam_dir.glob("*.txt")) if not p.name.startswith(".")}
-    if not images:
-        raise InputError(img_dir, "no images found")
-    for stem in sorted(set(images) - set(cams)):
-        raise InputError(cam_dir / f"{stem}.txt", f"camera file missing for image {images[stem].name}")
-    for stem in sorted(set(cams) - set(images)):
-        raise InputError(img_dir / f"{stem}.png", f"image missing for camera {cams[stem].name}")
+    images, cams = paired_files(img_dir, cam_dir)
     views: dict[str, Camera] = {}
     size, first = None, None
     for stem in sorted(images):

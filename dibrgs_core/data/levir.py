@@ -160,6 +160,22 @@ def _find(folder: Path, stem: str, exts: Sequence[str]) -> Path | None:
 # ---------------------------------------------------------------------------
 # Scenes
 # ---------------------------------------------------------------------------
+def paired_files(img_dir: Path, cam_dir: Path) -> tuple[dict[str, Path], dict[str, Path]]:
+    """``(images, cams)`` of a LEVIR-NVS scene by view id (file stem), hidden files skipped;
+    ``InputError`` naming the file when there are no images or an image lacks its Cams file
+    or the reverse."""
+    images = {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_EXTS and p.is_file()
+              and not p.name.startswith(".")}
+    cams = {p.stem: p for p in sorted(cam_dir.glob("*.txt")) if not p.name.startswith(".")}
+    if not images:
+        raise InputError(img_dir, "no images found")
+    for stem in sorted(set(images) - set(cams)):
+        raise InputError(cam_dir / f"{stem}.txt", f"camera file missing for image {images[stem].name}")
+    for stem in sorted(set(cams) - set(images)):
+        raise InputError(img_dir / f"{stem}.png", f"image missing for camera {cams[stem].name}")
+    return images, cams
+
+
 def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
                test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS scene folder (see module docstring).
@@ -177,15 +193,7 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
     for d in (img_dir, cam_dir):
         if not d.is_dir():
             raise InputError(d, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
-    images = {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_EXTS and p.is_file()
-              and not p.name.startswith(".")}
-    cams = {p.stem: p for p in sorted(cam_dir.glob("*.txt")) if not p.name.startswith(".")}
-    if not images:
-        raise InputError(img_dir, "no images found")
-    for stem in sorted(set(images) - set(cams)):
-        raise InputError(cam_dir / f"{stem}.txt", f"camera file missing for image {images[stem].name}")
-    for stem in sorted(set(cams) - set(images)):
-        raise InputError(img_dir / f"{stem}.png", f"image missing for camera {cams[stem].name}")
+    images, cams = paired_files(img_dir, cam_dir)
     use_depth = load_depth and dep_dir.is_dir()
     views: dict[str, View] = {}
     size: tuple[int, int] | None = None
