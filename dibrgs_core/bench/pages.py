@@ -2,6 +2,7 @@
 training seconds, one panel a scene) and the Markdown tables of ``docs/benchmarks.md``.
 
 Units: times in seconds of training wall-clock (evaluation excluded), PSNR in dB, memory in MiB.
+"plateau s" is when a run's curve levelled off (:func:`.runner.plateau_seconds`).
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..common.fileio import atomic_path, write_text
-from .runner import ABLATION_LABELS, ABLATIONS, RESULT_COLUMNS, RunSpec, Suite
+from .runner import ABLATION_LABELS, ABLATIONS, RESULT_COLUMNS, RunSpec, Suite, plateau_seconds
 
 
 def load_results(results: Path, suite: Suite | None = None) -> list[dict[str, Any]]:
@@ -23,6 +24,8 @@ def load_results(results: Path, suite: Suite | None = None) -> list[dict[str, An
     for p in sorted((results / "runs").glob("*.json")):
         r = json.loads(p.read_text())
         if keys is None or RunSpec(**r["spec"]).key in keys:
+            if "plateau_seconds" not in r["row"]:  # a result from before the column: its curve says
+                r["row"]["plateau_seconds"] = plateau_seconds(r["curve"])
             out.append(r)
     return out
 
@@ -79,8 +82,8 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
     methods = [m for m in ("3dgs", "dibrgs") if any(r["method"] == m for r in rows)]
     if methods:
         lines += ["### Methods (mean over scenes; as the paper's Table I)", "",
-                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | Gaussians | peak MiB |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| Method | PSNR | SSIM | LPIPS | AVGE | FPS | train s | plateau s | Gaussians | peak MiB |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for m in methods:
             rs = [r for r in rows if r["method"] == m]
 
@@ -90,7 +93,7 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
 
             lines.append(f"| {m} | {_fmt(mean('psnr'))} | {_fmt(mean('ssim'), 3)} | {_fmt(mean('lpips'), 3)} | "
                          f"{_fmt(mean('avge'), 3)} | {_fmt(mean('fps'), 1)} | {_fmt(mean('train_seconds'), 0)} | "
-                         f"{_fmt(mean('gaussians'), 0)} | {_fmt(mean('peak_memory_mib'), 0)} |")
+                         f"{_fmt(mean('plateau_seconds'), 0)} | {_fmt(mean('gaussians'), 0)} | {_fmt(mean('peak_memory_mib'), 0)} |")
         scenes = sorted({r["scene"] for r in rows})
         lines += ["", "### Per scene PSNR / SSIM (as the paper's Table II)", "",
                   "| Metric | Method | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]

@@ -31,8 +31,10 @@ log = logging.getLogger("dibrgs.benchmark")
 
 _SCENE_LOCK = threading.Lock()
 
-RESULT_COLUMNS = ["scene", "method", "psnr", "ssim", "lpips", "avge", "fps", "train_seconds",
+RESULT_COLUMNS = ["scene", "method", "psnr", "ssim", "lpips", "avge", "fps", "train_seconds", "plateau_seconds",
                   "gaussians", "anchors", "peak_memory_mib", "iterations", "preset"]
+#: A curve has reached its plateau once its PSNR stays no more than this below the final value.
+PLATEAU_TOL_DB = 0.5
 
 # Method name -> extra `dibrgs train` flags.
 METHODS: dict[str, list[str]] = {
@@ -167,11 +169,13 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None, thre
     _dibrgs(ev, logf)
     metrics = json.loads((work / "metrics.json").read_text())
     curve = read_curve(work / "curve.csv")
+    final_on_point_views = _final_on_point_views(work)
     peak = metrics.get("peak_memory_mib")
     row = {"scene": spec.scene, "method": spec.method, "psnr": metrics.get("psnr"),
            "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"), "avge": metrics.get("avge"),
            "fps": metrics.get("fps"), "train_seconds": metrics.get("train_seconds",
                                                                      curve[-1]["seconds"] if curve else None),
+           "plateau_seconds": plateau_seconds(curve, final_on_point_views),
            "gaussians": metrics.get("gaussians"), "anchors": metrics.get("anchors"),
            "peak_memory_mib": peak, "iterations": metrics.get("iterations"), "preset": spec.preset}
     return {"spec": asdict(spec), "row": row, "curve": curve, "host": platform.node()}
@@ -188,6 +192,34 @@ def read_curve(path: Path) -> list[dict[str, float]]:
             out.append({"seconds": float(sec), "iteration": int(float(r.get("iteration", 0))),
                         "psnr": float(r["psnr"]), "ssim": float(r["ssim"])})
     return out
+
+
+def _final_on_point_views(work: Path) -> float | None:
+    """The final model's PSNR on the held-out views the earlier curve points evaluated (report.json;
+    None when those points evaluated every view)."""
+    try:
+        rep = json.loads((work / "report.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return rep.get("values", {}).get("curve", {}).get("final_psnr_on_point_views")
+
+
+def plateau_seconds(curve: list[dict[str, float]], final_psnr: float | None = None,
+                    tol_db: float = PLATEAU_TOL_DB) -> float | None:
+    """Training seconds from which a curve's PSNR stays within ``tol_db`` below its final value
+    (or above it) to the end: when the run's quality had levelled off. ``final_psnr`` is the final
+    model's PSNR on the views the earlier points evaluated, when they evaluated a subset (the last
+    point evaluates every view); None: the last point's. None for an empty curve."""
+    if not curve:
+        return None
+    final = curve[-1]["psnr"] if final_psnr is None else final_psnr
+    values = [p["psnr"] for p in curve[:-1]] + [final]
+    at = curve[-1]["seconds"]
+    for p, v in zip(reversed(curve), reversed(values)):
+        if v < final - tol_db:
+            break
+        at = p["seconds"]
+    return at
 
 
 # ---------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..common.digest import file_digest
 from ..common.errors import InputError
 from ..common.report import Report
 from .checkpoint import CHECKPOINT, MODEL
@@ -30,6 +31,8 @@ from .config import TrainConfig
 log = logging.getLogger("dibrgs.train")
 
 CONFIG = "config.json"
+#: Report value holding the digest of the user's pseudo-view path file (:func:`file_digest`).
+PSEUDO_PATH_DIGEST = "pseudo_path_sha256"
 #: Files and folders one training run writes (its outputs), removed when a fresh run starts.
 RUN_OUTPUTS = (CHECKPOINT, MODEL, CONFIG, "report.json", "train.log", "curve.csv", "curve.png", "metrics.json",
                "renders")
@@ -152,10 +155,20 @@ class ConfigChanges:
         return "; ".join(parts)
 
 
-def compare_configs(saved: dict[str, Any], requested: dict[str, Any], done: int) -> ConfigChanges:
+def _same_file(path: str | None, digest: str | None) -> bool:
+    """Whether ``path`` holds the content whose :func:`file_digest` is ``digest``."""
+    try:
+        return bool(path and digest) and file_digest(path) == digest
+    except OSError:
+        return False
+
+
+def compare_configs(saved: dict[str, Any], requested: dict[str, Any], done: int,
+                    same_content: frozenset[str] = frozenset()) -> ConfigChanges:
     """Sort the differences between ``saved`` and ``requested`` (``TrainConfig.to_dict()`` forms);
     ``done`` is the checkpoint's iteration. More iterations are safe; fewer are not, and fewer than
-    ``done`` cannot be forced."""
+    ``done`` cannot be forced. Keys in ``same_content`` name files whose paths differ but whose
+    content is the checkpoint's (a run folder copied or moved): safe."""
     a, b = _flat(saved), _flat(requested)
     safe, unsafe, fixed = [], [], []
     for k in sorted(set(a) | set(b)):
@@ -165,7 +178,8 @@ def compare_configs(saved: dict[str, Any], requested: dict[str, Any], done: int)
         item = (k, va, vb)
         if k in FIXED or (k == "iterations" and isinstance(vb, int) and vb < done):
             fixed.append(item)
-        elif k in SAFE_CHANGES or (k == "iterations" and isinstance(vb, int) and vb >= max(int(va), done)):
+        elif k in SAFE_CHANGES or k in same_content or (
+                k == "iterations" and isinstance(vb, int) and vb >= max(int(va), done)):
             safe.append(item)
         else:
             unsafe.append(item)
@@ -179,7 +193,10 @@ def resumed_config(ck_path: Path, ckpt: dict[str, Any], requested: TrainConfig, 
     The changes go into ``report`` (``resume_changes``; forced ones, with earlier legs', ``forced_config``)."""
     saved = TrainConfig.from_dict(ckpt["config"])
     done = int(ckpt["iteration"])
-    ch = compare_configs(saved.to_dict(), requested.to_dict(), done)
+    values = ckpt["report"].get("values", {})
+    same = frozenset({"pseudo_path"}) if _same_file(requested.pseudo_path, values.get(PSEUDO_PATH_DIGEST)) \
+        else frozenset()
+    ch = compare_configs(saved.to_dict(), requested.to_dict(), done, same)
     if ch.fixed:
         raise InputError(ck_path, f"cannot resume with {ConfigChanges.describe(ch.fixed)}: the checkpoint "
                                   f"(iteration {done}) was built for its own; drop --resume to start afresh")

@@ -23,11 +23,12 @@ from ..camera.frame import estimate_up, look_at_target, up_frame
 from ..camera.pinhole import Camera
 from ..common.fileio import atomic_path
 from ..common.report import Report
-from ..common.digest import Digest
+from ..common.digest import Digest, file_digest
 from ..data.scene import Scene, View, views_digest
 from .config import TrainConfig
 from .frames import Frame
 from .methods import GS3DTraining, ScaffoldTraining, TrainingMethod
+from .run_folder import PSEUDO_PATH_DIGEST
 
 log = logging.getLogger("dibrgs.train")
 
@@ -259,6 +260,7 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
         from ..data.levir import read_cameras
 
         path = read_cameras(cfg.pseudo_path)
+        rep.values[PSEUDO_PATH_DIGEST] = file_digest(cfg.pseudo_path)
     cams = [f.cam.cam for f in ctx.train_frames]
     train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
     surface, why = decide(cfg.pseudo.surface, cams)

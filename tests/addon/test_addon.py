@@ -241,17 +241,21 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     lap("fly-through")
 
     # Batch mode from the installed extension (what `blender -b -c dibrgs ...` runs), continuing the
-    # trained run in a copy of its folder.
+    # trained run in a copy of its folder: the same pseudo-view path, written to the copy's own
+    # blender/ folder, is the same configuration (compared by content, not by path).
     batch_out = Path(batch_out)
     shutil.copytree(work, batch_out, ignore=shutil.ignore_patterns("blender", "final.png"))
     rc = mod("batch").cli_command(["--scene", str(scene), "--out", str(batch_out), "--preset", "test",
-                                   "--iterations", "20", "--pseudo-views", "3", "--no-init", "--resume"])
+                                   "--iterations", "24", "--pseudo-views", "4", "--no-init", "--resume"])
     assert rc == 0
+    resumed = json.loads((batch_out / "report.json").read_text())["values"]
+    assert resumed["resumed_from"] == 20 and ["pseudo_path", str(work / "blender" / "pseudo_path.json"),
+                                              str(batch_out / "blender" / "pseudo_path.json")] in resumed["resume_changes"]
     blend = batch_out / "dibrgs.blend"
-    assert blend.is_file() and len(list((batch_out / "blender" / "renders" / "pseudo").glob("pseudo_*.png"))) == 3
+    assert blend.is_file() and len(list((batch_out / "blender" / "renders" / "pseudo").glob("pseudo_*.png"))) == 4
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     tree = bpy.context.scene.compositing_node_group
-    assert sum(n.bl_idname == "CompositorNodeImage" for n in tree.nodes) == len(ref.test) + 3
+    assert sum(n.bl_idname == "CompositorNodeImage" for n in tree.nodes) == len(ref.test) + 4
     assert len(bpy.context.scene.dibrgs.metrics) > 0 and sb.PATH_NAME in bpy.data.objects
     lap("batch")
     print("TIMINGS " + json.dumps(timings), flush=True)

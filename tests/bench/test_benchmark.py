@@ -46,12 +46,31 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     for r in rows:
         assert 5.0 < float(r["psnr"]) < 60.0
         assert float(r["train_seconds"]) > 0
+        assert 0 <= float(r["plateau_seconds"]) <= float(r["train_seconds"]) + 1e-6
     assert (docs / "benchmarks" / "curves.png").stat().st_size > 1000
     md = (docs / "benchmarks.md").read_text()
     assert "Benchmark suite `tiny`" in md and "w/o Pseudo Views" in md
     # Rewriting the pages replaces the suite's section instead of appending a second one.
     pages.write_pages(results, suite, docs, "again")
     assert (docs / "benchmarks.md").read_text().count("Benchmark suite `tiny`") == 1
+
+
+def _curve(points):
+    return [{"seconds": t, "iteration": i, "psnr": p, "ssim": 0.5} for i, (t, p) in enumerate(points)]
+
+
+def test_plateau_is_where_the_curve_stays_near_its_final_value():
+    """Rising then flat: the first point within 0.5 dB of the end. A peak that drifts down counts
+    from when it got near the end value and stayed. A dip back below restarts the count. With a
+    subset of views on the earlier points, the final model's PSNR on those views is the reference."""
+    assert bm.plateau_seconds([]) is None
+    assert bm.plateau_seconds(_curve([(0, 8.0), (30, 15.0), (60, 19.7), (90, 20.0), (120, 20.1)])) == 60
+    assert bm.plateau_seconds(_curve([(0, 8.0), (30, 21.0), (60, 20.5), (90, 20.0)])) == 30
+    assert bm.plateau_seconds(_curve([(0, 8.0), (30, 20.0), (60, 18.0), (90, 20.0), (120, 20.2)])) == 90
+    assert bm.plateau_seconds(_curve([(0, 8.0), (30, 20.0)])) == 30
+    # Points on 4 views read ~2 dB above the all-view final value: compared with the final model on those views.
+    sub = _curve([(0, 8.0), (30, 20.0), (60, 21.9), (90, 18.2)])
+    assert bm.plateau_seconds(sub) == 30 and bm.plateau_seconds(sub, final_psnr=22.0) == 60
 
 
 def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_path):

@@ -133,8 +133,10 @@ def test_two_copies_share_one_fresh_build(tmp_path):
     assert not a["before"] and a["after"] and len(a["msgs"]) == 1 and "compiling the C++ rasterizer" in a["msgs"][0]
     assert "compiling the C++ rasterizer" in res.stderr  # the log line
 
+    # No compiler on PATH for the second copy (CXX itself is part of the cache key, so it stays unset).
+    (tmp_path / "empty-bin").mkdir()
     res = run_python(report + RENDER, cwd=tmp_path / "b", PYTHONPATH=str(tmp_path / "b"), DIBRGS_EXT_DIR=ext,
-                     CXX=str(tmp_path / "no-such-compiler"))
+                     PATH=str(tmp_path / "empty-bin"))
     assert res.returncode == 0, res.stderr
     b = json.loads([ln for ln in res.stdout.splitlines() if ln.startswith("{")][-1])
     assert b["pkg"].startswith(str(tmp_path / "b"))
