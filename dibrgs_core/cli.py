@@ -17,11 +17,8 @@ import os
 import sys
 import traceback
 
-# OpenMP threads that spin while waiting make torch 3-4x slower on a shared
-# 2-core machine; must be set before torch is first imported.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 from .common.errors import EXIT_INPUT, explain, exit_code
+from .common.openmp import set_wait_policy
 
 COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]
 
@@ -50,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if "torch" not in sys.modules:  # libgomp reads its wait policy once, when torch loads it
+        set_wait_policy()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:

@@ -7,8 +7,9 @@ Builds each method as training does (``Trainer.setup`` with ``--preset``, pseudo
 only training views are timed, and a pseudo-view iteration costs the same), trains
 ``--warmup`` real iterations (``WORK/<method>``, growth included, so the model has a
 trained size; the run is resumed when it already exists), then measures with
-``--threads`` torch threads, process CPU time (``time.process_time``, all threads), the
-minimum over ``--repeats`` of the mean over the training views:
+``--threads`` torch threads, process CPU time (``time.process_time``, all threads; wall time
+beside it for forward + backward), the minimum over ``--repeats`` of the mean over the
+training views:
 
 * ``iteration``: the trainer's step (render, loss, backward, finite check, optimiser step,
   parameter check, strategy hooks) at an iteration after growth and before P freezes, on
@@ -21,7 +22,9 @@ minimum over ``--repeats`` of the mean over the training views:
   kernel alone), ``loss`` (L1 + D-SSIM), and ``step`` (finite checks + optimiser step).
 
 Run it from the repository root (or with the package on ``PYTHONPATH``); prints a table
-and writes JSON with the sizes, the load average and the torch configuration.
+and writes JSON with the sizes, the load average, the OpenMP wait policy chosen at start
+(:mod:`dibrgs_core.common.openmp`, as the ``dibrgs`` command chooses it) and the torch
+configuration.
 """
 from __future__ import annotations
 
@@ -33,8 +36,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from dibrgs_core.common.openmp import set_wait_policy, wait_policy  # noqa: E402
+
+set_wait_policy()  # as the dibrgs command does, before torch loads libgomp
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -84,7 +89,8 @@ def fwd_bwd(make: Callable[[], Any], repeats: int) -> dict[str, float]:
         torch.autograd.backward([a for a, _ in pairs], [g for _, g in pairs])
 
     f, b = timed(fwd, repeats), timed(both, repeats)
-    return {"fwd_ms": f["cpu_ms"], "fwd_bwd_ms": b["cpu_ms"], "bwd_ms": b["cpu_ms"] - f["cpu_ms"]}
+    return {"fwd_ms": f["cpu_ms"], "fwd_bwd_ms": b["cpu_ms"], "bwd_ms": b["cpu_ms"] - f["cpu_ms"],
+            "fwd_bwd_wall_ms": b["wall_ms"]}
 
 
 def leaf(t: torch.Tensor) -> torch.Tensor:
@@ -240,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     from dibrgs_core.render import fast
 
     out = {"date": time.strftime("%Y-%m-%d %H:%M"), "loadavg_start": os.getloadavg(),
-           "threads": args.threads, "preset": args.preset, "warmup": args.warmup, "repeats": args.repeats,
+           "threads": args.threads, "openmp_wait": wait_policy(), "preset": args.preset, "warmup": args.warmup, "repeats": args.repeats,
            "fast_rasterizer": fast.available(required=False), "results": []}
     for m in args.methods:
         r = bench_method(args, m)
@@ -250,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         for k, v in r["components"].items():
             print("  " + f"{k:14s} " + ", ".join(f"{q} {x:7.1f}" for q, x in v.items()))
     out["loadavg_end"] = os.getloadavg()
-    print(f"\nload average {out['loadavg_start']} -> {out['loadavg_end']}")
+    print(f"\nload average {out['loadavg_start']} -> {out['loadavg_end']}; OpenMP wait: {out['openmp_wait']}")
     if args.out:
         args.out.write_text(json.dumps(out, indent=1))
     return 0

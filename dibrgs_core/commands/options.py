@@ -1,7 +1,8 @@
 """Options several commands share, validated when the command line is parsed.
 
 * ``--threads``: torch CPU threads, by default every core this process may run on
-  (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's count);
+  (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's count); how
+  the threads wait between operators is chosen at start (:mod:`dibrgs_core.common.openmp`);
 * ``--rasterizer``: the compiled C++ rasterizer (``auto``, the default) or the torch reference
   path (``reference``: no compiler needed, about 100x slower);
 * ``--train`` / ``--test``: the split (comma-separated view names or LEVIR ids), overriding
@@ -14,12 +15,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import math
 import os
 from pathlib import Path
 from typing import Callable, Iterator
 
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
+from ..common.openmp import wait_policy
+
+log = logging.getLogger("dibrgs")
 
 
 def available_cores() -> int:
@@ -49,6 +54,8 @@ def apply_compute(args: argparse.Namespace) -> int:
 
     n = args.threads or available_cores()
     torch.set_num_threads(n)
+    if n > 1:
+        log.info("%d torch threads; OpenMP workers wait: %s", n, wait_policy())
     if getattr(args, "rasterizer", None) is not None:
         set_backend(args.rasterizer)
     return n

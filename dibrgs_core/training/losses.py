@@ -55,12 +55,13 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
         raise ValueError(f"window must be a positive odd size, got {window}")
     x, y = _to_nchw(pred), _to_nchw(gt.to(pred.dtype))
     g = _gauss_1d(window, sigma, x.dtype, x.device)
-    mx, my = _blur(x, g), _blur(y, g)
+    # The five local means in one blur: fewer, larger operators (faster, and they use a second thread).
+    mx, my, mxx, myy, mxy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g).split(x.shape[1], 1)
     # Population variances; tiny negative values from cancellation are harmless
     # because C2 > 0 keeps the denominator positive.
-    vx = _blur(x * x, g) - mx * mx
-    vy = _blur(y * y, g) - my * my
-    cxy = _blur(x * y, g) - mx * my
+    vx = mxx - mx * mx
+    vy = myy - my * my
+    cxy = mxy - mx * my
     num = (2 * mx * my + _C1) * (2 * cxy + _C2)
     den = (mx * mx + my * my + _C1) * (vx + vy + _C2)
     s = num / den

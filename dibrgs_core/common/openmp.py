@@ -1,0 +1,74 @@
+"""How OpenMP's worker threads wait between parallel regions: chosen once, before torch is imported.
+
+A training iteration is hundreds of small parallel regions (torch operators on tens of thousands
+of Gaussians). Measured on 2 cores (docs/benchmarks.md, "Training iteration"), a DIBR-GS iteration
+at 256x256 with two threads:
+
+* workers that go to sleep at once (``OMP_WAIT_POLICY=PASSIVE``) pay a wake-up in every region:
+  two threads take longer than one;
+* workers that spin a short while before sleeping (``GOMP_SPINCOUNT=10000``, about ten
+  microseconds) catch the next region: about 0.65x the one-thread time;
+* but spinning workers take the cores from any other busy process: two two-thread runs side by
+  side each ran over twice as long as with passive waiting.
+
+So the short spin is used when the CPUs are idle as the command starts, passive waiting when they
+are not. libgomp (torch's OpenMP on Linux) reads these variables once, when it loads; a user's own
+``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is left alone. Standard library only.
+"""
+from __future__ import annotations
+
+import os
+import time
+from typing import MutableMapping
+
+#: Spin iterations before a waiting worker sleeps when the machine is idle.
+SHORT_SPIN = "10000"
+#: The CPUs count as idle when fewer than this many of them were busy (summed over all CPUs).
+IDLE_BUSY_CPUS = 0.5
+
+_choice = "not chosen (set_wait_policy was not called before torch)"
+
+
+def busy_cpus(window_s: float = 0.1) -> float | None:
+    """How many CPUs were busy, summed, over ``window_s`` seconds (from /proc/stat; None elsewhere)."""
+
+    def sample() -> tuple[list[int], int]:
+        with open("/proc/stat") as f:
+            lines = f.read().splitlines()
+        total = [int(x) for x in lines[0].split()[1:]]
+        n = sum(1 for ln in lines[1:] if ln.startswith("cpu"))
+        return total, n
+
+    try:
+        a, n = sample()
+        time.sleep(window_s)
+        b, _ = sample()
+    except (OSError, ValueError, IndexError):
+        return None
+    d = [y - x for x, y in zip(a, b)]
+    total = sum(d[:8])  # user nice system idle iowait irq softirq steal (guest time is inside user)
+    idle = d[3] + d[4]
+    return n * (1.0 - idle / total) if total > 0 else None
+
+
+def set_wait_policy(environ: MutableMapping[str, str] = os.environ, busy: float | None = None) -> str:
+    """Set the wait policy in ``environ`` unless the user set one; returns what was decided and why.
+    ``busy``: CPUs busy now (default: measured by :func:`busy_cpus`)."""
+    global _choice
+    if "OMP_WAIT_POLICY" in environ or "GOMP_SPINCOUNT" in environ:
+        _choice = "the user's OMP_WAIT_POLICY / GOMP_SPINCOUNT"
+        return _choice
+    busy = busy_cpus() if busy is None else busy
+    if busy is not None and busy < IDLE_BUSY_CPUS:
+        environ["GOMP_SPINCOUNT"] = SHORT_SPIN
+        _choice = f"short spin (GOMP_SPINCOUNT={SHORT_SPIN}): the CPUs were idle at start ({busy:.2f} busy)"
+    else:
+        environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        why = "CPU use unknown" if busy is None else f"{busy:.2f} CPUs busy at start"
+        _choice = f"passive (OMP_WAIT_POLICY=PASSIVE): {why}"
+    return _choice
+
+
+def wait_policy() -> str:
+    """What :func:`set_wait_policy` decided in this process, for the log and the report."""
+    return _choice
