@@ -19,7 +19,7 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.openmp import wait_policy
@@ -97,50 +97,24 @@ def _number(kind: Callable, s: str):
     return v
 
 
-def positive_int(s: str) -> int:
-    v = _number(int, s)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s}")
-    return v
+def _checked(kind: Callable, ok: Callable[[Any], bool], must: str, name: str) -> Callable[[str], Any]:
+    """An argparse type: ``kind`` parsed by :func:`_number`, refused with "must be ``must``" unless ``ok``."""
+
+    def parse(s: str):
+        v = _number(kind, s)
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"must be {must}, got {s}")
+        return v
+
+    parse.__name__ = name
+    return parse
 
 
-def nonnegative_int(s: str) -> int:
-    v = _number(int, s)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {s}")
-    return v
-
-
-def seed(s: str) -> int:
-    v = _number(int, s)
-    if not 0 <= v < 2 ** 32:
-        raise argparse.ArgumentTypeError(f"must be in [0, 2^32), got {s}")
-    return v
-
-
-def resolution(s: str) -> int:
-    v = _number(int, s)
-    if v < MIN_RESOLUTION:
-        raise argparse.ArgumentTypeError(f"must be at least {MIN_RESOLUTION} pixels, got {s}")
-    return v
-
-
-def resolution_scale(s: str) -> float:
-    v = _number(float, s)
-    if not 0.0 < v <= MAX_RESOLUTION_SCALE:
-        raise argparse.ArgumentTypeError(f"must be in (0, {MAX_RESOLUTION_SCALE:g}], got {s}")
-    return v
-
-
-def nonnegative_float(s: str) -> float:
-    v = _number(float, s)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {s}")
-    return v
-
-
-def positive_float(s: str) -> float:
-    v = _number(float, s)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {s}")
-    return v
+positive_int = _checked(int, lambda v: v >= 1, "a positive integer", "positive_int")
+nonnegative_int = _checked(int, lambda v: v >= 0, ">= 0", "nonnegative_int")
+seed = _checked(int, lambda v: 0 <= v < 2 ** 32, "in [0, 2^32)", "seed")
+resolution = _checked(int, lambda v: v >= MIN_RESOLUTION, f"at least {MIN_RESOLUTION} pixels", "resolution")
+resolution_scale = _checked(float, lambda v: 0.0 < v <= MAX_RESOLUTION_SCALE, f"in (0, {MAX_RESOLUTION_SCALE:g}]",
+                            "resolution_scale")
+nonnegative_float = _checked(float, lambda v: v >= 0, ">= 0", "nonnegative_float")
+positive_float = _checked(float, lambda v: v > 0, "> 0", "positive_float")
