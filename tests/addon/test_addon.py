@@ -31,31 +31,6 @@ bpy = pytest.importorskip("bpy")
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def ext():
-    """The repository as an extension package, registered."""
-    name = "dibrgs_ext"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, REPO / "__init__.py",
-                                                      submodule_search_locations=[str(REPO)])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    mod = sys.modules[name]
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    mod.register()
-    yield mod
-    mod.unregister()
-
-
-@pytest.fixture
-def fresh(ext, tmp_path):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.dibrgs.work_dir = str(tmp_path / "work")
-    return scene
-
-
 def _mod(name: str):
     return sys.modules[f"dibrgs_ext.addon.{name}"]
 

@@ -6,12 +6,10 @@ library's dependencies (``.ci/run``): the 4.2 compositor branch (``scene.use_nod
 ``scene.node_tree``, Composite node) runs for real there. That environment gets its scene from
 ``$DIBRGS_TEST_SCENE`` (made by ``scripts/make_scene.py`` in the main environment).
 
-The repository is loaded the way Blender loads the extension: as a package (``dibrgs_ext``)
-whose ``__init__`` hands off to ``addon/``.
+The repository is loaded the way Blender loads the extension (``tests/addon/conftest.py``).
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -29,35 +27,6 @@ REPO = Path(__file__).resolve().parents[2]
 #: What Blender's own Python does not have: the add-on must work without importing any of it.
 BLOCKED = ("torch", "PIL", "pycolmap", "scipy", "tifffile", "OpenEXR", "trimesh", "skimage", "matplotlib",
            "transformers", "cv2")
-
-
-def load_extension(name: str = "dibrgs_ext"):
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, REPO / "__init__.py",
-                                                      submodule_search_locations=[str(REPO)])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
-
-
-@pytest.fixture(scope="module")
-def ext():
-    """The repository as an extension package, registered."""
-    mod = load_extension()
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    mod.register()
-    yield mod
-    mod.unregister()
-
-
-@pytest.fixture
-def fresh(ext, tmp_path):
-    """An empty scene whose run folder is in tmp_path."""
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.dibrgs.work_dir = str(tmp_path / "work")
-    return scene
 
 
 @pytest.fixture
