@@ -39,8 +39,24 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
                 w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in RESULT_COLUMNS})
 
 
+def curve_points(res: dict[str, Any]) -> tuple[list[float], list[float], tuple[float, float] | None]:
+    """A result's curve to draw: (seconds, PSNR) of its points, the last one on the views the
+    earlier points evaluated (when they evaluated a subset, so that the line does not jump at the
+    change of views), and the final all-view point (seconds, PSNR) to mark apart (None when the
+    points evaluated every view)."""
+    c = [p for p in res["curve"] if p["seconds"] > 0]
+    xs, ys = [p["seconds"] for p in c], [p["psnr"] for p in c]
+    sub = res.get("final_psnr_on_point_views")
+    if sub is None or not c:
+        return xs, ys, None
+    final = (xs[-1], ys[-1])
+    ys[-1] = sub
+    return xs, ys, final
+
+
 def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
-    """One panel a scene, one line a method: held-out PSNR against training seconds (log x)."""
+    """One panel a scene, one line a method: held-out PSNR against training seconds (log x); the
+    lines are on the curve's subset of views, a star marks the final PSNR on all of them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -52,9 +68,11 @@ def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
-            c = [p for p in r["curve"] if p["seconds"] > 0]
-            if c:
-                ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], marker=".", label=r["row"]["method"])
+            xs, ys, final = curve_points(r)
+            if xs:
+                line, = ax.plot(xs, ys, marker=".", label=r["row"]["method"])
+                if final is not None:  # the last point on every held-out view
+                    ax.plot(*final, marker="*", ms=9, ls="none", color=line.get_color())
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
         ax.set_title(scene)

@@ -178,7 +178,8 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None, thre
            "plateau_seconds": plateau_seconds(curve, final_on_point_views),
            "gaussians": metrics.get("gaussians"), "anchors": metrics.get("anchors"),
            "peak_memory_mib": peak, "iterations": metrics.get("iterations"), "preset": spec.preset}
-    return {"spec": asdict(spec), "row": row, "curve": curve, "host": platform.node()}
+    return {"spec": asdict(spec), "row": row, "curve": curve, "final_psnr_on_point_views": final_on_point_views,
+            "host": platform.node()}
 
 
 def read_curve(path: Path) -> list[dict[str, float]]:

@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -71,6 +74,41 @@ def test_plateau_is_where_the_curve_stays_near_its_final_value():
     # Points on 4 views read ~2 dB above the all-view final value: compared with the final model on those views.
     sub = _curve([(0, 8.0), (30, 20.0), (60, 21.9), (90, 18.2)])
     assert bm.plateau_seconds(sub) == 30 and bm.plateau_seconds(sub, final_psnr=22.0) == 60
+
+
+def _result(folder: Path, scene: str, method: str, points, on_point_views=None, wall=None) -> None:
+    curve = _curve(points)
+    row = {"scene": scene, "method": method, "psnr": curve[-1]["psnr"], "train_seconds": curve[-1]["seconds"],
+           "plateau_seconds": bm.plateau_seconds(curve, on_point_views)}
+    res = {"spec": {"kind": scene[:-3], "resolution": int(scene[-3:]), "method": method}, "row": row,
+           "curve": curve, "final_psnr_on_point_views": on_point_views}
+    if wall is not None:
+        res["wall_seconds"] = wall
+    (folder / "results" / "runs").mkdir(parents=True, exist_ok=True)
+    (folder / "results" / "runs" / f"{scene}__{method}.json").write_text(json.dumps(res))
+
+
+def test_compare_benchmarks_script_pairs_runs_and_draws_them(tmp_path):
+    """Runs in both folders are paired by scene and method; a run in one only is left out; the
+    subset-view curve ends on the final model's PSNR on those views, the all-view point apart."""
+    a, b = tmp_path / "before", tmp_path / "after"
+    _result(a, "city256", "dibrgs", [(0, 8.0), (30, 17.0), (60, 19.8), (90, 20.0)], wall=200)
+    _result(a, "city256", "3dgs", [(0, 8.0), (30, 14.0)])
+    _result(b, "city256", "dibrgs", [(0, 8.0), (30, 21.0), (60, 21.4), (90, 20.1)], on_point_views=21.3, wall=120)
+    res = json.loads((b / "results" / "runs" / "city256__dibrgs.json").read_text())
+    xs, ys, final = pages.curve_points(res)
+    assert xs == [30, 60, 90] and ys == [21.0, 21.4, 21.3] and final == (90, 20.1)
+    md, png = tmp_path / "cmp.md", tmp_path / "cmp.png"
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts" / "compare_benchmarks.py"),
+                          str(a), str(b), "--labels", "old", "new", "--md", str(md), "--png", str(png)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    rows = [ln for ln in md.read_text().splitlines() if ln.startswith("| city")]
+    assert rows == ["| city256__dibrgs | 20.00 | 20.10 | 90 | 90 | 60 | 30 | 200 | 120 |"]
+    assert "PSNR old" in md.read_text() and png.stat().st_size > 1000
+    empty = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts" / "compare_benchmarks.py"),
+                            str(a), str(tmp_path / "nothing")], capture_output=True, text=True, timeout=300)
+    assert empty.returncode != 0 and "no finished runs in" in empty.stderr and "nothing" in empty.stderr
 
 
 def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_path):

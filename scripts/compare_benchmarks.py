@@ -1,0 +1,105 @@
+#!/usr/bin/env python
+"""Compare two sets of benchmark runs (before / after a change): quality, time, and when each
+run's error-against-time curve levelled off.
+
+    python scripts/compare_benchmarks.py BEFORE AFTER [--labels before after] [--md T.md] [--png C.png]
+
+BEFORE and AFTER are benchmark work folders (``scripts/benchmark.py --work``): their
+``results/runs/*.json``. Runs present in both are compared: held-out PSNR (dB), training
+seconds, plateau seconds (:func:`dibrgs_core.bench.runner.plateau_seconds`: the training second
+from which held-out PSNR stays within 0.5 dB of its final value) and, where the result records
+it (``wall_seconds``), the whole run's wall time (set-up, training, evaluation). The PNG draws
+both curves of each run, one panel a scene (training seconds, log axis; dashed: before; a star:
+the final PSNR on every held-out view where the points evaluated a subset; thin verticals: the
+plateau seconds).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from dibrgs_core.bench.pages import curve_points, load_results  # noqa: E402
+from dibrgs_core.common.fileio import atomic_path, write_text  # noqa: E402
+
+
+def paired(before: Path, after: Path) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
+    """(run key, before result, after result) for the runs both folders finished, by key."""
+    a = {f"{r['row']['scene']}__{r['row']['method']}": r for r in load_results(before / "results")}
+    b = {f"{r['row']['scene']}__{r['row']['method']}": r for r in load_results(after / "results")}
+    if not a or not b:
+        raise SystemExit(f"compare_benchmarks.py: error: no finished runs in {before if not a else after}/results/runs")
+    return [(k, a[k], b[k]) for k in sorted(set(a) & set(b))]
+
+
+def table(pairs: list[tuple[str, dict, dict]], labels: tuple[str, str]) -> str:
+    def f(v: Any, nd: int = 0) -> str:
+        return "n/a" if v is None else f"{v:.{nd}f}"
+
+    x, y = labels
+    lines = [f"| run | PSNR {x} | PSNR {y} | train s {x} | train s {y} | plateau s {x} | plateau s {y} | "
+             f"whole run s {x} | whole run s {y} |", "|---|" + "---:|" * 8]
+    for k, a, b in pairs:
+        ra, rb = a["row"], b["row"]
+        lines.append(f"| {k} | {f(ra['psnr'], 2)} | {f(rb['psnr'], 2)} | {f(ra['train_seconds'])} | "
+                     f"{f(rb['train_seconds'])} | {f(ra['plateau_seconds'])} | {f(rb['plateau_seconds'])} | "
+                     f"{f(a.get('wall_seconds'))} | {f(b.get('wall_seconds'))} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(pairs: list[tuple[str, dict, dict]], labels: tuple[str, str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
+
+    scenes = sorted({a["row"]["scene"] for _, a, _ in pairs})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.4), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for i, (k, a, b) in enumerate(p for p in pairs if p[1]["row"]["scene"] == scene):
+            for res, label, style in ((a, labels[0], "--"), (b, labels[1], "-")):
+                xs, ys, final = curve_points(res)
+                ax.plot(xs, ys, style, color=f"C{i}", marker=".", label=f"{res['row']['method']} {label}")
+                if final is not None:
+                    ax.plot(*final, marker="*", ms=9, ls="none", color=f"C{i}")
+                if res["row"].get("plateau_seconds"):
+                    ax.axvline(res["row"]["plateau_seconds"], color=f"C{i}", ls=style, lw=0.6, alpha=0.6)
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
+        ax.set_title(scene)
+        ax.set_xlabel("training wall-clock (s)")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("before", type=Path)
+    ap.add_argument("after", type=Path)
+    ap.add_argument("--labels", nargs=2, default=["before", "after"])
+    ap.add_argument("--md", type=Path, help="write the table here")
+    ap.add_argument("--png", type=Path, help="both curves of each run, one panel a scene")
+    args = ap.parse_args(argv)
+    labels = (args.labels[0], args.labels[1])
+    pairs = paired(args.before, args.after)
+    md = table(pairs, labels)
+    print(md)
+    if args.md:
+        write_text(args.md, md)
+    if args.png:
+        plot(pairs, labels, args.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
