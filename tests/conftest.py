@@ -4,24 +4,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported (see dibrgs_core.cli)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: tests share the cores (dibrgs_core.common.openmp)
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def shared_dir() -> Path:
-    """The project's shared/ folder: $DIBRGS_SHARED, else ../shared beside the repo."""
-    return Path(os.environ.get("DIBRGS_SHARED", REPO.parent / "shared"))
-
-
-def shared_file(rel: str) -> Path:
-    """A file from shared/, or skip the test with the reason when it is absent."""
-    p = shared_dir() / rel
-    if not p.exists():
-        pytest.skip(f"shared file {p} not found (set DIBRGS_SHARED to the shared/ folder)")
-    return p
 
 
 @pytest.fixture(scope="session")

@@ -380,7 +380,7 @@ def test_describe_matches_the_library_on_levir_and_colmap(tiny_scene, tmp_path):
 
     from dibrgs_core.data.load import read_any_scene
 
-    from conftest import shared_file
+    from paths import shared_file
 
     _same_description(describe.describe_scene(tiny_scene), read_any_scene(tiny_scene, load_depth=False))
     brighton = shared_file("data/brighton_north")

@@ -171,7 +171,7 @@ def test_sampling_is_seeded_and_prefix_stable():
 
 def test_brighton_north_flight():
     """The real flight: its three training cameras lie on one line; all nine photos form three strips."""
-    from conftest import shared_file
+    from paths import shared_file
     from dibrgs_core.data.colmap import read_colmap_cameras
 
     cams = {c.name: c for c in read_colmap_cameras(shared_file("data/brighton_north"))}

@@ -11,7 +11,7 @@ from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.load import read_any_scene
 from dibrgs_core.data.scene import default_split, make_split
 
-from conftest import shared_file
+from paths import shared_file
 
 LEVIR = [f"{i:03d}" for i in range(21)]
 PHOTOS = [f"DJI_{i:04d}" for i in (18, 19, 20, 27, 28, 29, 30, 31, 32)]

@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO, shared_file
+from paths import REPO, shared_file
 
 
 @pytest.mark.slow

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import shared_file
+from paths import shared_file
 from dibrgs_core.render import composite, project_gaussians, rasterize
 from rasterizer_oracle import brute_composite
 

@@ -153,7 +153,7 @@ def test_make_scene_script_and_info(tmp_path):
     import subprocess
     import sys
 
-    from conftest import REPO
+    from paths import REPO
 
     out = tmp_path / "s"
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "make_scene.py"), "--", "--kind", "village",

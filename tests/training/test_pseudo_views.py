@@ -263,7 +263,7 @@ def test_eval_pseudo_views_script_ranks_oracle_depth_above_mvs(tiny_scene, tmp_p
     import subprocess
     import sys
 
-    from conftest import REPO
+    from paths import REPO
 
     out = tmp_path / "pv.json"
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_pseudo_views.py"), str(tiny_scene),
@@ -396,7 +396,7 @@ def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(t
     import subprocess
     import sys
 
-    from conftest import REPO
+    from paths import REPO
     from dibrgs_core.data.levir import read_scene
     from dibrgs_core.data.ply import write_ply
 
