@@ -23,14 +23,15 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dibrgs_core.bench.pages import curve_points, load_results  # noqa: E402
-from dibrgs_core.common.fileio import atomic_path, write_text  # noqa: E402
+from dibrgs_core.bench.pages import curve_figure, draw_curve, load_results  # noqa: E402
+from dibrgs_core.bench.runner import RunSpec  # noqa: E402
+from dibrgs_core.common.fileio import write_text  # noqa: E402
 
 
 def paired(before: Path, after: Path) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
     """(run key, before result, after result) for the runs both folders finished, by key."""
-    a = {f"{r['row']['scene']}__{r['row']['method']}": r for r in load_results(before / "results")}
-    b = {f"{r['row']['scene']}__{r['row']['method']}": r for r in load_results(after / "results")}
+    a = {RunSpec(**r["spec"]).key: r for r in load_results(before / "results")}
+    b = {RunSpec(**r["spec"]).key: r for r in load_results(after / "results")}
     if not a or not b:
         raise SystemExit(f"compare_benchmarks.py: error: no finished runs in {before if not a else after}/results/runs")
     return [(k, a[k], b[k]) for k in sorted(set(a) & set(b))]
@@ -52,34 +53,14 @@ def table(pairs: list[tuple[str, dict, dict]], labels: tuple[str, str]) -> str:
 
 
 def plot(pairs: list[tuple[str, dict, dict]], labels: tuple[str, str], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
-
-    scenes = sorted({a["row"]["scene"] for _, a, _ in pairs})
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.4), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
-        for i, (k, a, b) in enumerate(p for p in pairs if p[1]["row"]["scene"] == scene):
+    def draw(ax, scene: str) -> None:
+        for i, (_, a, b) in enumerate(p for p in pairs if p[1]["row"]["scene"] == scene):
             for res, label, style in ((a, labels[0], "--"), (b, labels[1], "-")):
-                xs, ys, final = curve_points(res)
-                ax.plot(xs, ys, style, color=f"C{i}", marker=".", label=f"{res['row']['method']} {label}")
-                if final is not None:
-                    ax.plot(*final, marker="*", ms=9, ls="none", color=f"C{i}")
+                draw_curve(ax, res, f"{res['row']['method']} {label}", style, color=f"C{i}")
                 if res["row"].get("plateau_seconds"):
                     ax.axvline(res["row"]["plateau_seconds"], color=f"C{i}", ls=style, lw=0.6, alpha=0.6)
-        ax.set_xscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
-        ax.set_title(scene)
-        ax.set_xlabel("training wall-clock (s)")
-        ax.set_ylabel("held-out PSNR (dB)")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
+
+    curve_figure(sorted({a["row"]["scene"] for _, a, _ in pairs}), draw, path)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,27 +1,43 @@
-"""Plateau comparison driver (docs/benchmarks.md, "Error against time before and after issue 17"). Run the full suite's main runs (3dgs, dibrgs on four 256 scenes) one at a time with 1 thread,
-with whichever dibrgs_core is first on sys.path; results as the runner writes them, plus wall time."""
-import json
+#!/usr/bin/env python
+"""The full suite's main runs (3DGS and DIBR-GS on its four scenes), one at a time with one torch
+thread, with whichever ``dibrgs_core`` is first on ``sys.path``: the "before and after" of
+docs/benchmarks.md ("Error against time before and after issue 17").
+
+    PYTHONPATH=CHECKOUT python scripts/plateau_driver.py WORK
+
+Results go where the benchmark runner puts them (``WORK/results/runs/*.json``, finished runs
+skipped), each with its whole run's wall time (``wall_seconds``);
+``scripts/compare_benchmarks.py BEFORE AFTER`` compares two such folders.
+"""
+from __future__ import annotations
+
 import sys
 import time
 from pathlib import Path
 
-from dibrgs_core.bench import runner
-
-work = Path(sys.argv[1])
-results = work / "results" / "runs"
-results.mkdir(parents=True, exist_ok=True)
 import dibrgs_core
-print("package", dibrgs_core.__file__, flush=True)
-for kind in ("city", "mountain", "village", "stadium"):
-    for m in ("3dgs", "dibrgs"):
-        spec = runner.RunSpec(kind, 256, m)
-        out = results / f"{spec.key}.json"
-        if out.exists():
+from dibrgs_core.bench import runner
+from dibrgs_core.common.fileio import write_json
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print(__doc__, file=sys.stderr)
+        return 2
+    work = Path(argv[0])
+    print("package", dibrgs_core.__file__, flush=True)
+    for spec in runner.make_suite("full").runs:
+        out = work / "results" / "runs" / f"{spec.key}.json"
+        if spec.method not in ("3dgs", "dibrgs") or out.exists():
             continue
         t0 = time.time()
         res = runner.run_one(spec, work, None, threads=1)
         res["wall_seconds"] = time.time() - t0
-        res["started"] = t0
-        out.write_text(json.dumps(res))
+        write_json(out, res)
         print(time.strftime("%H:%M:%S"), spec.key, res["row"]["psnr"], res["row"]["train_seconds"],
               res["wall_seconds"], flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -12,7 +12,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from ..common.fileio import atomic_path, write_text
 from .runner import ABLATION_LABELS, ABLATIONS, RESULT_COLUMNS, RunSpec, Suite, plateau_seconds
@@ -54,25 +54,29 @@ def curve_points(res: dict[str, Any]) -> tuple[list[float], list[float], tuple[f
     return xs, ys, final
 
 
-def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
-    """One panel a scene, one line a method: held-out PSNR against training seconds (log x); the
-    lines are on the curve's subset of views, a star marks the final PSNR on all of them."""
+def draw_curve(ax: Any, res: dict[str, Any], label: str, style: str = "-", color: str | None = None) -> str:
+    """Draw one result's curve (:func:`curve_points`) on ``ax``, a star at its all-view final
+    PSNR; returns the line's colour."""
+    xs, ys, final = curve_points(res)
+    line, = ax.plot(xs, ys, style, color=color, marker=".", label=label)
+    if final is not None:  # the last point on every held-out view
+        ax.plot(*final, marker="*", ms=9, ls="none", color=line.get_color())
+    return line.get_color()
+
+
+def curve_figure(scenes: list[str], draw: Callable[[Any, str], None], path: Path) -> None:
+    """One panel a scene, ``draw(ax, scene)`` filling each: held-out PSNR against training
+    seconds on a log axis; written to ``path`` (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import NullFormatter
 
-    scenes = sorted({r["row"]["scene"] for r in res})
     n = max(1, len(scenes))
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
-        for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
-            xs, ys, final = curve_points(r)
-            if xs:
-                line, = ax.plot(xs, ys, marker=".", label=r["row"]["method"])
-                if final is not None:  # the last point on every held-out view
-                    ax.plot(*final, marker="*", ms=9, ls="none", color=line.get_color())
+        draw(ax, scene)
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short spans
         ax.set_title(scene)
@@ -82,8 +86,20 @@ def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
+        fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
+
+
+def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
+    """One panel a scene, one line a method: held-out PSNR against training seconds (log x); the
+    lines are on the curve's subset of views, a star marks the final PSNR on all of them."""
+
+    def draw(ax: Any, scene: str) -> None:
+        for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
+            if any(p["seconds"] > 0 for p in r["curve"]):
+                draw_curve(ax, r, r["row"]["method"])
+
+    curve_figure(sorted({r["row"]["scene"] for r in res}), draw, path)
 
 
 def _fmt(v: Any, nd: int = 2) -> str:
@@ -111,7 +127,8 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
 
             lines.append(f"| {m} | {_fmt(mean('psnr'))} | {_fmt(mean('ssim'), 3)} | {_fmt(mean('lpips'), 3)} | "
                          f"{_fmt(mean('avge'), 3)} | {_fmt(mean('fps'), 1)} | {_fmt(mean('train_seconds'), 0)} | "
-                         f"{_fmt(mean('plateau_seconds'), 0)} | {_fmt(mean('gaussians'), 0)} | {_fmt(mean('peak_memory_mib'), 0)} |")
+                         f"{_fmt(mean('plateau_seconds'), 0)} | {_fmt(mean('gaussians'), 0)} | "
+                         f"{_fmt(mean('peak_memory_mib'), 0)} |")
         scenes = sorted({r["scene"] for r in rows})
         lines += ["", "### Per scene PSNR / SSIM (as the paper's Table II)", "",
                   "| Metric | Method | " + " | ".join(scenes) + " |", "|---|---|" + "---|" * len(scenes)]

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from dibrgs_core.bench import pages, runner as bm
+from paths import REPO
 
 
 @pytest.mark.slow
@@ -99,15 +100,16 @@ def test_compare_benchmarks_script_pairs_runs_and_draws_them(tmp_path):
     xs, ys, final = pages.curve_points(res)
     assert xs == [30, 60, 90] and ys == [21.0, 21.4, 21.3] and final == (90, 20.1)
     md, png = tmp_path / "cmp.md", tmp_path / "cmp.png"
-    out = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts" / "compare_benchmarks.py"),
-                          str(a), str(b), "--labels", "old", "new", "--md", str(md), "--png", str(png)],
+    script = str(REPO / "scripts" / "compare_benchmarks.py")
+    out = subprocess.run([sys.executable, script, str(a), str(b), "--labels", "old", "new", "--md", str(md),
+                          "--png", str(png)],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     rows = [ln for ln in md.read_text().splitlines() if ln.startswith("| city")]
     assert rows == ["| city256__dibrgs | 20.00 | 20.10 | 90 | 90 | 60 | 30 | 200 | 120 |"]
     assert "PSNR old" in md.read_text() and png.stat().st_size > 1000
-    empty = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts" / "compare_benchmarks.py"),
-                            str(a), str(tmp_path / "nothing")], capture_output=True, text=True, timeout=300)
+    empty = subprocess.run([sys.executable, script, str(a), str(tmp_path / "nothing")], capture_output=True,
+                           text=True, timeout=300)
     assert empty.returncode != 0 and "no finished runs in" in empty.stderr and "nothing" in empty.stderr
 
 
