@@ -50,7 +50,8 @@ def test_tiny_suite_through_local_ray_survives_worker_death(tmp_path, tiny_scene
     for r in rows:
         assert 5.0 < float(r["psnr"]) < 60.0
         assert float(r["train_seconds"]) > 0
-        assert 0 <= float(r["plateau_seconds"]) <= float(r["train_seconds"]) + 1e-6
+        # curve.csv keeps milliseconds; train_seconds is not rounded.
+        assert 0 <= float(r["plateau_seconds"]) <= float(r["train_seconds"]) + 5e-4
     assert (docs / "benchmarks" / "curves.png").stat().st_size > 1000
     md = (docs / "benchmarks.md").read_text()
     assert "Benchmark suite `tiny`" in md and "w/o Pseudo Views" in md
