@@ -171,7 +171,7 @@ class NeuralGaussians(nn.Module):
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
-        f = self.anchor_feat[idx]
+        f = self.anchor_feat.index_select(0, idx)
         if self.use_ibr and ibr_feats is not None:
             g = torch.sigmoid(self.e_mod(ibr_feats))
             f = f + g * self.e_ref(ibr_feats)
@@ -216,18 +216,22 @@ class NeuralGaussians(nn.Module):
             visible = self.visible_anchors(K, w2c, width, height)
         idx = torch.nonzero(visible).squeeze(1)
         k = self.n_offsets
-        anchor = self.anchor[idx]
+        anchor = self.anchor.index_select(0, idx)
         feat = self.fused_features(idx, ibr_feats)
         view = anchor - cam_center
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([feat, view / dist, dist / self.dist_scale], dim=1)
         neural_opacity = self.mlp_opacity(x).reshape(-1)
         selected = neural_opacity > 0.0
-        color = self.mlp_color(x).reshape(-1, 3)[selected]
-        cov = self.mlp_cov(x).reshape(-1, 7)[selected]
-        s = self.anchor_scaling()[idx].repeat_interleave(k, dim=0)[selected]
-        centre = anchor.repeat_interleave(k, dim=0)[selected]
-        offsets = self.offset[idx].reshape(-1, 3)[selected]
+        # One nonzero and integer gathers: boolean-mask indexing would search the mask again for
+        # each of the five tensors, and its backward is a slower scatter (issue 17).
+        sel = torch.nonzero(selected).squeeze(1)  # row = visible anchor * k + offset number
+        owner = idx.index_select(0, torch.div(sel, k, rounding_mode="floor"))  # anchor of each
+        color = self.mlp_color(x).reshape(-1, 3).index_select(0, sel)
+        cov = self.mlp_cov(x).reshape(-1, 7).index_select(0, sel)
+        s = self.anchor_scaling().index_select(0, owner)
+        centre = self.anchor.index_select(0, owner)
+        offsets = self.offset.reshape(-1, 3).index_select(0, owner * k + sel % k)
         scales = s[:, 3:] * torch.sigmoid(cov[:, :3])
         q = cov[:, 3:7]
         # A zero quaternion has no direction; fall back to identity rather than NaN.

@@ -54,6 +54,33 @@ def test_decode_shapes_activations_and_frustum_culling():
     assert torch.allclose(d.means, m.anchor[vis].repeat_interleave(m.n_offsets, 0)[d.selected])
 
 
+def test_each_gaussian_takes_its_own_anchor_offset_and_scaling():
+    """mu = x_v + O_i * l_v[:3] (the paper's Eq. for neural Gaussians), for every selected
+    Gaussian, with distinct random offsets and scalings so that a wrong gather shows."""
+    m = small_model(200)
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        m.anchor[:5] = torch.tensor([0.0, -60.0, 80.0])  # culled: visible rows are not anchor numbers
+        m.offset.copy_(torch.randn(m.offset.shape, generator=gen))
+        m.scaling.add_(0.3 * torch.randn(m.scaling.shape, generator=gen))
+        m.mlp_opacity[2].bias.zero_()
+    c = camera_tensors(small_camera())
+    with torch.no_grad():  # shift the opacity MLP's output so that about half the Gaussians are selected
+        m.mlp_opacity[2].bias.sub_(torch.atanh(m.decode(c.K, c.w2c, c.center, 32, 32).neural_opacity.median()))
+    d = m.decode(c.K, c.w2c, c.center, 32, 32)
+    k = m.n_offsets
+    rows = torch.nonzero(d.selected).squeeze(1)
+    assert 0 < len(rows) < len(d.selected)
+    vis_idx = torch.nonzero(d.anchor_visible).squeeze(1)
+    assert not d.anchor_visible[:5].any()
+    for j, row in enumerate(rows.tolist()):
+        a, i = int(vis_idx[row // k]), row % k
+        s = m.anchor_scaling()[a]
+        assert torch.allclose(d.means[j], m.anchor[a] + m.offset[a, i] * s[:3], atol=1e-5)
+        assert (d.scales[j] <= s[3:] + 1e-6).all()
+    assert torch.equal(d.opacities, d.neural_opacity[d.selected])
+
+
 def test_ibr_gate_starts_small_and_features_change_the_decoding():
     m = small_model(100, use_ibr=True)
     f_v = torch.randn(100, 32)
