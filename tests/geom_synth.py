@@ -65,8 +65,23 @@ def city_heightfield(seed: int = 0, n_boxes: int = 12, extent: float = 60.0) -> 
     return HeightField(np.array(boxes), seed)
 
 
+_RENDERED: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+
 def render(hf: HeightField, cam_local: Camera, ss: int = 2, step: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-march ``hf`` (in the local z-up frame). Returns (image HxWx3 float32, z-depth HxW float32)."""
+    """Ray-march ``hf`` (in the local z-up frame). Returns (image HxWx3 float32, z-depth HxW float32).
+
+    Renders are kept for the test session (copies are returned): the same local cameras recur
+    across tests and across their world offsets and up axes, and the march costs seconds."""
+    key = b"".join([hf.boxes.tobytes(), np.array([hf.seed, ss, step, cam_local.width, cam_local.height]).tobytes(),
+                    np.asarray(cam_local.K, float).tobytes(), np.asarray(cam_local.w2c, float).tobytes()])
+    if key not in _RENDERED:
+        _RENDERED[key] = _march(hf, cam_local, ss, step)
+    img, depth = _RENDERED[key]
+    return img.copy(), depth.copy()
+
+
+def _march(hf: HeightField, cam_local: Camera, ss: int, step: float) -> tuple[np.ndarray, np.ndarray]:
     W, H = cam_local.width, cam_local.height
     hi = cam_local.scaled(ss) if ss > 1 else cam_local
     o, d = hi.pixel_rays()

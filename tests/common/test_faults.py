@@ -334,6 +334,7 @@ def _model_cfg(work: Path) -> dict:
     return torch.load(work / MODEL, map_location="cpu", weights_only=False)["config"]
 
 
+@pytest.mark.slow
 def test_two_writers_one_gets_the_lock_error(scene24, finished_run, tmp_path):
     """Two `dibrgs train` into one folder, in two processes: the second exits 75 naming the first (pid,
     host) and writes nothing; the first finishes, and config.json and model.pt both hold its seed."""
@@ -800,6 +801,7 @@ def test_corrupt_lpips_backbone(finished_run, tmp_path):
     assert not (work / "metrics.json").exists()
 
 
+@pytest.mark.slow
 def test_no_compiler_is_one_line_naming_the_reference_switch(scene24, finished_run, tmp_path):
     """A machine without a C++ compiler: `dibrgs render` stops with one line saying what is
     missing and naming --rasterizer reference, writes nothing; with that switch it renders."""

@@ -224,6 +224,7 @@ def test_semi_global_degenerate_shapes_and_flat_costs(shape):
             assert agg.shape == cost.shape and torch.isfinite(agg).all()
 
 
+@pytest.mark.slow
 def test_mvs_with_semi_global_is_at_least_as_complete(scene128):
     """On the ray-cast city, SGM keeps the accuracy bar of the plain sweep and at least its coverage."""
     vs = scene128.train_views()

@@ -32,7 +32,7 @@ def _mae(scene, pts):
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (2.5e5, 4.1e6, 120.0)])
+@pytest.mark.parametrize("offset", [pytest.param((0.0, 0.0, 0.0), marks=pytest.mark.slow), (2.5e5, 4.1e6, 120.0)])
 def test_initialise_mvs_end_to_end(tmp_path, offset):
     """Whole geometry stage at normal and georeferenced (~1e5..4e6) coordinates: finite cloud within 5% of true depth."""
     scene, _ = make_synthetic_scene(96, offset=offset, up=(0.1, 0.3, 1.0))

@@ -19,7 +19,7 @@ def _depth_errors(scene, pts):
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1.2e5, -3.4e5, 250.0)])
+@pytest.mark.parametrize("offset", [pytest.param((0.0, 0.0, 0.0), marks=pytest.mark.slow), (1.2e5, -3.4e5, 250.0)])
 def test_triangulation_matches_true_depth(offset):
     """SfM with fixed poses at normal and ~1e5 coordinates: triangulated depth within 1% of truth."""
     scene, _ = make_synthetic_scene(128, offset=offset, up=(0.2, -0.1, 1.0))

@@ -173,7 +173,8 @@ def _hot_ranges() -> list[tuple[int, int]]:
 
 
 @pytest.mark.skipif(shutil.which("g++") is None or shutil.which("objdump") is None, reason="needs g++ and objdump")
-@pytest.mark.parametrize("march,reg,lanes", [("skylake-avx512", "zmm", 16), ("haswell", "ymm", 8), ("x86-64", "xmm", 4)])
+@pytest.mark.parametrize("march,reg,lanes", [("skylake-avx512", "zmm", 16), ("haswell", "ymm", 8),
+                                             pytest.param("x86-64", "xmm", 4, marks=pytest.mark.slow)])
 def test_kernels_compile_for_each_vector_width(tmp_path, march, reg, lanes):
     """The kernels compile for AVX-512 (zmm, 16 float lanes), AVX2 (ymm, 8) and plain SSE2
     (xmm, 4) whatever this machine runs; on the AVX2 and AVX-512 targets the float kernels'

@@ -147,7 +147,7 @@ def test_opacity_zero_and_one(backend):
     assert float(grads[3].abs().sum()) > 0  # pixels away from the centre are below the clamp
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", [pytest.param("reference", marks=pytest.mark.slow), "fast"])
 def test_million_tiny_gaussians(backend):
     """One million tiny Gaussians (~1300 per pixel): all visible, the image saturates (alpha > 0.99), finite gradients."""
     n = 1_000_000

@@ -256,6 +256,7 @@ def test_generated_scene_warp_with_gt_depth(tiny_scene):
     assert err < 0.05 and err < 0.5 * unwarped
 
 
+@pytest.mark.slow
 def test_eval_pseudo_views_script_ranks_oracle_depth_above_mvs(tiny_scene, tmp_path):
     """scripts/eval_pseudo_views.py on the generated 64x64 city: a table row per prior, finite
     figures, and pseudo views from ground-truth depth closer to the held-out images than from MVS."""
