@@ -40,6 +40,7 @@ __all__ = [
     "quat_to_rotmat",
     "rasterize",
     "set_backend",
+    "uses_fast",
 ]
 
 log = logging.getLogger("dibrgs.render")
@@ -86,14 +87,14 @@ def composite(
     ``backend``: ``"auto"`` (C++ on CPU tensors, the reference on others),
     ``"fast"`` (C++, CPU only) or ``"reference"``; None is :func:`get_backend`.
     """
-    if _use_fast(backend, feats):
+    if uses_fast(backend, feats):
         from . import fast
 
         return fast.composite_fast(means2d, conics, opacities, feats, depths, radii, width, height)
     return composite_reference(means2d, conics, opacities, feats, depths, radii, width, height)
 
 
-def _use_fast(backend: Backend | None, like: Tensor) -> bool:
+def uses_fast(backend: Backend | None, like: Tensor) -> bool:
     """Whether ``backend`` resolves to the C++ path for tensors like ``like`` (building it if
     needed: a failed build raises :class:`fast.BuildError`)."""
     backend = get_backend() if backend is None else _check(backend, "rasterizer")
@@ -163,7 +164,7 @@ def rasterize(
     if width < 1 or height < 1:
         raise ValueError(f"image size must be positive, got {width}x{height}")
     C = colors.shape[1]
-    use_fast = _use_fast(backend, colors)
+    use_fast = uses_fast(backend, colors)
     if use_fast and not (viewmat.requires_grad or K.requires_grad):
         from . import fast
 

@@ -1,7 +1,8 @@
 """Fast CPU path: projection and compositing in a C++ torch extension compiled on first use.
 
 Build and cache
-    The extension (``csrc/rasterize.cpp`` and ``csrc/composite.h``) is compiled
+    The extension (``csrc/rasterize.cpp``, ``csrc/composite.h`` and, for the training loss's
+    SSIM, ``csrc/ssim.h``) is compiled
     for the machine that runs it (``-march=native``: 16-lane float vectors with
     AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on
     first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
@@ -60,7 +61,7 @@ from .projection import Projected
 log = logging.getLogger("dibrgs.render")
 
 _CSRC = Path(__file__).with_name("csrc")
-_SOURCES = ("rasterize.cpp", "composite.h")
+_SOURCES = ("rasterize.cpp", "composite.h", "ssim.h")
 _NAME = "dibrgs_rasterize"
 _MARKER = "built.json"
 BUILD_TIME = "about 1-2 minutes"
@@ -385,3 +386,4 @@ def project_fast(
     if m2.requires_grad:
         m2.retain_grad()
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=rad > 0)
+

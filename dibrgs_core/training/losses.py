@@ -18,6 +18,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..render import uses_fast
+
 _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
 
@@ -48,13 +50,24 @@ def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 
 def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Per-pixel SSIM, shape (H, W, C). Differentiable with respect to both inputs."""
+    """Per-pixel SSIM, shape (H, W, C). Differentiable with respect to both inputs.
+
+    CPU tensors go through the C++ kernel (:func:`dibrgs_core.render.ssim.ssim_map_fast`, the
+    same maths in one pass) when the rasterizer's backend resolves to it and ``gt`` needs no
+    gradient; otherwise, and with ``--rasterizer reference``, the torch formulation below."""
     if pred.shape != gt.shape:
         raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window must be a positive odd size, got {window}")
+    if pred.dim() not in (2, 3):
+        raise ValueError(f"expected an (H,W) or (H,W,C) image, got shape {tuple(pred.shape)}")
+    g = _gauss_1d(window, sigma, pred.dtype, pred.device)
+    if pred.dtype in (torch.float32, torch.float64) and not gt.requires_grad and uses_fast(None, pred):
+        from ..render.ssim import ssim_map_fast
+
+        hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)
+        return ssim_map_fast(pred.reshape(hwc), gt.reshape(hwc), g).reshape(pred.shape)
     x, y = _to_nchw(pred), _to_nchw(gt.to(pred.dtype))
-    g = _gauss_1d(window, sigma, x.dtype, x.device)
     # The five local means in one blur: fewer, larger operators (faster, and they use a second thread).
     mx, my, mxx, myy, mxy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g).split(x.shape[1], 1)
     # Population variances; tiny negative values from cancellation are harmless

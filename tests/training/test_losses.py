@@ -6,7 +6,8 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from dibrgs_core.training.losses import photometric_loss, psnr, ssim
+from dibrgs_core import render
+from dibrgs_core.training.losses import photometric_loss, psnr, ssim, ssim_map
 
 torch.set_num_threads(2)
 
@@ -16,8 +17,16 @@ def _sk_ssim(a: np.ndarray, b: np.ndarray) -> float:
                                  data_range=1.0, channel_axis=-1)
 
 
+@pytest.fixture(params=["fast", "reference"])
+def backend(request):
+    """Both SSIM paths: the C++ kernel (csrc/ssim.h) and the torch formulation."""
+    render.set_backend(request.param)
+    yield request.param
+    render.set_backend(None)
+
+
 @pytest.mark.parametrize("shape", [(32, 40, 3), (24, 24, 1)])
-def test_ssim_matches_skimage(shape):
+def test_ssim_matches_skimage(shape, backend):
     rng = np.random.default_rng(0)
     a = rng.random(shape)
     # b correlated with a so SSIM is far from both 0 and 1
@@ -31,7 +40,7 @@ def test_ssim_matches_skimage(shape):
     assert abs(got32 - ref) < 1e-4
 
 
-def test_ssim_identical_is_one_and_grad_finite():
+def test_ssim_identical_is_one_and_grad_finite(backend):
     rng = np.random.default_rng(1)
     a = torch.tensor(rng.random((20, 20, 3)), dtype=torch.float32, requires_grad=True)
     s = ssim(a, a.detach())
@@ -40,8 +49,54 @@ def test_ssim_identical_is_one_and_grad_finite():
     assert torch.isfinite(a.grad).all()
 
 
+@pytest.mark.parametrize("shape,window", [((23, 31, 3), 11), ((7, 5), 11), ((1, 1, 3), 11), ((3, 40, 2), 5),
+                                          ((12, 9, 1), 3)])
+def test_ssim_kernel_equals_the_torch_formulation(shape, window):
+    """The C++ SSIM map and its gradient against the torch formulation in float64 (equal to
+    rounding), and in float32 (as training uses it) as close to the float64 values as the torch
+    formulation is (a 1x1 image is ill-conditioned in float32 for both), on images smaller and
+    larger than the window (the borders replicate); the kernel's backward passes gradcheck."""
+    gen = torch.Generator().manual_seed(sum(shape))
+    p64 = torch.rand(shape, generator=gen, dtype=torch.float64)
+    t64 = torch.rand(shape, generator=gen, dtype=torch.float64)
+    up = torch.randn(shape, generator=gen, dtype=torch.float64)
+
+    def run(backend, dt):
+        render.set_backend(backend)
+        try:
+            p = p64.to(dt).requires_grad_()
+            m = ssim_map(p, t64.to(dt), window)
+            return m.double(), torch.autograd.grad(m, p, up.to(dt))[0].double()
+        finally:
+            render.set_backend(None)
+
+    truth = run("reference", torch.float64)
+    scale = max(1.0, float(truth[1].abs().max()))
+    fast64, fast32, ref32 = run("fast", torch.float64), run("fast", torch.float32), run("reference", torch.float32)
+    assert fast64[0].shape == shape
+    assert float((fast64[0] - truth[0]).abs().max()) < 1e-11
+    assert float((fast64[1] - truth[1]).abs().max()) < 1e-11 * scale
+    for i, tol in ((0, 1e-5), (1, 1e-5 * scale)):
+        err, ref_err = float((fast32[i] - truth[i]).abs().max()), float((ref32[i] - truth[i]).abs().max())
+        assert err < max(tol, 2.0 * ref_err)
+    p = p64.clone().requires_grad_()
+    render.set_backend("fast")
+    try:
+        assert torch.autograd.gradcheck(lambda q: ssim_map(q, t64, window), (p,))
+    finally:
+        render.set_backend(None)
+
+
+def test_ssim_gradient_reaches_a_target_that_needs_one():
+    """With a target that needs a gradient the torch formulation runs (the kernel has none for it)."""
+    a = torch.rand(10, 12, 3, dtype=torch.float64, requires_grad=True)
+    b = torch.rand(10, 12, 3, dtype=torch.float64, requires_grad=True)
+    ssim(a, b).backward()
+    assert a.grad.abs().sum() > 0 and b.grad.abs().sum() > 0
+
+
 @pytest.mark.stability
-def test_extremes_black_constant_images_finite():
+def test_extremes_black_constant_images_finite(backend):
     """SSIM/L1 loss on all-black and constant images: finite loss and gradients."""
     black = torch.zeros(16, 16, 3, requires_grad=True)
     white = torch.ones(16, 16, 3)

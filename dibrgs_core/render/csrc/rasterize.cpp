@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "composite.h"
+#include "ssim.h"
 
 using dibrgs::TILE;
 
@@ -582,6 +583,39 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
   return {gm, gq, gs};
 }
 
+// SSIM map of x against y ((H, W, C) each; g: the 1-D window) and the per-pixel factors of its
+// gradient (ssim.h): {S, a, b, c}.
+std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor g) {
+  TORCH_CHECK(x.dim() == 3 && y.sizes() == x.sizes(), "ssim_forward: x and y must be (H, W, C) of one shape");
+  TORCH_CHECK(g.dim() == 1 && g.numel() % 2 == 1, "ssim_forward: the window must have an odd length");
+  x = x.contiguous();
+  y = y.to(x.scalar_type()).contiguous();
+  g = g.to(x.scalar_type()).contiguous();
+  auto S = torch::empty_like(x), A = torch::empty_like(x), B = torch::empty_like(x), C = torch::empty_like(x);
+  const int r = static_cast<int>(g.numel() / 2);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_ssim_forward", [&] {
+    dibrgs::ssim::forward<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2),
+                                    g.data_ptr<scalar_t>(), r, S.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(),
+                                    B.data_ptr<scalar_t>(), C.data_ptr<scalar_t>());
+  });
+  return {S, A, B, C};
+}
+
+// Gradient of sum(gS * S) with respect to x (ssim.h), from ssim_forward's factors.
+torch::Tensor ssim_backward(torch::Tensor gS, torch::Tensor x, torch::Tensor y, torch::Tensor A, torch::Tensor B,
+                            torch::Tensor C, torch::Tensor g) {
+  gS = gS.to(x.scalar_type()).contiguous();
+  auto dx = torch::empty_like(x);
+  const int r = static_cast<int>(g.numel() / 2);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_ssim_backward", [&] {
+    dibrgs::ssim::backward<scalar_t>(gS.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(),
+                                     A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(), C.data_ptr<scalar_t>(),
+                                     x.size(0), x.size(1), x.size(2), g.data_ptr<scalar_t>(), r,
+                                     dx.data_ptr<scalar_t>());
+  });
+  return dx;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
@@ -590,4 +624,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("simd", &simd, "vector code path of this build");
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
   m.def("project_backward", &project_backward, "gradients of the projection");
+  m.def("ssim_forward", &ssim_forward, "SSIM map and its gradient factors");
+  m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
 }
