@@ -16,6 +16,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 namespace dibrgs {
@@ -63,8 +64,10 @@ template <typename T>
 void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g, int r, T* S, T* A, T* Bc,
              T* Cc) {
   const int64_t WC = W * C, plane = H * WC;
-  std::vector<T> h(NS * plane);
-  blur_rows(x, y, H, W, C, g, r, h.data());
+  // Uninitialised (every element is written first): zero-filling it would be a serial pass.
+  std::unique_ptr<T[]> hbuf(new T[NS * plane]);
+  const T* const h = hbuf.get();
+  blur_rows(x, y, H, W, C, g, r, hbuf.get());
   at::parallel_for(0, H, 8, [&](int64_t y0, int64_t y1) {
     std::vector<T> m(NS * WC);
     for (int64_t row = y0; row < y1; ++row) {
@@ -73,7 +76,7 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
         const int64_t src = std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1);
         const T w = g[k];
         for (int s = 0; s < NS; ++s) {
-          const T* a = h.data() + s * plane + src * WC;
+          const T* a = h + s * plane + src * WC;
           T* o = m.data() + s * WC;
 #pragma GCC ivdep
           for (int64_t j = 0; j < WC; ++j) o[j] += w * a[j];
@@ -112,12 +115,13 @@ void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const
   const int64_t WC = W * C, plane = H * WC;
   // Vertical adjoint of G a, G b, G c: row m gathers the rows t that replicate it (t = m inside,
   // t <= 0 for the first row, t >= H - 1 for the last), each t the window's zero-padded rows.
-  std::vector<T> v(NB * plane);
+  std::unique_ptr<T[]> vbuf(new T[NB * plane]);  // uninitialised: each row is zeroed by its thread
+  T* const v = vbuf.get();
   at::parallel_for(0, H, 8, [&](int64_t m0, int64_t m1) {
     for (int64_t m = m0; m < m1; ++m) {
       T* o[NB];
       for (int s = 0; s < NB; ++s) {
-        o[s] = v.data() + s * plane + m * WC;
+        o[s] = v + s * plane + m * WC;
         std::fill(o[s], o[s] + WC, T(0));
       }
       const int64_t t0 = m == 0 ? -r : m, t1 = m == H - 1 ? H - 1 + r : m;
@@ -147,7 +151,7 @@ void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const
     std::vector<T> z(NB * ZW, T(0)), e(NB * EW);
     for (int64_t row = y0; row < y1; ++row) {
       for (int s = 0; s < NB; ++s) {
-        std::copy(v.data() + s * plane + row * WC, v.data() + s * plane + (row + 1) * WC, z.data() + s * ZW + 2 * r * C);
+        std::copy(v + s * plane + row * WC, v + s * plane + (row + 1) * WC, z.data() + s * ZW + 2 * r * C);
         T* es = e.data() + s * EW;
         std::fill(es, es + EW, T(0));
         for (int k = 0; k <= 2 * r; ++k) {
