@@ -386,4 +386,3 @@ def project_fast(
     if m2.requires_grad:
         m2.retain_grad()
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=rad > 0)
-

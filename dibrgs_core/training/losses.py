@@ -62,7 +62,8 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     if pred.dim() not in (2, 3):
         raise ValueError(f"expected an (H,W) or (H,W,C) image, got shape {tuple(pred.shape)}")
     g = _gauss_1d(window, sigma, pred.dtype, pred.device)
-    if pred.dtype in (torch.float32, torch.float64) and not gt.requires_grad and uses_fast(None, pred):
+    if (pred.dtype in (torch.float32, torch.float64) and pred.numel() > 0 and not gt.requires_grad
+            and uses_fast(None, pred)):
         from ..render.ssim import ssim_map_fast
 
         hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)

@@ -588,6 +588,7 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
 std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor g) {
   TORCH_CHECK(x.dim() == 3 && y.sizes() == x.sizes(), "ssim_forward: x and y must be (H, W, C) of one shape");
   TORCH_CHECK(g.dim() == 1 && g.numel() % 2 == 1, "ssim_forward: the window must have an odd length");
+  TORCH_CHECK(x.size(0) > 0 && x.size(1) > 0, "ssim_forward: the image is empty");
   x = x.contiguous();
   y = y.to(x.scalar_type()).contiguous();
   g = g.to(x.scalar_type()).contiguous();
