@@ -3,7 +3,11 @@
 thread, with whichever ``dibrgs_core`` is first on ``sys.path``: the "before and after" of
 docs/benchmarks.md ("Error against time before and after issue 17").
 
-    PYTHONPATH=CHECKOUT python scripts/plateau_driver.py WORK
+    PYTHONPATH=CHECKOUT python scripts/plateau_driver.py WORK [METHOD]
+
+METHOD (``3dgs`` or ``dibrgs``) runs only that method's four runs, so that two drivers can share
+the machine as the before-and-after runs did (generate the scenes first, or copy them into
+``WORK/scenes``, so that the two do not both write them).
 
 Results go where the benchmark runner puts them (``WORK/results/runs/*.json``, finished runs
 skipped), each with its whole run's wall time (``wall_seconds``);
@@ -21,14 +25,17 @@ from dibrgs_core.common.fileio import write_json
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 1:
+    methods = ("3dgs", "dibrgs")
+    if len(argv) not in (1, 2) or (len(argv) == 2 and argv[1] not in methods):
         print(__doc__, file=sys.stderr)
         return 2
     work = Path(argv[0])
+    if len(argv) == 2:
+        methods = (argv[1],)
     print("package", dibrgs_core.__file__, flush=True)
     for spec in runner.make_suite("full").runs:
         out = work / "results" / "runs" / f"{spec.key}.json"
-        if spec.method not in ("3dgs", "dibrgs") or out.exists():
+        if spec.method not in methods or out.exists():
             continue
         t0 = time.time()
         res = runner.run_one(spec, work, None, threads=1)
