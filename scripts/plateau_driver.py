@@ -33,14 +33,14 @@ def main(argv: list[str]) -> int:
     if len(argv) == 2:
         methods = (argv[1],)
     print("package", dibrgs_core.__file__, flush=True)
-    for spec in runner.make_suite("full").runs:
-        out = work / "results" / "runs" / f"{spec.key}.json"
-        if spec.method not in methods or out.exists():
+    results = work / "results"
+    for spec in runner.pending(runner.make_suite("full"), results):
+        if spec.method not in methods:
             continue
         t0 = time.time()
         res = runner.run_one(spec, work, None, threads=1)
         res["wall_seconds"] = time.time() - t0
-        write_json(out, res)
+        write_json(runner.result_path(results, spec), res)
         print(time.strftime("%H:%M:%S"), spec.key, res["row"]["psnr"], res["row"]["train_seconds"],
               res["wall_seconds"], flush=True)
     return 0

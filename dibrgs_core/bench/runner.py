@@ -226,12 +226,13 @@ def plateau_seconds(curve: list[dict[str, float]], final_psnr: float | None = No
 # ---------------------------------------------------------------------------
 # Dispatch
 # ---------------------------------------------------------------------------
-def _result_path(results: Path, spec: RunSpec) -> Path:
+def result_path(results: Path, spec: RunSpec) -> Path:
+    """Where a finished run's result (JSON) is kept under a results folder."""
     return results / "runs" / f"{spec.key}.json"
 
 
 def pending(suite: Suite, results: Path) -> list[RunSpec]:
-    return [s for s in suite.runs if not _result_path(results, s).exists()]
+    return [s for s in suite.runs if not result_path(results, s).exists()]
 
 
 def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: str | None = None,
@@ -250,7 +251,7 @@ def run_local(specs: Iterable[RunSpec], work_root: Path, results: Path, lpips: s
         progress(f"start {spec.key}")
         t0 = time.perf_counter()
         res = job(spec, work_root, lpips, threads=threads)
-        write_json(_result_path(results, spec), res)
+        write_json(result_path(results, spec), res)
         return spec, res, time.perf_counter() - t0
 
     errors = []
@@ -292,7 +293,7 @@ def run_ray(specs: Iterable[RunSpec], work_root: Path, results: Path, address: s
         ready, _ = ray.wait(list(refs), num_returns=1)
         spec = refs.pop(ready[0])
         res = ray.get(ready[0])
-        write_json(_result_path(results, spec), res)
+        write_json(result_path(results, spec), res)
         done += 1
         progress(f"[{done}/{len(specs)}] {spec.key} on {res['host']}: PSNR {res['row']['psnr']:.2f} dB")
 

@@ -24,15 +24,6 @@ _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
 
 
-def _to_nchw(img: torch.Tensor) -> torch.Tensor:
-    """(H,W) or (H,W,C) -> (1,C,H,W)."""
-    if img.dim() == 2:
-        img = img[..., None]
-    if img.dim() != 3:
-        raise ValueError(f"expected an (H,W) or (H,W,C) image, got shape {tuple(img.shape)}")
-    return img.permute(2, 0, 1)[None]
-
-
 def _gauss_1d(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     r = window // 2
     x = torch.arange(-r, r + 1, dtype=dtype, device=device)
@@ -62,13 +53,14 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     if pred.dim() not in (2, 3):
         raise ValueError(f"expected an (H,W) or (H,W,C) image, got shape {tuple(pred.shape)}")
     g = _gauss_1d(window, sigma, pred.dtype, pred.device)
+    hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)
+    p3, t3 = pred.reshape(hwc), gt.to(pred.dtype).reshape(hwc)
     if (pred.dtype in (torch.float32, torch.float64) and pred.numel() > 0 and not gt.requires_grad
             and uses_fast(None, pred)):
         from ..render.ssim import ssim_map_fast
 
-        hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)
-        return ssim_map_fast(pred.reshape(hwc), gt.reshape(hwc), g).reshape(pred.shape)
-    x, y = _to_nchw(pred), _to_nchw(gt.to(pred.dtype))
+        return ssim_map_fast(p3, t3, g).reshape(pred.shape)
+    x, y = p3.permute(2, 0, 1)[None], t3.permute(2, 0, 1)[None]  # (1, C, H, W)
     # The five local means in one blur: fewer, larger operators (faster, and they use a second thread).
     mx, my, mxx, myy, mxy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g).split(x.shape[1], 1)
     # Population variances; tiny negative values from cancellation are harmless
@@ -78,9 +70,7 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     cxy = mxy - mx * my
     num = (2 * mx * my + _C1) * (2 * cxy + _C2)
     den = (mx * mx + my * my + _C1) * (vx + vy + _C2)
-    s = num / den
-    out = s[0].permute(1, 2, 0)
-    return out if pred.dim() == 3 else out[..., 0]
+    return (num / den)[0].permute(1, 2, 0).reshape(pred.shape)
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
