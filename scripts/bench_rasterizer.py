@@ -100,15 +100,25 @@ int main(void) {
 """
 
 
+def target_flags() -> list[str]:
+    """The extension build's target options (``-march=...``, ``-m...``), so that the FMA peak
+    is measured at the vector width the kernels were built for (an AVX2 build on an
+    AVX-512 machine is compared with the 8-lane peak)."""
+    from dibrgs_core.render import fast
+
+    return [f for f in fast.build_flags() if f.startswith("-m")] or ["-march=native"]
+
+
 def fma_peak() -> tuple[float, int] | None:
-    """(GFLOP/s, float lanes) of one core's FMA units, or None without a compiler/FMA."""
+    """(GFLOP/s, float lanes) of one core's FMA units at the build's vector width, or None
+    without a compiler/FMA."""
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         return None
     with tempfile.TemporaryDirectory() as tmp:
         src, exe = Path(tmp) / "fma.c", Path(tmp) / "fma"
         src.write_text(FMA_PEAK_C)
-        if subprocess.run([cc, "-O2", "-march=native", str(src), "-o", str(exe)], capture_output=True,
+        if subprocess.run([cc, "-O2", *target_flags(), str(src), "-o", str(exe)], capture_output=True,
                           check=False).returncode != 0:
             return None
         out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()

@@ -8,10 +8,11 @@ opacity reset, of Gaussians larger than 20 px on screen or 10% of the extent;
 opacity reset to at most 0.01 every 3,000 its (resets stop with densification,
 so the last is at 12,000, 60 % of training before the end). Schedules are
 fractions of training (``GS3DConfig``), except that resets are at least
-``min_reset_every`` iterations apart: opacities need a few hundred iterations
-to recover from a reset, and a short run that reset every 10 % of training
-would never recover (its held-out curve dipped at every reset). A preset may
-cap the number of Gaussians (``max_gaussians``), densification then stops adding.
+``min_reset_every`` iterations apart (3DGS's own 3,000): opacities need a number
+of iterations, not a share of the run, to recover from a reset, so short runs
+(under 6,000 iterations) never reset; a 2,000-iteration run that reset every
+10 % of training, or once at 25 %, ended lower held out. A preset may cap the
+number of Gaussians (``max_gaussians``), densification then stops adding.
 """
 from __future__ import annotations
 

@@ -114,13 +114,14 @@ class GS3DConfig:
     densify_every: float = 100 / 30000
     min_every: int = 10                 # floor on the densification interval of short runs
     opacity_reset_every: float = 3000 / 30000
-    # Floor on the opacity-reset interval, in iterations. After a reset to 0.01 the opacities
-    # take a few hundred iterations to come back (logit -4.6 at lr 0.025, and only in the views
-    # that see a Gaussian); 3DGS leaves 3,000 between resets and 18,000 after the last. A
-    # short run that kept the fraction (every 200 of 2,000) would spend its whole
-    # densification window recovering from resets; the floor leaves one reset at 25 % of a
-    # 2,000-iteration run and none in runs shorter than twice the floor.
-    min_reset_every: int = 500
+    # Floor on the opacity-reset interval, in iterations: 3DGS's own 3,000. After a reset to
+    # 0.01 the opacities need many iterations to come back (logit -4.6 at lr 0.025, and only
+    # in the views that see a Gaussian), a number of iterations rather than a share of the
+    # run; 3DGS leaves 3,000 between resets and 18,000 after the last. Runs shorter than
+    # 6,000 iterations (the cpu preset's 2,000) therefore never reset: a single reset at 500
+    # of 2,000 cost 3DGS 0.7-1.1 dB held out on four of five generated scenes and did not
+    # help on the real flight (docs/benchmarks.md, "An honest baseline").
+    min_reset_every: int = 3000
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
     min_opacity: float = 0.005

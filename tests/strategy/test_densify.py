@@ -44,9 +44,9 @@ def test_gs3d_clone_split_prune_keep_optimizer_consistent():
 
 def test_opacity_resets_leave_a_short_run_time_to_recover():
     """The paper's schedule keeps 3DGS's resets (every 3,000 of 30,000, none after densification
-    stops at half); a 2,000-iteration run resets once, at 500, instead of every 200; a run too short
-    for one full interval before densification stops never resets. A due reset caps opacities at
-    0.01 and zeroes their Adam moments."""
+    stops at half); shorter runs keep the 3,000-iteration interval instead of the fraction, so a
+    2,000- or 5,000-iteration run never resets and a 10,000-iteration one resets once, at 3,000.
+    A due reset caps opacities at 0.01 and zeroes their Adam moments."""
     from dibrgs_core.models.gs3d import Gaussians3D
     from dibrgs_core.strategy.densify import DensifyStrategy
     from dibrgs_core.training.config import preset
@@ -60,19 +60,20 @@ def test_opacity_resets_leave_a_short_run_time_to_recover():
         return DensifyStrategy(g, cfg.gs3d, iterations or cfg.iterations, extent=10.0).resets
 
     assert resets("paper") == [3000, 6000, 9000, 12000]
-    assert resets("cpu") == [500]
-    assert resets("cpu", 5000) == [500, 1000, 1500, 2000]
+    assert resets("cpu") == []
+    assert resets("cpu", 5000) == []
+    assert resets("cpu", 10000) == [3000]
     assert resets("test") == []
     cfg = preset("cpu").gs3d
-    st = DensifyStrategy(g, cfg, 2000, extent=10.0)
+    st = DensifyStrategy(g, cfg, 10000, extent=10.0)
     opt = gs3d_optimizer(g, cfg, extent=10.0)
     with torch.no_grad():
         g.opacity.fill_(2.0)
     for p in g.parameters():
         p.grad = torch.ones_like(p)
     opt.step()
-    st.step_post_backward(g, opt, 400, None)
+    st.step_post_backward(g, opt, 2900, None)
     assert float(torch.sigmoid(g.opacity).min()) > 0.5  # not due
-    st.step_post_backward(g, opt, 500, None)
+    st.step_post_backward(g, opt, 3000, None)
     assert float(torch.sigmoid(g.opacity).max()) <= 0.01 + 1e-6
     assert float(opt.state[g.opacity]["exp_avg"].abs().max()) == 0.0
