@@ -119,8 +119,8 @@ class GS3DConfig:
     # in the views that see a Gaussian), a number of iterations rather than a share of the
     # run; 3DGS leaves 3,000 between resets and 18,000 after the last. Runs shorter than
     # 6,000 iterations (the cpu preset's 2,000) therefore never reset: a single reset at 500
-    # of 2,000 cost 3DGS 0.7-1.1 dB held out on four of five generated scenes and did not
-    # help on the real flight (docs/benchmarks.md, "An honest baseline").
+    # of 2,000 cost 3DGS 0.7-1.6 dB held out on five generated cases and did not help on the
+    # real flight (docs/benchmarks.md, "An honest baseline").
     min_reset_every: int = 3000
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
