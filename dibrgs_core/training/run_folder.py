@@ -41,6 +41,9 @@ CACHES = ("init", "pseudo")
 
 #: Settings a resumed run may change without changing what it computes.
 SAFE_CHANGES = ("checkpoint_every_s", "curve_every_s", "curve_max_views", "progress_every")
+#: Sections of the configuration a method never reads (by method): a change there (a new default
+#: of the other method's schedule, say) does not change what a resumed run computes.
+UNREAD = {"dibrgs": ("gs3d.",)}
 #: Settings no checkpoint can follow: its state was built for them.
 FIXED = ("method", "model.feat_dim", "model.n_offsets", "model.ibr_channels", "ibr", "dense_init",
          "dino_resnet", "dino_vit")
@@ -168,8 +171,10 @@ def compare_configs(saved: dict[str, Any], requested: dict[str, Any], done: int,
     """Sort the differences between ``saved`` and ``requested`` (``TrainConfig.to_dict()`` forms);
     ``done`` is the checkpoint's iteration. More iterations are safe; fewer are not, and fewer than
     ``done`` cannot be forced. Keys in ``same_content`` name files whose paths differ but whose
-    content is the checkpoint's (a run folder copied or moved): safe."""
+    content is the checkpoint's (a run folder copied or moved), and keys of sections the saved
+    run's method never reads (:data:`UNREAD`): safe."""
     a, b = _flat(saved), _flat(requested)
+    unread = UNREAD.get(str(saved.get("method")), ())
     safe, unsafe, fixed = [], [], []
     for k in sorted(set(a) | set(b)):
         va, vb = a.get(k), b.get(k)
@@ -178,7 +183,7 @@ def compare_configs(saved: dict[str, Any], requested: dict[str, Any], done: int,
         item = (k, va, vb)
         if k in FIXED or (k == "iterations" and isinstance(vb, int) and vb < done):
             fixed.append(item)
-        elif k in SAFE_CHANGES or k in same_content or (
+        elif k in SAFE_CHANGES or k in same_content or k.startswith(unread) or (
                 k == "iterations" and isinstance(vb, int) and vb >= max(int(va), done)):
             safe.append(item)
         else:

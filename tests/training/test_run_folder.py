@@ -41,3 +41,21 @@ def test_a_moved_pseudo_path_with_the_same_poses_resumes(tmp_path):
     # Dropping the path is a change too, whatever its content was.
     with pytest.raises(InputError, match="pseudo_path"):
         resumed_config(tmp_path / "b" / "checkpoint.pt", ckpt, TrainConfig(), False, Report())
+
+
+@pytest.mark.parametrize("method", ["dibrgs", "3dgs"])
+def test_a_setting_the_method_never_reads_does_not_block_a_resume(tmp_path, method):
+    """A DIBR-GS run saved before a 3DGS default changed resumes (the change is logged as safe); the
+    same change refuses a 3DGS run, whose schedule it is."""
+    saved = TrainConfig(method=method)
+    saved.gs3d.min_reset_every = 500
+    ckpt = {"config": saved.to_dict(), "iteration": 4, "report": {"values": {}}}
+    requested = TrainConfig(method=method)
+    assert requested.gs3d.min_reset_every != 500
+    if method == "dibrgs":
+        rep = Report()
+        resumed_config(tmp_path / "checkpoint.pt", ckpt, requested, False, rep)
+        assert rep.values["resume_changes"] == [["gs3d.min_reset_every", 500, requested.gs3d.min_reset_every]]
+        requested.growth.grad_threshold *= 2  # what DIBR-GS reads is still compared
+    with pytest.raises(InputError, match="another configuration than the checkpoint's"):
+        resumed_config(tmp_path / "checkpoint.pt", ckpt, requested, False, Report())
