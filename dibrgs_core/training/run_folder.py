@@ -6,8 +6,9 @@ report, in ``checkpoint.pt``.
 
 * ``--resume`` continues only a run of the same scene and split, and compares the requested
   configuration with the checkpoint's (:func:`compare_configs`): equal goes on; safe changes
-  (more iterations, book-keeping intervals) are applied and logged; any other change is refused
-  with the list of differences unless forced (``--force-config``, recorded in the report);
+  (more iterations, book-keeping intervals, settings the run's method never reads) are applied
+  and logged; any other change is refused with the list of differences unless forced
+  (``--force-config``, recorded in the report);
   changes that no checkpoint can follow (the method, the model's shapes) are always refused.
 * A fresh run replaces an earlier run's outputs (:data:`RUN_OUTPUTS`) so readers never see a mix
   of two runs; when the earlier run was of another scene, it says so and also drops the caches.
