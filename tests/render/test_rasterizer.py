@@ -226,6 +226,24 @@ def test_gradients_match_finite_differences(backend):
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
+def test_a_learnable_background_gets_its_gradient_even_at_black():
+    """A background that requires grad is blended (and gets d/dbg = sum of T * upstream) even
+    where it is zero; a fixed black one renders as no background at all."""
+    means, quats, scales, opac, cols = random_scene(6, 40)
+    W, H = 30, 22
+    vm, K = camera(W, H)
+    wgt = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(3))
+    bg = torch.zeros(3, requires_grad=True)
+    img, alpha, _, _ = rasterize(means, quats, scales, opac, cols, vm, K, W, H, background=bg)
+    (img * wgt).sum().backward()
+    expect = ((1.0 - alpha.detach()) * wgt).sum((0, 1))
+    assert float(expect.min()) > 0
+    torch.testing.assert_close(bg.grad, expect, rtol=1e-5, atol=1e-5)
+    plain, _, _, _ = rasterize(means, quats, scales, opac, cols, vm, K, W, H)
+    black, _, _, _ = rasterize(means, quats, scales, opac, cols, vm, K, W, H, background=torch.zeros(3))
+    assert torch.equal(plain, black)
+
+
 def test_backends_give_same_gradients_and_means2d_grad():
     means, quats, scales, opac, cols = random_scene(5, 120)
     vm, K = camera(64, 48)
