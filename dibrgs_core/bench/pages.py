@@ -54,14 +54,15 @@ def curve_points(res: dict[str, Any]) -> tuple[list[float], list[float], tuple[f
     return xs, ys, final
 
 
-def draw_curve(ax: Any, res: dict[str, Any], label: str, style: str = "-", color: str | None = None) -> str:
+def draw_curve(ax: Any, res: dict[str, Any], label: str, style: str = "-", color: str | None = None) -> None:
     """Draw one result's curve (:func:`curve_points`) on ``ax``, a star at its all-view final
-    PSNR; returns the line's colour."""
+    PSNR; nothing for a curve without points after the start."""
     xs, ys, final = curve_points(res)
+    if not xs:
+        return
     line, = ax.plot(xs, ys, style, color=color, marker=".", label=label)
     if final is not None:  # the last point on every held-out view
         ax.plot(*final, marker="*", ms=9, ls="none", color=line.get_color())
-    return line.get_color()
 
 
 def curve_figure(scenes: list[str], draw: Callable[[Any, str], None], path: Path) -> None:
@@ -96,8 +97,7 @@ def plot_curves(res: list[dict[str, Any]], path: Path) -> None:
 
     def draw(ax: Any, scene: str) -> None:
         for r in sorted((r for r in res if r["row"]["scene"] == scene), key=lambda r: r["row"]["method"]):
-            if any(p["seconds"] > 0 for p in r["curve"]):
-                draw_curve(ax, r, r["row"]["method"])
+            draw_curve(ax, r, r["row"]["method"])
 
     curve_figure(sorted({r["row"]["scene"] for r in res}), draw, path)
 
