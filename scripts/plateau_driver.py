@@ -21,7 +21,14 @@ from pathlib import Path
 
 import dibrgs_core
 from dibrgs_core.bench import runner
-from dibrgs_core.common.fileio import write_json
+
+
+def timed_run(spec: runner.RunSpec, work: Path, lpips: str | None, threads: int) -> dict:
+    """``runner.run_one`` with one torch thread whatever the machine has, plus its wall time."""
+    t0 = time.time()
+    res = runner.run_one(spec, work, lpips, threads=1)
+    res["wall_seconds"] = time.time() - t0
+    return res
 
 
 def main(argv: list[str]) -> int:
@@ -34,15 +41,8 @@ def main(argv: list[str]) -> int:
         methods = (argv[1],)
     print("package", dibrgs_core.__file__, flush=True)
     results = work / "results"
-    for spec in runner.pending(runner.make_suite("full"), results):
-        if spec.method not in methods:
-            continue
-        t0 = time.time()
-        res = runner.run_one(spec, work, None, threads=1)
-        res["wall_seconds"] = time.time() - t0
-        write_json(runner.result_path(results, spec), res)
-        print(time.strftime("%H:%M:%S"), spec.key, res["row"]["psnr"], res["row"]["train_seconds"],
-              res["wall_seconds"], flush=True)
+    specs = [s for s in runner.pending(runner.make_suite("full"), results) if s.method in methods]
+    runner.run_local(specs, work, results, job=timed_run)
     return 0
 
 
