@@ -18,6 +18,7 @@ import sys
 import traceback
 
 from .common.errors import EXIT_INPUT, explain, exit_code
+from .common.allocator import keep_freed_memory
 from .common.openmp import set_wait_policy
 
 COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]
@@ -49,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if "torch" not in sys.modules:  # libgomp reads its wait policy once, when torch loads it
         set_wait_policy()
+    keep_freed_memory()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
+from ..common.allocator import allocator_policy
 from ..common.openmp import wait_policy
 
 log = logging.getLogger("dibrgs")
@@ -55,7 +56,7 @@ def apply_compute(args: argparse.Namespace) -> int:
     n = args.threads or available_cores()
     torch.set_num_threads(n)
     if n > 1:
-        log.info("%d torch threads; OpenMP workers wait: %s", n, wait_policy())
+        log.info("%d torch threads; OpenMP workers wait: %s; memory: %s", n, wait_policy(), allocator_policy())
     if getattr(args, "rasterizer", None) is not None:
         set_backend(args.rasterizer)
     return n

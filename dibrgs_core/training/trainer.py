@@ -41,6 +41,7 @@ from ..common.errors import InputError
 from ..common.fileio import write_json
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.lock import run_folder_lock
+from ..common.allocator import allocator_policy
 from ..common.openmp import wait_policy
 from ..common.report import Report
 from ..data.load import load_scene
@@ -298,7 +299,8 @@ class Trainer:
                       max(cfg.pseudo.min_every, cfg.it(cfg.pseudo.every)))
         self.report.values["schedule"] = {"iterations": T, "pseudo": list(pseudo) if pseudo else None,
                                           "growth": [strategy.start, strategy.until, strategy.every]}
-        self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy()}
+        self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
+                                         "allocator": allocator_policy()}
         self.report.save(self.work / "report.json")
         if start_it == 0 and not self.curve:
             self._curve_point(0)
