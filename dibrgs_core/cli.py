@@ -17,8 +17,8 @@ import os
 import sys
 import traceback
 
-from .common.errors import EXIT_INPUT, explain, exit_code
 from .common.allocator import keep_freed_memory
+from .common.errors import EXIT_INPUT, explain, exit_code
 from .common.openmp import set_wait_policy
 
 COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]

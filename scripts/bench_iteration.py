@@ -248,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     from dibrgs_core.render import fast
 
     out = {"date": time.strftime("%Y-%m-%d %H:%M"), "loadavg_start": os.getloadavg(),
-           "threads": args.threads, "openmp_wait": wait_policy(), "allocator": allocator_policy(), "preset": args.preset, "warmup": args.warmup,
+           "threads": args.threads, "openmp_wait": wait_policy(), "allocator": allocator_policy(),
+           "preset": args.preset, "warmup": args.warmup,
            "repeats": args.repeats,
            "fast_rasterizer": fast.available(required=False), "results": []}
     for m in args.methods:

@@ -21,8 +21,8 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.allocator import allocator_policy
+from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.openmp import wait_policy
 
 log = logging.getLogger("dibrgs")
@@ -57,6 +57,8 @@ def apply_compute(args: argparse.Namespace) -> int:
     torch.set_num_threads(n)
     if n > 1:
         log.info("%d torch threads; OpenMP workers wait: %s; memory: %s", n, wait_policy(), allocator_policy())
+    else:
+        log.info("1 torch thread; memory: %s", allocator_policy())
     if getattr(args, "rasterizer", None) is not None:
         set_backend(args.rasterizer)
     return n

@@ -4,8 +4,8 @@ glibc serves an allocation above its mmap threshold (128 KiB to start, raised as
 freed) with a fresh mapping and trims the heap's free top above 128 KiB, so a training iteration's
 image-sized temporaries (a 256x256x3 float image is 768 KiB) are mapped, zero-filled page by page
 on first touch and unmapped again, every iteration. Measured on a DIBR-GS iteration at 256x256
-(docs/benchmarks.md, "Training iteration"): about 1,600 page faults and 3-4 ms of kernel time a
-step, the SSIM map's forward 40 % slower than on warm memory; with the thresholds below, none.
+(docs/benchmarks.md, "Freed memory kept in the process"): about 1,600 page faults and 3-4 ms of
+kernel time a step; with the thresholds below, none (the step 5-7 % faster on one or two threads).
 
 The thresholds are process-wide: set once by the ``dibrgs`` command (and the benchmarks that time
 it), never by the library. A user's own ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_``

@@ -37,11 +37,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..common.allocator import allocator_policy
 from ..common.errors import InputError
 from ..common.fileio import write_json
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.lock import run_folder_lock
-from ..common.allocator import allocator_policy
 from ..common.openmp import wait_policy
 from ..common.report import Report
 from ..data.load import load_scene
