@@ -38,7 +38,7 @@ def test_transforms_start_at_identity_and_their_median_is_it():
     ct = ColourTransforms(CAMS)
     img = torch.rand(6, 5, 3)
     out, penalty = ct.apply(img, CameraTensors.of(CAMS[1]))
-    assert torch.allclose(out, img, atol=1e-7) and float(penalty) == 0.0
+    assert torch.allclose(out, img, atol=1e-7) and float(penalty.detach()) == 0.0
     with torch.no_grad():
         ct.delta.normal_()
         ct.shift.normal_()
