@@ -1,8 +1,8 @@
 """Fast CPU path: projection and compositing in a C++ torch extension compiled on first use.
 
 Build and cache
-    The extension (``csrc/rasterize.cpp``, ``csrc/composite.h`` and, for the training loss's
-    SSIM, ``csrc/ssim.h``) is compiled
+    The extension (``csrc/rasterize.cpp``, ``csrc/composite.h`` and, for training, the loss's
+    SSIM ``csrc/ssim.h`` and the optimiser's step ``csrc/adam.h``) is compiled
     for the machine that runs it (``-march=native``: 16-lane float vectors with
     AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on
     first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
@@ -61,7 +61,7 @@ from .projection import Projected
 log = logging.getLogger("dibrgs.render")
 
 _CSRC = Path(__file__).with_name("csrc")
-_SOURCES = ("rasterize.cpp", "composite.h", "ssim.h")
+_SOURCES = ("rasterize.cpp", "adam.h", "composite.h", "ssim.h")
 _NAME = "dibrgs_rasterize"
 _MARKER = "built.json"
 BUILD_TIME = "about 1-2 minutes"

@@ -21,6 +21,7 @@ from ..strategy.base import Strategy
 from ..strategy.densify import DensifyStrategy
 from .appearance import ColourTransforms
 from .config import GS3DConfig, TrainConfig, expon_lr
+from .optim import Adam
 
 log = logging.getLogger("dibrgs.train")
 
@@ -40,7 +41,7 @@ class TrainingMethod(ABC):
     def __init__(self, cfg: TrainConfig, colour: ColourTransforms | None = None) -> None:
         self.cfg = cfg
         self.colour = colour
-        self.colour_optimizer = (torch.optim.Adam(colour.parameters(), lr=cfg.colour.lr[0])
+        self.colour_optimizer = (Adam(colour.parameters(), lr=cfg.colour.lr[0])
                                  if colour is not None else None)
 
     @abstractmethod
@@ -135,9 +136,11 @@ class ScaffoldTraining(TrainingMethod):
         for name, params in model.mlp_parameters().items():
             groups.append({"params": params, "lr": getattr(lr, name)[0], "name": name})
         model.anchor.requires_grad_(False)
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.optimizer = Adam(groups, lr=0.0, eps=1e-15)
         self.p_params = list(ibr.projection_parameters()) if ibr is not None else []
-        self.p_optimizer = torch.optim.AdamW(self.p_params, lr=lr.projection) if self.p_params else None
+        # AdamW with torch's default decay (0.01).
+        self.p_optimizer = (Adam(self.p_params, lr=lr.projection, weight_decay=0.01, decoupled_weight_decay=True)
+                            if self.p_params else None)
         self.p_freeze_at = cfg.it(lr.projection_freeze)
 
     def set_lr(self, it: int) -> None:
@@ -204,7 +207,7 @@ class ScaffoldTraining(TrainingMethod):
         return {"ibr_feats": None if self.ibr is None else self.ibr(self.model.anchor.detach())}
 
 
-def gs3d_optimizer(model: Gaussians3D, cfg: GS3DConfig, extent: float) -> torch.optim.Adam:
+def gs3d_optimizer(model: Gaussians3D, cfg: GS3DConfig, extent: float) -> Adam:
     """3DGS's Adam groups (position learning rate scaled by the scene extent)."""
     groups = [
         {"params": [model.means], "lr": cfg.position_lr[0] * extent, "name": "means"},
@@ -214,7 +217,7 @@ def gs3d_optimizer(model: Gaussians3D, cfg: GS3DConfig, extent: float) -> torch.
         {"params": [model.log_scales], "lr": cfg.scaling_lr, "name": "log_scales"},
         {"params": [model.quats], "lr": cfg.rotation_lr, "name": "quats"},
     ]
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    return Adam(groups, lr=0.0, eps=1e-15)
 
 
 class GS3DTraining(TrainingMethod):

@@ -19,6 +19,7 @@
 #include <numeric>
 #include <vector>
 
+#include "adam.h"
 #include "composite.h"
 #include "ssim.h"
 
@@ -617,6 +618,48 @@ torch::Tensor ssim_backward(torch::Tensor gS, torch::Tensor x, torch::Tensor y, 
   return dx;
 }
 
+// One Adam step (adam.h) over float32 CPU tensors: params, grads, exp_avgs and exp_avg_sqs
+// (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (n x 6 float64:
+// lr, beta1, beta2, eps, weight_decay, decoupled 0/1).
+void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> grads, std::vector<torch::Tensor> exp_avgs,
+               std::vector<torch::Tensor> exp_avg_sqs, std::vector<torch::Tensor> steps, torch::Tensor hyper) {
+  const size_t n = params.size();
+  TORCH_CHECK(grads.size() == n && exp_avgs.size() == n && exp_avg_sqs.size() == n && steps.size() == n,
+              "adam_step: one grad, exp_avg, exp_avg_sq and step a parameter");
+  TORCH_CHECK(hyper.dim() == 2 && hyper.size(0) == static_cast<int64_t>(n) && hyper.size(1) == 6 &&
+                  hyper.scalar_type() == torch::kFloat64 && hyper.is_contiguous(),
+              "adam_step: hyper must be (n, 6) float64");
+  const double* h = hyper.data_ptr<double>();
+  std::vector<dibrgs::adam::Slot> slots(n);
+  for (size_t i = 0; i < n; ++i) {
+    for (const auto* t : {&params[i], &grads[i], &exp_avgs[i], &exp_avg_sqs[i]})
+      TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous() && t->device().is_cpu() &&
+                      t->numel() == params[i].numel(),
+                  "adam_step: tensors must be contiguous float32 CPU tensors of the parameter's size");
+    TORCH_CHECK(steps[i].numel() == 1 && steps[i].scalar_type() == torch::kFloat32, "adam_step: step must be a float32 scalar");
+    float* st = steps[i].data_ptr<float>();
+    *st += 1.0f;
+    const double t = *st, lr = h[6 * i], b1 = h[6 * i + 1], b2 = h[6 * i + 2], eps = h[6 * i + 3],
+                 wd = h[6 * i + 4];
+    const bool decoupled = h[6 * i + 5] != 0.0;
+    dibrgs::adam::Slot& s = slots[i];
+    s.p = params[i].data_ptr<float>();
+    s.g = grads[i].data_ptr<float>();
+    s.m = exp_avgs[i].data_ptr<float>();
+    s.v = exp_avg_sqs[i].data_ptr<float>();
+    s.n = params[i].numel();
+    s.decay = static_cast<float>(decoupled && wd != 0.0 ? 1.0 - lr * wd : 1.0);
+    s.l2 = static_cast<float>(decoupled ? 0.0 : wd);
+    s.one_m_b1 = static_cast<float>(1.0 - b1);
+    s.b2 = static_cast<float>(b2);
+    s.one_m_b2 = static_cast<float>(1.0 - b2);
+    s.bc2_sqrt = static_cast<float>(std::sqrt(1.0 - std::pow(b2, t)));
+    s.eps = static_cast<float>(eps);
+    s.neg_step = static_cast<float>(-lr / (1.0 - std::pow(b1, t)));
+  }
+  dibrgs::adam::run(slots, 4096);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
@@ -627,4 +670,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_backward, "gradients of the projection");
   m.def("ssim_forward", &ssim_forward, "SSIM map and its gradient factors");
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
+  m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
 }
