@@ -94,3 +94,11 @@ def test_other_dtypes_and_non_contiguous_tensors_take_torchs_step():
         ours.step()
         theirs.step()
     assert torch.equal(p64, ref64) and torch.equal(pt, reft)
+
+
+def test_a_step_bumps_the_parameters_version_as_torchs_does():
+    """Caches keyed on a parameter's version (the IBR features) must see the update."""
+    (a, ta), (b, ours) = pair()
+    before = [p._version for p in b]
+    run(1, [(b, ours)])
+    assert all(p._version > v for p, v in zip(b, before))

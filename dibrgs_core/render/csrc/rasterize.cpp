@@ -658,6 +658,10 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
     s.neg_step = static_cast<float>(-lr / (1.0 - std::pow(b1, t)));
   }
   dibrgs::adam::run(slots, 4096);
+  // Written in place through their data: bump the version counters as torch's in-place operators
+  // do, so that caches keyed on a parameter's version (the IBR features) see the change.
+  for (size_t i = 0; i < n; ++i)
+    for (auto* t : {&params[i], &exp_avgs[i], &exp_avg_sqs[i], &steps[i]}) torch::autograd::impl::bump_version(*t);
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
