@@ -66,7 +66,7 @@ def test_ssim_kernel_equals_the_torch_formulation(shape, window):
         try:
             p = p64.to(dt).requires_grad_()
             m = ssim_map(p, t64.to(dt), window)
-            return m.double(), torch.autograd.grad(m, p, up.to(dt))[0].double()
+            return m.detach().double(), torch.autograd.grad(m, p, up.to(dt))[0].double()
         finally:
             render.set_backend(None)
 
