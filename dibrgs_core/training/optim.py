@@ -38,29 +38,15 @@ class Adam(torch.optim.Adam):
             if (group["amsgrad"] or group["maximize"] or group["differentiable"] or group["capturable"]
                     or group["fused"] or torch.is_tensor(group["lr"])):
                 return super().step()
+            n = len(params)
+            # torch's own lazy state initialisation and gathering (parameters with a gradient).
+            self._init_group(group, params, grads, exp_avgs, exp_avg_sqs, [], steps)
             beta1, beta2 = group["betas"]
-            row = (group["lr"], float(beta1), float(beta2), group["eps"], group["weight_decay"],
-                   float(bool(group.get("decoupled_weight_decay", False))))
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                if not _plain(p) or not _plain(p.grad):
-                    return super().step()
-                state = self.state[p]
-                if not state:  # as torch initialises it (a float32 step on the CPU)
-                    state["step"] = torch.tensor(0.0, dtype=torch.float32)
-                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                st = state["step"]
-                if not (_plain(state["exp_avg"]) and _plain(state["exp_avg_sq"]) and st.numel() == 1
-                        and st.dtype == torch.float32):
-                    return super().step()
-                params.append(p)
-                grads.append(p.grad)
-                exp_avgs.append(state["exp_avg"])
-                exp_avg_sqs.append(state["exp_avg_sq"])
-                steps.append(st)
-                hyper.append(row)
+            hyper += [(group["lr"], float(beta1), float(beta2), group["eps"], group["weight_decay"],
+                       float(bool(group.get("decoupled_weight_decay", False))))] * (len(params) - n)
+        if not all(map(_plain, params + grads + exp_avgs + exp_avg_sqs)) or not all(
+                st.numel() == 1 and st.dtype == torch.float32 for st in steps):
+            return super().step()
         if not params:
             return None
         if not uses_fast(None, params[0]):
