@@ -45,6 +45,7 @@ from ..camera.pinhole import Camera
 from ..geometry.pointcloud import voxelize
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
+from .spawn import spawn
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -165,9 +166,11 @@ class NeuralGaussians(nn.Module):
         return NEAR_FRACTION * self.dist_scale
 
     # -- per-anchor helpers ----------------------------------------------------
-    def anchor_scaling(self) -> torch.Tensor:
-        """(N,6) activated anchor scaling; the log is clamped so exp stays finite."""
-        return torch.exp(self.scaling.clamp(-30.0, 20.0))
+    def anchor_scaling(self, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """(N,6) activated anchor scaling (of the anchors ``idx`` only, when given); the log is
+        clamped so exp stays finite."""
+        log_s = self.scaling if idx is None else self.scaling.index_select(0, idx)
+        return torch.exp(log_s.clamp(-30.0, 20.0))
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
@@ -215,33 +218,16 @@ class NeuralGaussians(nn.Module):
         if visible is None:
             visible = self.visible_anchors(K, w2c, width, height)
         idx = torch.nonzero(visible).squeeze(1)
-        k = self.n_offsets
         anchor = self.anchor.index_select(0, idx)
         feat = self.fused_features(idx, ibr_feats)
         view = anchor - cam_center
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([feat, view / dist, dist / self.dist_scale], dim=1)
         neural_opacity = self.mlp_opacity(x).reshape(-1)
-        selected = neural_opacity > 0.0
-        # One nonzero and integer gathers: boolean-mask indexing would search the mask again for
-        # each of the five tensors, and its backward is a slower scatter (issue 17).
-        sel = torch.nonzero(selected).squeeze(1)  # row = visible anchor * k + offset number
-        owner = idx.index_select(0, torch.div(sel, k, rounding_mode="floor"))  # anchor of each
-        color = self.mlp_color(x).reshape(-1, 3).index_select(0, sel)
-        cov = self.mlp_cov(x).reshape(-1, 7).index_select(0, sel)
-        s = self.anchor_scaling().index_select(0, owner)
-        centre = self.anchor.index_select(0, owner)
-        offsets = self.offset.reshape(-1, 3).index_select(0, owner * k + sel % k)
-        scales = s[:, 3:] * torch.sigmoid(cov[:, :3])
-        q = cov[:, 3:7]
-        # A zero quaternion has no direction; fall back to identity rather than NaN.
-        qn = q.norm(dim=1, keepdim=True)
-        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
-        quats = torch.where(qn > 1e-12, q / qn.clamp_min(1e-12), ident)
-        means = centre + offsets * s[:, :3]
-        return Decoded(means=means, quats=quats, scales=scales, opacities=neural_opacity[selected],
-                       colors=color, anchor_visible=visible, neural_opacity=neural_opacity,
-                       selected=selected)
+        g = spawn(neural_opacity, self.mlp_color(x), self.mlp_cov(x), anchor, self.anchor_scaling(idx),
+                  self.offset.index_select(0, idx))
+        return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
+                       anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 
     # -- the model protocol ------------------------------------------------------
     def gaussians(self, cam: CameraTensors) -> Gaussians:

@@ -12,6 +12,7 @@
 #include <atomic>
 #include <cmath>
 #include <mutex>
+#include <new>
 #include <string>
 #include <type_traits>
 #include <cstdint>
@@ -21,6 +22,7 @@
 
 #include "adam.h"
 #include "composite.h"
+#include "spawn.h"
 #include "ssim.h"
 
 using dibrgs::TILE;
@@ -51,17 +53,24 @@ void run_workers(F&& worker) {
 namespace {
 
 // Indices sorted by increasing key, ties in their given order (LSD radix sort
-// on the keys' bytes; bytes that all keys share are skipped).
-void radix_sort(std::vector<uint64_t>& key, std::vector<int32_t>& idx) {
+// on the keys' bytes; bytes that all keys share are skipped). The histograms of
+// all bytes come from one pass over the keys.
+template <typename K>
+void radix_sort(std::vector<K>& key, std::vector<int32_t>& idx) {
+  constexpr int NB = sizeof(K);
   const size_t n = key.size();
-  std::vector<uint64_t> k2(n);
+  if (n == 0) return;
+  std::vector<size_t> cnt(NB * 256, 0);
+  for (size_t i = 0; i < n; ++i)
+    for (int b = 0; b < NB; ++b) ++cnt[b * 256 + ((key[i] >> (8 * b)) & 0xFF)];
+  std::vector<K> k2(n);
   std::vector<int32_t> i2(n);
-  for (int shift = 0; shift < 64; shift += 8) {
-    size_t cnt[256] = {0};
-    for (size_t i = 0; i < n; ++i) ++cnt[(key[i] >> shift) & 0xFF];
-    if (n == 0 || cnt[(key[0] >> shift) & 0xFF] == n) continue;
+  for (int b = 0; b < NB; ++b) {
+    const size_t* c = cnt.data() + b * 256;
+    const int shift = 8 * b;
+    if (c[(key[0] >> shift) & 0xFF] == n) continue;
     size_t pos[256], sum = 0;
-    for (int b = 0; b < 256; ++b) pos[b] = sum, sum += cnt[b];
+    for (int v = 0; v < 256; ++v) pos[v] = sum, sum += c[v];
     for (size_t i = 0; i < n; ++i) {
       const size_t p = pos[(key[i] >> shift) & 0xFF]++;
       k2[p] = key[i];
@@ -72,11 +81,50 @@ void radix_sort(std::vector<uint64_t>& key, std::vector<int32_t>& idx) {
   }
 }
 
-// Order-preserving map of a double to an unsigned integer.
+// Uninitialised storage of n objects, constructed in place by their users.
+template <typename T>
+class RawArray {
+  static_assert(std::is_trivially_copyable<T>::value && std::is_trivially_destructible<T>::value,
+                "RawArray holds trivial types only");
+  T* p_;
+
+ public:
+  explicit RawArray(int64_t n) : p_(static_cast<T*>(::operator new(sizeof(T) * std::max<int64_t>(n, 1)))) {}
+  ~RawArray() { ::operator delete(p_); }
+  RawArray(const RawArray&) = delete;
+  RawArray& operator=(const RawArray&) = delete;
+  T& operator[](int64_t i) { return p_[i]; }
+};
+
+// Order-preserving maps of a float / double to an unsigned integer.
+inline uint32_t depth_key(float d) {
+  uint32_t u;
+  std::memcpy(&u, &d, sizeof(u));
+  return (u >> 31) ? ~u : (u | (uint32_t(1) << 31));
+}
 inline uint64_t depth_key(double d) {
   uint64_t u;
   std::memcpy(&u, &d, sizeof(u));
   return (u >> 63) ? ~u : (u | (uint64_t(1) << 63));
+}
+
+// Indices of the live Gaussians (alive[i] != 0) in increasing depth, ties by
+// index. float32 depths sort on 32-bit keys (half the passes; the same order as
+// their exact double values).
+template <typename T>
+std::vector<int32_t> depth_order(const T* depth, const std::vector<uint8_t>& alive) {
+  typedef typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type K;
+  std::vector<K> key;
+  std::vector<int32_t> live;
+  key.reserve(alive.size());
+  live.reserve(alive.size());
+  for (size_t i = 0; i < alive.size(); ++i)
+    if (alive[i]) {
+      key.push_back(depth_key(depth[i]));
+      live.push_back(static_cast<int32_t>(i));
+    }
+  radix_sort(key, live);
+  return live;
 }
 
 }  // namespace
@@ -91,14 +139,12 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   auto m = means2d.to(torch::kFloat64).contiguous();
   auto con = conics.to(torch::kFloat64).contiguous();
   auto op = opac.to(torch::kFloat64).contiguous();
-  auto dep = depths.to(torch::kFloat64).contiguous();
   auto rad = radii.to(torch::kInt64).contiguous();
   const int64_t N = m.size(0);
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
   const double* pm = m.data_ptr<double>();
   const double* pc = con.data_ptr<double>();
   const double* po = op.data_ptr<double>();
-  const double* pd = dep.data_ptr<double>();
   const int64_t* pr = rad.data_ptr<int64_t>();
   // What the tile emission needs of a Gaussian, in one cache line: gathered
   // in depth order below, so that the emission reads memory sequentially.
@@ -107,7 +153,9 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     dibrgs::Chords ch;
     int32_t x0, x1, y0, y1, id, pad;
   };
-  std::vector<Bin> bins(N);  // filled for live Gaussians only
+  // Entries constructed by the parallel loops below (a std::vector would first
+  // construct all of them on one thread); bins: the live Gaussians' only.
+  RawArray<Bin> bins(N);
   std::vector<uint8_t> alive(N, 0);
   at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
     for (int64_t i = b; i < e; ++i) {
@@ -127,23 +175,19 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
       const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
       const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
       if (x1 <= x0 || y1 <= y0) continue;
-      bins[i] = Bin{mx, my, dibrgs::Chords(pc[3 * i], pc[3 * i + 1], pc[3 * i + 2], t),
+      new (&bins[i]) Bin{mx, my, dibrgs::Chords(pc[3 * i], pc[3 * i + 1], pc[3 * i + 2], t),
                     x0, x1, y0, y1, static_cast<int32_t>(i), 0};
       alive[i] = 1;
     }
   });
-  std::vector<uint64_t> key;
-  std::vector<int32_t> live;
-  for (int64_t i = 0; i < N; ++i)
-    if (alive[i]) {
-      key.push_back(depth_key(pd[i]));
-      live.push_back(static_cast<int32_t>(i));
-    }
-  radix_sort(key, live);
+  const bool f32 = depths.scalar_type() == torch::kFloat32;
+  const auto dep = depths.to(f32 ? torch::kFloat32 : torch::kFloat64).contiguous();
+  const std::vector<int32_t> live = f32 ? depth_order(dep.data_ptr<float>(), alive)
+                                        : depth_order(dep.data_ptr<double>(), alive);
   const int64_t nlive = static_cast<int64_t>(live.size());
-  std::vector<Bin> order(nlive);
+  RawArray<Bin> order(nlive);
   at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t j = b; j < e; ++j) order[j] = bins[live[j]];
+    for (int64_t j = b; j < e; ++j) new (&order[j]) Bin(bins[live[j]]);
   });
   // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in
   // depth order, with the segments it reaches there: chunks of the depth
@@ -664,6 +708,65 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
     for (auto* t : {&params[i], &exp_avgs[i], &exp_avg_sqs[i], &steps[i]}) torch::autograd::impl::bump_version(*t);
 }
 
+// Neural Gaussians of the visible anchors (spawn.h): nop (M k), color (M, 3 k), cov (M, 7 k),
+// anchor (M, 3), scal (M, 6), offset (M, k, 3), one dtype, contiguous. Returns {means (S, 3),
+// quats (S, 4), scales (S, 3), opacities (S), colors (S, 3), start (M + 1) int64}.
+std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color, torch::Tensor cov,
+                                         torch::Tensor anchor, torch::Tensor scal, torch::Tensor offset) {
+  const int64_t M = anchor.size(0), k = offset.dim() == 3 ? offset.size(1) : 0;
+  TORCH_CHECK(anchor.dim() == 2 && anchor.size(1) == 3 && scal.sizes() == torch::IntArrayRef({M, 6}) &&
+                  offset.sizes() == torch::IntArrayRef({M, k, 3}) && nop.numel() == M * k &&
+                  color.sizes() == torch::IntArrayRef({M, 3 * k}) && cov.sizes() == torch::IntArrayRef({M, 7 * k}),
+              "spawn_forward: shapes must be nop (M k), color (M, 3 k), cov (M, 7 k), anchor (M, 3), scal (M, 6), "
+              "offset (M, k, 3)");
+  for (const auto* t : {&nop, &color, &cov, &anchor, &scal, &offset})
+    TORCH_CHECK(t->scalar_type() == anchor.scalar_type() && t->is_contiguous() && t->device().is_cpu(),
+                "spawn_forward: tensors must be contiguous CPU tensors of one dtype");
+  auto start = torch::empty({M + 1}, torch::kInt64);
+  std::vector<torch::Tensor> out;
+  AT_DISPATCH_FLOATING_TYPES(anchor.scalar_type(), "dibrgs_spawn_forward", [&] {
+    const int64_t S = dibrgs::spawn::count<scalar_t>(nop.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>());
+    auto o = anchor.options();
+    out = {torch::empty({S, 3}, o), torch::empty({S, 4}, o), torch::empty({S, 3}, o), torch::empty({S}, o),
+           torch::empty({S, 3}, o)};
+    dibrgs::spawn::forward<scalar_t>(nop.data_ptr<scalar_t>(), color.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
+                                     anchor.data_ptr<scalar_t>(), scal.data_ptr<scalar_t>(),
+                                     offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
+                                     out[0].data_ptr<scalar_t>(), out[1].data_ptr<scalar_t>(),
+                                     out[2].data_ptr<scalar_t>(), out[3].data_ptr<scalar_t>(),
+                                     out[4].data_ptr<scalar_t>());
+  });
+  out.push_back(start);
+  return out;
+}
+
+// Gradients {nop, color, cov, anchor, scal, offset} of spawn_forward's inputs from those of its
+// outputs (gmeans, gquats, gscales, gopac, gcolors) and the inputs it saved.
+std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gquats, torch::Tensor gscales,
+                                          torch::Tensor gopac, torch::Tensor gcolors, torch::Tensor nop,
+                                          torch::Tensor cov, torch::Tensor scal, torch::Tensor offset,
+                                          torch::Tensor start) {
+  const int64_t M = scal.size(0), k = offset.size(1), S = start.data_ptr<int64_t>()[M];
+  TORCH_CHECK(gmeans.numel() == 3 * S && gquats.numel() == 4 * S && gscales.numel() == 3 * S && gopac.numel() == S &&
+                  gcolors.numel() == 3 * S,
+              "spawn_backward: output gradients must match the forward's outputs");
+  const auto dt = scal.scalar_type();
+  gmeans = gmeans.to(dt).contiguous(), gquats = gquats.to(dt).contiguous(), gscales = gscales.to(dt).contiguous();
+  gopac = gopac.to(dt).contiguous(), gcolors = gcolors.to(dt).contiguous();
+  auto dnop = torch::empty_like(nop), dcov = torch::empty_like(cov), dscal = torch::empty_like(scal);
+  auto doffset = torch::empty_like(offset), danchor = torch::empty({M, 3}, scal.options());
+  auto dcolor = torch::empty({M, 3 * k}, scal.options());
+  AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_spawn_backward", [&] {
+    dibrgs::spawn::backward<scalar_t>(
+        gmeans.data_ptr<scalar_t>(), gquats.data_ptr<scalar_t>(), gscales.data_ptr<scalar_t>(),
+        gopac.data_ptr<scalar_t>(), gcolors.data_ptr<scalar_t>(), nop.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
+        scal.data_ptr<scalar_t>(), offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
+        dnop.data_ptr<scalar_t>(), dcolor.data_ptr<scalar_t>(), dcov.data_ptr<scalar_t>(),
+        danchor.data_ptr<scalar_t>(), dscal.data_ptr<scalar_t>(), doffset.data_ptr<scalar_t>());
+  });
+  return {dnop, dcolor, dcov, danchor, dscal, doffset};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
@@ -675,4 +778,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_forward", &ssim_forward, "SSIM map and its gradient factors");
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
   m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
+  m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
+  m.def("spawn_backward", &spawn_backward, "gradients of spawn_forward");
 }

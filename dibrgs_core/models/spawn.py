@@ -1,0 +1,96 @@
+"""Neural Gaussians spawned from the decoder outputs of the visible anchors (Scaffold-GS).
+
+For ``M`` visible anchors with ``k`` offsets each, row ``(a, j)`` (``a * k + j``) is offset
+``j`` of anchor ``a``; it becomes a Gaussian when its Tanh opacity is above 0, in row order:
+
+* mean ``anchor[a] + offset[a, j] * scal[a, :3]`` (world units);
+* scale ``scal[a, 3:] * sigmoid(cov[a, 7j:7j+3])`` (world-unit standard deviations);
+* rotation ``cov[a, 7j+3:7j+7]`` normalised (w, x, y, z; a zero quaternion is the identity);
+* opacity ``nop[a*k + j]``, colour ``color[a, 3j:3j+3]``.
+
+``scal`` is the activated anchor scaling ``exp(l_v)`` of the visible anchors. Two paths with the
+same maths: the C++ one of the rasterizer's extension (``render/csrc/spawn.h``; one parallel
+pass forward and backward) for CPU tensors when the rasterizer's backend resolves to it, and
+the torch formulation (any device, the ``reference`` backend).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ..render import Backend, uses_fast
+
+QUAT_EPS = 1e-12  # a quaternion this short has no direction (spawn.h uses the same)
+
+
+class Spawned(NamedTuple):
+    """The kept Gaussians (S rows) and the mask ``selected`` (M*k,) of the rows they come from."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    selected: Tensor
+
+
+def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor, offset: Tensor,
+          backend: Backend | None = None) -> Spawned:
+    """Gaussians of the rows with ``nop > 0``.
+
+    Args:
+        nop: (M*k,) Tanh opacities; color: (M, 3k) colours in [0, 1]; cov: (M, 7k) raw scale
+            logits and quaternions (7 a row); anchor: (M, 3) anchor positions; scal: (M, 6)
+            activated scaling; offset: (M, k, 3) learned offsets.
+        backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
+    """
+    selected = nop > 0.0
+    if uses_fast(backend, anchor):
+        dt = anchor.dtype
+        means, quats, scales, opac, colors = _SpawnFast.apply(
+            *(t.to(dt).contiguous() for t in (nop, color, cov, anchor, scal, offset)))
+        return Spawned(means, quats, scales, opac, colors, selected)
+    return spawn_reference(nop, color, cov, anchor, scal, offset)
+
+
+def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor, offset: Tensor
+                    ) -> Spawned:
+    """:func:`spawn` in torch operators (autograd, any device)."""
+    k = offset.shape[1]
+    selected = nop > 0.0
+    # One nonzero and integer gathers: boolean-mask indexing would search the mask again for
+    # each tensor, and its backward is a slower scatter.
+    sel = torch.nonzero(selected).squeeze(1)  # row = visible anchor * k + offset number
+    owner = torch.div(sel, k, rounding_mode="floor")
+    colors = color.reshape(-1, 3).index_select(0, sel)
+    c = cov.reshape(-1, 7).index_select(0, sel)
+    s = scal.index_select(0, owner)
+    scales = s[:, 3:] * torch.sigmoid(c[:, :3])
+    q = c[:, 3:7]
+    qn = q.norm(dim=1, keepdim=True)
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
+    quats = torch.where(qn > QUAT_EPS, q / qn.clamp_min(QUAT_EPS), ident)
+    means = anchor.index_select(0, owner) + offset.reshape(-1, 3).index_select(0, sel) * s[:, :3]
+    return Spawned(means, quats, scales, nop.index_select(0, sel), colors, selected)
+
+
+class _SpawnFast(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, nop, color, cov, anchor, scal, offset):  # type: ignore[override]
+        from ..render.fast import extension
+
+        means, quats, scales, opac, colors, start = extension().spawn_forward(
+            nop.reshape(-1), color, cov, anchor, scal, offset)
+        ctx.save_for_backward(nop, cov, scal, offset, start)
+        return means, quats, scales, opac, colors
+
+    @staticmethod
+    def backward(ctx, gm, gq, gs, go, gc):  # type: ignore[override]
+        from ..render.fast import extension
+
+        nop, cov, scal, offset, start = ctx.saved_tensors
+        dnop, dcolor, dcov, danchor, dscal, doffset = extension().spawn_backward(
+            gm, gq, gs, go, gc, nop.reshape(-1), cov, scal, offset, start)
+        return dnop.reshape(nop.shape), dcolor, dcov, danchor, dscal, doffset
