@@ -17,6 +17,7 @@ from dibrgs_core.training import curve as curve_module
 from dibrgs_core.training import trainer as trainer_module
 from dibrgs_core.training.config import preset
 from dibrgs_core.training.curve import curve_views, evaluate_heldout
+from dibrgs_core.render import set_backend
 from dibrgs_core.training.guard import all_finite
 from dibrgs_core.training.trainer import Trainer
 
@@ -47,16 +48,29 @@ def _cfg(iterations: int, method: str = "dibrgs"):
     return cfg
 
 
-def test_all_finite():
-    big = torch.full((10,), 3e38)  # finite, but its sum overflows: the exact test decides
-    assert all_finite([]) and all_finite([None, torch.ones(3)]) and all_finite([big, torch.zeros(0, 3)])
-    for bad in (math.nan, math.inf, -math.inf):
-        t = torch.ones(1000)
-        t[517] = bad
-        assert not all_finite([torch.ones(4), None, t])
-    t = torch.ones(5, 3)
-    t[0, 0], t[1, 1] = math.inf, -math.inf  # +inf and -inf in one tensor
-    assert not all_finite([t])
+@pytest.mark.parametrize("backend", ["fast", "reference"])
+def test_all_finite(backend):
+    """Both paths (one C++ pass over all tensors; a torch sum a tensor) give the exact answer."""
+    set_backend(backend)
+    try:
+        big = torch.full((10,), 3e38)  # finite, but its sum overflows: the exact test decides
+        assert all_finite([]) and all_finite([None, torch.ones(3)]) and all_finite([big, torch.zeros(0, 3)])
+        assert all_finite([torch.full((3,), 1e308, dtype=torch.float64), torch.full((40000,), -3.4e38)])
+        for dtype in (torch.float32, torch.float64):
+            for bad in (math.nan, math.inf, -math.inf):
+                for pos in (0, 517, 39999):  # first, middle, last element of the last chunk
+                    t = torch.ones(40000, dtype=dtype)
+                    t[pos] = bad
+                    assert not all_finite([torch.ones(4), None, t, torch.ones(7, dtype=torch.float64)])
+        t = torch.ones(5, 3)
+        t[0, 0], t[1, 1] = math.inf, -math.inf  # +inf and -inf in one tensor
+        assert not all_finite([t])
+        u = torch.ones(6, 8)
+        u[5, 0] = math.nan
+        assert not all_finite([u.t()])  # not contiguous
+        assert not all_finite([u[:, :1]]) and all_finite([u[:5]])
+    finally:
+        set_backend(None)
 
 
 class PoisonedTrainer(Trainer):

@@ -767,6 +767,58 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
   return {dnop, dcolor, dcov, danchor, dscal, doffset};
 }
 
+// Whether every element of the float32 / float64 CPU tensors is finite: all tensors cut into
+// chunks, one parallel loop (training/guard.py; a torch sum a tensor costs more in dispatch than
+// the test itself for the model's small tensors).
+bool all_finite(std::vector<torch::Tensor> ts) {
+  struct Chunk {
+    const void* p;
+    int64_t n;
+    bool dbl;
+  };
+  constexpr int64_t CH = 16384;
+  std::vector<Chunk> work;
+  std::vector<torch::Tensor> keep;
+  for (auto& t : ts) {
+    TORCH_CHECK(t.device().is_cpu() && (t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64),
+                "all_finite: float32 / float64 CPU tensors only");
+    keep.push_back(t.contiguous());
+    const auto& c = keep.back();
+    const bool dbl = c.scalar_type() == torch::kFloat64;
+    const char* base = static_cast<const char*>(c.data_ptr());
+    const int64_t es = dbl ? 8 : 4;
+    for (int64_t i = 0; i < c.numel(); i += CH) work.push_back({base + i * es, std::min(CH, c.numel() - i), dbl});
+  }
+  std::atomic<bool> ok(true);
+  at::parallel_for(0, static_cast<int64_t>(work.size()), 1, [&](int64_t b, int64_t e) {
+    for (int64_t w = b; w < e && ok.load(std::memory_order_relaxed); ++w) {
+      // Not finite: all exponent bits set. Integer tests vectorise (a float sum would not).
+      bool fin;
+      if (work[w].dbl) {
+        const char* p = static_cast<const char*>(work[w].p);
+        uint64_t bad = 0;
+        for (int64_t i = 0; i < work[w].n; ++i) {
+          uint64_t u;
+          std::memcpy(&u, p + 8 * i, 8);
+          bad |= (u & 0x7FF0000000000000ull) == 0x7FF0000000000000ull;
+        }
+        fin = bad == 0;
+      } else {
+        const char* p = static_cast<const char*>(work[w].p);
+        uint32_t bad = 0;
+        for (int64_t i = 0; i < work[w].n; ++i) {
+          uint32_t u;
+          std::memcpy(&u, p + 4 * i, 4);
+          bad |= (u & 0x7F800000u) == 0x7F800000u;
+        }
+        fin = bad == 0;
+      }
+      if (!fin) ok.store(false, std::memory_order_relaxed);
+    }
+  });
+  return ok.load();
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
@@ -778,6 +830,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_forward", &ssim_forward, "SSIM map and its gradient factors");
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
   m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
+  m.def("all_finite", &all_finite, "whether every element of the tensors is finite");
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
   m.def("spawn_backward", &spawn_backward, "gradients of spawn_forward");
 }
