@@ -767,6 +767,20 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
   return {dnop, dcolor, dcov, danchor, dscal, doffset};
 }
 
+// Whether none of the n floating-point values at p (of U's width) has all exponent bits
+// (mask) set, i.e. is an infinity or a NaN. Integer tests vectorise (a float sum would not).
+template <typename U>
+inline bool exponents_finite(const void* p, int64_t n, U mask) {
+  const char* c = static_cast<const char*>(p);
+  U bad = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    U u;
+    std::memcpy(&u, c + sizeof(U) * i, sizeof(U));
+    bad |= (u & mask) == mask;
+  }
+  return bad == 0;
+}
+
 // Whether every element of the float32 / float64 CPU tensors is finite: all tensors cut into
 // chunks, one parallel loop (training/guard.py; a torch sum a tensor costs more in dispatch than
 // the test itself for the model's small tensors).
@@ -792,27 +806,8 @@ bool all_finite(std::vector<torch::Tensor> ts) {
   std::atomic<bool> ok(true);
   at::parallel_for(0, static_cast<int64_t>(work.size()), 1, [&](int64_t b, int64_t e) {
     for (int64_t w = b; w < e && ok.load(std::memory_order_relaxed); ++w) {
-      // Not finite: all exponent bits set. Integer tests vectorise (a float sum would not).
-      bool fin;
-      if (work[w].dbl) {
-        const char* p = static_cast<const char*>(work[w].p);
-        uint64_t bad = 0;
-        for (int64_t i = 0; i < work[w].n; ++i) {
-          uint64_t u;
-          std::memcpy(&u, p + 8 * i, 8);
-          bad |= (u & 0x7FF0000000000000ull) == 0x7FF0000000000000ull;
-        }
-        fin = bad == 0;
-      } else {
-        const char* p = static_cast<const char*>(work[w].p);
-        uint32_t bad = 0;
-        for (int64_t i = 0; i < work[w].n; ++i) {
-          uint32_t u;
-          std::memcpy(&u, p + 4 * i, 4);
-          bad |= (u & 0x7F800000u) == 0x7F800000u;
-        }
-        fin = bad == 0;
-      }
+      const bool fin = work[w].dbl ? exponents_finite<uint64_t>(work[w].p, work[w].n, 0x7FF0000000000000ull)
+                                   : exponents_finite<uint32_t>(work[w].p, work[w].n, 0x7F800000u);
       if (!fin) ok.store(false, std::memory_order_relaxed);
     }
   });
