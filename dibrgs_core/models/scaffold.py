@@ -167,7 +167,7 @@ class NeuralGaussians(nn.Module):
 
     # -- per-anchor helpers ----------------------------------------------------
     def anchor_scaling(self, idx: torch.Tensor | None = None) -> torch.Tensor:
-        """(N,6) activated anchor scaling (of the anchors ``idx`` only, when given); the log is
+        """(N,6) activated anchor scaling, or (len(idx),6) of the anchors ``idx``; the log is
         clamped so exp stays finite."""
         log_s = self.scaling if idx is None else self.scaling.index_select(0, idx)
         return torch.exp(log_s.clamp(-30.0, 20.0))
