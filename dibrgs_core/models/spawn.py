@@ -5,7 +5,8 @@ For ``M`` visible anchors with ``k`` offsets each, row ``(a, j)`` (``a * k + j``
 
 * mean ``anchor[a] + offset[a, j] * scal[a, :3]`` (world units);
 * scale ``scal[a, 3:] * sigmoid(cov[a, 7j:7j+3])`` (world-unit standard deviations);
-* rotation ``cov[a, 7j+3:7j+7]`` normalised (w, x, y, z; a zero quaternion is the identity);
+* rotation ``cov[a, 7j+3:7j+7]`` normalised in float64 (w, x, y, z; a quaternion shorter than
+  1e-12 is the identity);
 * opacity ``nop[a*k + j]``, colour ``color[a, 3j:3j+3]``.
 
 ``scal`` is the activated anchor scaling ``exp(l_v)`` of the visible anchors. Two paths with the
@@ -69,9 +70,10 @@ def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, sca
     s = scal.index_select(0, owner)
     scales = s[:, 3:] * torch.sigmoid(c[:, :3])
     q = c[:, 3:7]
-    qn = q.norm(dim=1, keepdim=True)
-    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
-    quats = torch.where(qn > QUAT_EPS, q / qn.clamp_min(QUAT_EPS), ident)
+    qd = q.double()  # its squares overflow float32 from |q| ~ 1.8e19
+    qn = qd.norm(dim=1, keepdim=True)
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=qd.dtype, device=q.device)
+    quats = torch.where(qn > QUAT_EPS, qd / qn.clamp_min(QUAT_EPS), ident).to(q.dtype)
     means = anchor.index_select(0, owner) + offset.reshape(-1, 3).index_select(0, sel) * s[:, :3]
     return Spawned(means, quats, scales, nop.index_select(0, sel), colors, selected)
 

@@ -87,3 +87,38 @@ def test_model_decodes_the_same_on_both_backends():
     assert gf.keys() == gr.keys() and {"anchor", "offset", "scaling", "anchor_feat"} <= gf.keys()
     for n in gf:
         torch.testing.assert_close(gf[n], gr[n], rtol=1e-4, atol=1e-5)
+
+
+def test_extreme_magnitudes_agree_and_stay_finite():
+    """Anchor scalings at the clamp's ends (exp(20), exp(-30)), scale logits of +-1e30, quaternions
+    whose squares overflow float32 or underflow it: both paths give the same finite Gaussians and
+    gradients; a long quaternion keeps its direction."""
+    M, k = 4, 3
+    nop = torch.full((M * k,), 0.5)
+    color = torch.rand(M, 3 * k, generator=torch.Generator().manual_seed(1))
+    cov = torch.randn(M, 7 * k, generator=torch.Generator().manual_seed(2))
+    c = cov.view(M, k, 7)
+    c[0, 0, :3] = torch.tensor([1e30, -1e30, 0.0])
+    c[0, 1, 3:] = torch.tensor([1e20, 1e20, 0.0, 0.0])
+    c[0, 2, 3:] = torch.tensor([3e38, 0.0, 0.0, -3e38])
+    c[1, 0, 3:] = torch.tensor([1e-20, 1e-20, 0.0, 0.0])  # shorter than 1e-12: the identity
+    anchor = torch.randn(M, 3, generator=torch.Generator().manual_seed(3)) * 1e6
+    scal = torch.exp(torch.tensor([[20.0, 20.0, 20.0, -30.0, -30.0, -30.0]] * M))
+    offset = torch.randn(M, k, 3, generator=torch.Generator().manual_seed(4))
+    fast_in = [t.requires_grad_() for t in (nop, color, cov, anchor, scal, offset)]
+    ref_in = [t.detach().clone().requires_grad_() for t in fast_in]
+    a = spawn(*fast_in, backend="fast")
+    b = spawn_reference(*ref_in)
+    h = 2 ** -0.5
+    for out in (a, b):
+        assert all(bool(torch.isfinite(t).all()) for t in out[:5])
+        torch.testing.assert_close(out.quats[1], torch.tensor([h, h, 0.0, 0.0]))
+        torch.testing.assert_close(out.quats[2], torch.tensor([h, 0.0, 0.0, -h]))
+        assert out.quats[3].tolist() == [1.0, 0.0, 0.0, 0.0]
+    for x, y in zip(a[:5], b[:5]):
+        torch.testing.assert_close(x, y, rtol=1e-6, atol=0.0)
+    sum(t.sum() for t in a[:5]).backward()
+    sum(t.sum() for t in b[:5]).backward()
+    for x, y in zip(fast_in, ref_in):
+        assert bool(torch.isfinite(x.grad).all())
+        torch.testing.assert_close(x.grad, y.grad, rtol=1e-5, atol=1e-30)

@@ -29,6 +29,14 @@ inline T sigmoid(T x) {
   return T(1) / (T(1) + std::exp(-x));
 }
 
+// |q| of a quaternion in double: its squares overflow float32 from |q| ~ 1.8e19.
+template <typename T>
+inline double quat_norm(const T* q) {
+  double s = 0;
+  for (int d = 0; d < 4; ++d) s += static_cast<double>(q[d]) * q[d];
+  return std::sqrt(s);
+}
+
 // start (M + 1): first kept row of each anchor; returns the number of kept rows.
 template <typename T>
 int64_t count(const T* nop, int64_t M, int64_t k, int64_t* start) {
@@ -58,9 +66,9 @@ void forward(const T* nop, const T* color, const T* cov, const T* anchor, const 
         const T* c = cov + a * 7 * k + 7 * j;
         for (int d = 0; d < 3; ++d) means[3 * r + d] = an[d] + o[d] * s[d];
         for (int d = 0; d < 3; ++d) scales[3 * r + d] = s[3 + d] * sigmoid(c[d]);
-        const T qn = std::sqrt(c[3] * c[3] + c[4] * c[4] + c[5] * c[5] + c[6] * c[6]);
-        if (qn > T(QUAT_EPS)) {
-          for (int d = 0; d < 4; ++d) quats[4 * r + d] = c[3 + d] / qn;
+        const double qn = quat_norm(c + 3);
+        if (qn > QUAT_EPS) {
+          for (int d = 0; d < 4; ++d) quats[4 * r + d] = static_cast<T>(c[3 + d] / qn);
         } else {
           quats[4 * r] = T(1), quats[4 * r + 1] = quats[4 * r + 2] = quats[4 * r + 3] = T(0);
         }
@@ -108,13 +116,12 @@ void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac
           gs[3 + d] += gsc[d] * sg;
           dc[d] = gsc[d] * s[3 + d] * sg * (T(1) - sg);
         }
-        const T qn = std::sqrt(c[3] * c[3] + c[4] * c[4] + c[5] * c[5] + c[6] * c[6]);
-        if (qn > T(QUAT_EPS)) {
+        const double qn = quat_norm(c + 3);
+        if (qn > QUAT_EPS) {
           const T* gq = gquats + 4 * r;
-          T dot = 0;
-          for (int d = 0; d < 4; ++d) dot += gq[d] * c[3 + d];
-          dot /= qn;
-          for (int d = 0; d < 4; ++d) dc[3 + d] = (gq[d] - c[3 + d] / qn * dot) / qn;
+          double dot = 0;  // gq . q / |q|
+          for (int d = 0; d < 4; ++d) dot += static_cast<double>(gq[d]) * (c[3 + d] / qn);
+          for (int d = 0; d < 4; ++d) dc[3 + d] = static_cast<T>((gq[d] - c[3 + d] / qn * dot) / qn);
         } else {
           for (int d = 0; d < 4; ++d) dc[3 + d] = T(0);
         }
