@@ -9,11 +9,11 @@
 //   p -= (lr / (1 - b1^t)) m / (sqrt(v) / sqrt(1 - b2^t) + eps)
 #pragma once
 
-#include <ATen/Parallel.h>
-
 #include <cmath>
 #include <cstdint>
 #include <vector>
+
+#include "chunks.h"
 
 namespace dibrgs {
 namespace adam {
@@ -39,25 +39,21 @@ struct Slot {
 inline float lerp_small(float a, float b, float w) { return w < 0.5f ? a + w * (b - a) : b - (b - a) * (1.0f - w); }
 
 inline void run(const std::vector<Slot>& slots, int64_t chunk) {
-  std::vector<std::pair<int, int64_t>> work;  // (slot, first element)
-  for (size_t s = 0; s < slots.size(); ++s)
-    for (int64_t i = 0; i < slots[s].n; i += chunk) work.emplace_back(static_cast<int>(s), i);
-  at::parallel_for(0, static_cast<int64_t>(work.size()), 1, [&](int64_t w0, int64_t w1) {
-    for (int64_t w = w0; w < w1; ++w) {
-      const Slot& s = slots[work[w].first];
-      const int64_t i0 = work[w].second, i1 = std::min(s.n, i0 + chunk);
-      for (int64_t i = i0; i < i1; ++i) {
-        float p = s.p[i];
-        float g = s.g[i];
-        if (s.decay != 1.0f) p = p * s.decay;
-        if (s.l2 != 0.0f) g = g + s.l2 * p;
-        const float m = lerp_small(s.m[i], g, s.one_m_b1);
-        const float v = s.v[i] * s.b2 + s.one_m_b2 * g * g;
-        const float denom = std::sqrt(v) / s.bc2_sqrt + s.eps;
-        s.m[i] = m;
-        s.v[i] = v;
-        s.p[i] = p + s.neg_step * m / denom;
-      }
+  std::vector<int64_t> lengths;
+  for (const Slot& s : slots) lengths.push_back(s.n);
+  parallel_chunks(lengths, chunk, [&](int64_t t, int64_t i0, int64_t i1) {
+    const Slot& s = slots[t];
+    for (int64_t i = i0; i < i1; ++i) {
+      float p = s.p[i];
+      float g = s.g[i];
+      if (s.decay != 1.0f) p = p * s.decay;
+      if (s.l2 != 0.0f) g = g + s.l2 * p;
+      const float m = lerp_small(s.m[i], g, s.one_m_b1);
+      const float v = s.v[i] * s.b2 + s.one_m_b2 * g * g;
+      const float denom = std::sqrt(v) / s.bc2_sqrt + s.eps;
+      s.m[i] = m;
+      s.v[i] = v;
+      s.p[i] = p + s.neg_step * m / denom;
     }
   });
 }

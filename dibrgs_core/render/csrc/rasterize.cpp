@@ -785,31 +785,21 @@ inline bool exponents_finite(const void* p, int64_t n, U mask) {
 // chunks, one parallel loop (training/guard.py; a torch sum a tensor costs more in dispatch than
 // the test itself for the model's small tensors).
 bool all_finite(std::vector<torch::Tensor> ts) {
-  struct Chunk {
-    const void* p;
-    int64_t n;
-    bool dbl;
-  };
-  constexpr int64_t CH = 16384;
-  std::vector<Chunk> work;
-  std::vector<torch::Tensor> keep;
+  std::vector<int64_t> lengths;
   for (auto& t : ts) {
     TORCH_CHECK(t.device().is_cpu() && (t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64),
                 "all_finite: float32 / float64 CPU tensors only");
-    keep.push_back(t.contiguous());
-    const auto& c = keep.back();
-    const bool dbl = c.scalar_type() == torch::kFloat64;
-    const char* base = static_cast<const char*>(c.data_ptr());
-    const int64_t es = dbl ? 8 : 4;
-    for (int64_t i = 0; i < c.numel(); i += CH) work.push_back({base + i * es, std::min(CH, c.numel() - i), dbl});
+    t = t.contiguous();
+    lengths.push_back(t.numel());
   }
   std::atomic<bool> ok(true);
-  at::parallel_for(0, static_cast<int64_t>(work.size()), 1, [&](int64_t b, int64_t e) {
-    for (int64_t w = b; w < e && ok.load(std::memory_order_relaxed); ++w) {
-      const bool fin = work[w].dbl ? exponents_finite<uint64_t>(work[w].p, work[w].n, 0x7FF0000000000000ull)
-                                   : exponents_finite<uint32_t>(work[w].p, work[w].n, 0x7F800000u);
-      if (!fin) ok.store(false, std::memory_order_relaxed);
-    }
+  dibrgs::parallel_chunks(lengths, 16384, [&](int64_t t, int64_t i0, int64_t i1) {
+    if (!ok.load(std::memory_order_relaxed)) return;
+    const char* p = static_cast<const char*>(ts[t].data_ptr()) + ts[t].element_size() * i0;
+    const bool fin = ts[t].scalar_type() == torch::kFloat64
+                         ? exponents_finite<uint64_t>(p, i1 - i0, 0x7FF0000000000000ull)
+                         : exponents_finite<uint32_t>(p, i1 - i0, 0x7F800000u);
+    if (!fin) ok.store(false, std::memory_order_relaxed);
   });
   return ok.load();
 }
