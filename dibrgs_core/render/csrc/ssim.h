@@ -10,169 +10,243 @@
 // dS/dB(xy) (c); the backward is then dL/dx = B'(G a) + 2 x B'(G b) + y B'(G c)
 // with B' the adjoint of B (a window of zero-padded gradients whose share
 // outside the image folds onto the edge pixels it replicated).
+//
+// Each thread takes a band of rows. The forward keeps the horizontally blurred
+// statistics of the last 2r + 1 image rows in a ring (L2-sized) instead of a
+// whole-image buffer, and every window sum is accumulated in registers over a
+// block of NV native vectors (composite.h's width) and stored once: a loop that
+// adds one tap at a time into memory is bound by its stores and by loads 4 KiB
+// apart from them. Row buffers are padded so that consecutive rows are not.
 #pragma once
 
 #include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <cstdint>
-#include <memory>
+#include <cstring>
 #include <vector>
+
+#include "composite.h"
 
 namespace dibrgs {
 namespace ssim {
 
 constexpr double C1 = 0.01 * 0.01, C2 = 0.03 * 0.03;
 constexpr int NS = 5;  // local statistics: x, y, x^2, y^2, xy
+constexpr int NB = 3;  // backward maps: G a, G b, G c
+constexpr int NV = 2;  // vectors a block: NS * NV accumulators fit AVX2's 16 registers
 
-// Rows of the five horizontally blurred statistics (each H x W*C).
 template <typename T>
-void blur_rows(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g, int r, T* h) {
-  const int64_t WC = W * C, plane = H * WC, PW = (W + 2 * r) * C;
-  at::parallel_for(0, H, 8, [&](int64_t y0, int64_t y1) {
-    std::vector<T> px(PW), py(PW);
-    for (int64_t row = y0; row < y1; ++row) {
-      const T* xr = x + row * WC;
-      const T* yr = y + row * WC;
-      for (int64_t s = -r; s < W + r; ++s) {  // replicate the border
-        const int64_t src = std::min<int64_t>(std::max<int64_t>(s, 0), W - 1) * C;
-        for (int64_t c = 0; c < C; ++c) px[(s + r) * C + c] = xr[src + c], py[(s + r) * C + c] = yr[src + c];
-      }
-      T* o[NS];
-      for (int s = 0; s < NS; ++s) o[s] = h + s * plane + row * WC;
-      for (int64_t j = 0; j < WC; ++j) o[0][j] = o[1][j] = o[2][j] = o[3][j] = o[4][j] = T(0);
-      for (int k = 0; k <= 2 * r; ++k) {
-        const T w = g[k];
-        const T* a = px.data() + k * C;
-        const T* b = py.data() + k * C;
+struct Block {
+  typedef typename Vec<T>::V V;
+  static constexpr int64_t L = VBYTES / static_cast<int64_t>(sizeof(T));  // lanes of V
+  static constexpr int64_t N = NV * L;                                     // values a block
+};
+
+inline VF madd(VF a, VF b, VF c) { return fmadd(a, b, c); }
+inline VD madd(VD a, VD b, VD c) { return fmadd(a, b, c); }
+inline float madd(float a, float b, float c) { return a * b + c; }
+inline double madd(double a, double b, double c) { return a * b + c; }
+
+// U is a native vector or the scalar T (row tails): loads and stores of sizeof(U) bytes, Lanes<U>
+// values.
+template <typename U, typename T>
+inline U load(const T* p) {
+  U v;
+  std::memcpy(&v, p, sizeof(U));
+  return v;
+}
+template <typename U, typename T>
+inline void store(T* p, const U& v) {
+  std::memcpy(p, &v, sizeof(U));
+}
+template <typename U>
+struct Lanes {
+  static constexpr int64_t value = 1;
+};
+template <>
+struct Lanes<VF> {
+  static constexpr int64_t value = VBYTES / 4;
+};
+template <>
+struct Lanes<VD> {
+  static constexpr int64_t value = VBYTES / 8;
+};
+
+// A row of n values in whole blocks plus one block of padding: buffers whose rows are this far
+// apart never put two rows a multiple of 4 KiB apart.
+template <typename T>
+inline int64_t padded(int64_t n) {
+  constexpr int64_t B = Block<T>::N;
+  return (n + B - 1) / B * B + B;
+}
+
+// The five statistics of one image row (x, y: W * C values), blurred horizontally, into
+// out[s * ld + j] for j < W * C (the rest of each out row gets values of the zero padding).
+// P: scratch of NS rows of pld = padded(W * C) + 2 r C.
+template <typename T>
+void blur_row(const T* x, const T* y, int64_t W, int64_t C, const T* g, int r, T* P, int64_t pld, T* out,
+              int64_t ld) {
+  typedef typename Block<T>::V V;
+  constexpr int64_t L = Block<T>::L;
+  const int64_t WC = W * C, PW = (W + 2 * r) * C;
+  auto put = [&](int64_t dst, T u, T v) {
+    P[dst] = u, P[pld + dst] = v, P[2 * pld + dst] = u * u, P[3 * pld + dst] = v * v, P[4 * pld + dst] = u * v;
+  };
+  for (int64_t s = 0; s < r; ++s)  // replicate the border
+    for (int64_t c = 0; c < C; ++c) {
+      put(s * C + c, x[c], y[c]);
+      put((W + r + s) * C + c, x[(W - 1) * C + c], y[(W - 1) * C + c]);
+    }
+  T* p0 = P + r * C;
 #pragma GCC ivdep
-        for (int64_t j = 0; j < WC; ++j) {
-          const T u = a[j], v = b[j];
-          o[0][j] += w * u;
-          o[1][j] += w * v;
-          o[2][j] += w * u * u;
-          o[3][j] += w * v * v;
-          o[4][j] += w * u * v;
+  for (int64_t i = 0; i < WC; ++i) {
+    const T u = x[i], v = y[i];
+    p0[i] = u, p0[pld + i] = v, p0[2 * pld + i] = u * u, p0[3 * pld + i] = v * v, p0[4 * pld + i] = u * v;
+  }
+  for (int q = 0; q < NS; ++q) std::fill(P + q * pld + PW, P + (q + 1) * pld, T(0));
+  for (int64_t j = 0; j < WC; j += Block<T>::N) {
+    V acc[NS][NV] = {};
+    for (int k = 0; k <= 2 * r; ++k) {
+      const V w = V{} + g[k];
+      for (int q = 0; q < NS; ++q) {
+        const T* p = P + q * pld + j + k * C;
+        for (int n = 0; n < NV; ++n) acc[q][n] = madd(w, load<V>(p + n * L), acc[q][n]);
+      }
+    }
+    for (int q = 0; q < NS; ++q)
+      for (int n = 0; n < NV; ++n) store(out + q * ld + j + n * L, acc[q][n]);
+  }
+}
+
+// S, a, b and c (vectors of T) from their five blurred statistics.
+template <typename T, typename U>
+inline void formula(const U* m, U& S, U& A, U& Bc, U& Cc) {
+  const U ux = m[0], uy = m[1], two = U{} + T(2);
+  const U a1 = two * ux * uy + T(C1);
+  const U a2 = two * (m[4] - ux * uy) + T(C2);
+  const U b1 = ux * ux + uy * uy + T(C1);
+  const U b2 = (m[2] - ux * ux) + (m[3] - uy * uy) + T(C2);
+  const U ib1 = T(1) / b1, ib2 = T(1) / b2;  // two divisions, not four: they are the slow part here
+  const U inv = ib1 * ib2;
+  const U s = a1 * a2 * inv;
+  S = s;
+  // dS/dmx (through a1, a2, b1 and b2), dS/dB(x^2) (through b2), dS/dB(xy) (through a2).
+  A = two * uy * (a2 - a1) * inv - two * ux * s * ib1 + two * ux * s * ib2;
+  Bc = -s * ib2;
+  Cc = two * a1 * inv;
+}
+
+// Forward: S, a, b, c (each H x W x C).
+template <typename T>
+void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g, int r, T* S, T* A, T* Bc,
+             T* Cc) {
+  typedef typename Block<T>::V V;
+  constexpr int64_t L = Block<T>::L, N = Block<T>::N;
+  const int64_t WC = W * C, ld = padded<T>(WC), pld = ld + 2 * r * C, R = 2 * r + 1;
+  at::parallel_for(0, H, 16, [&](int64_t y0, int64_t y1) {
+    std::vector<T> P(NS * pld), ring(R * NS * ld);
+    auto slot = [&](int64_t row) { return ring.data() + (row % R) * NS * ld; };
+    int64_t next = std::max<int64_t>(y0 - r, 0);  // the first image row not blurred yet
+    for (int64_t row = y0; row < y1; ++row) {
+      for (const int64_t last = std::min<int64_t>(row + r, H - 1); next <= last; ++next)
+        blur_row(x + next * WC, y + next * WC, W, C, g, r, P.data(), pld, slot(next), ld);
+      const int64_t base = row * WC;
+      for (int64_t j = 0; j < WC; j += N) {
+        V m[NS][NV] = {};
+        for (int k = 0; k <= 2 * r; ++k) {
+          const T* h = slot(std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1)) + j;
+          const V w = V{} + g[k];
+          for (int q = 0; q < NS; ++q)
+            for (int n = 0; n < NV; ++n) m[q][n] = madd(w, load<V>(h + q * ld + n * L), m[q][n]);
         }
+        T out[4][N];
+        for (int n = 0; n < NV; ++n) {
+          V s, a, b, c;
+          const V mn[NS] = {m[0][n], m[1][n], m[2][n], m[3][n], m[4][n]};
+          formula<T>(mn, s, a, b, c);
+          store(out[0] + n * L, s), store(out[1] + n * L, a), store(out[2] + n * L, b), store(out[3] + n * L, c);
+        }
+        const int64_t cnt = std::min<int64_t>(N, WC - j);  // the row's last block may be partial
+        std::memcpy(S + base + j, out[0], cnt * sizeof(T));
+        std::memcpy(A + base + j, out[1], cnt * sizeof(T));
+        std::memcpy(Bc + base + j, out[2], cnt * sizeof(T));
+        std::memcpy(Cc + base + j, out[3], cnt * sizeof(T));
       }
     }
   });
 }
 
-// Forward: S, a, b, c (each H x W x C) from the horizontally blurred rows h.
-template <typename T>
-void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g, int r, T* S, T* A, T* Bc,
-             T* Cc) {
-  const int64_t WC = W * C, plane = H * WC;
-  // Uninitialised (every element is written first): zero-filling it would be a serial pass.
-  std::unique_ptr<T[]> hbuf(new T[NS * plane]);
-  const T* const h = hbuf.get();
-  blur_rows(x, y, H, W, C, g, r, hbuf.get());
-  at::parallel_for(0, H, 8, [&](int64_t y0, int64_t y1) {
-    std::vector<T> m(NS * WC);
-    for (int64_t row = y0; row < y1; ++row) {
-      std::fill(m.begin(), m.end(), T(0));
-      for (int k = 0; k <= 2 * r; ++k) {
-        const int64_t src = std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1);
-        const T w = g[k];
-        for (int s = 0; s < NS; ++s) {
-          const T* a = h + s * plane + src * WC;
-          T* o = m.data() + s * WC;
-#pragma GCC ivdep
-          for (int64_t j = 0; j < WC; ++j) o[j] += w * a[j];
-        }
-      }
-      const T* mx = m.data();
-      const T* my = mx + WC;
-      const T* sxx = my + WC;
-      const T* syy = sxx + WC;
-      const T* sxy = syy + WC;
-      const int64_t base = row * WC;
-#pragma GCC ivdep
-      for (int64_t j = 0; j < WC; ++j) {
-        const T ux = mx[j], uy = my[j];
-        const T a1 = T(2) * ux * uy + T(C1);
-        const T a2 = T(2) * (sxy[j] - ux * uy) + T(C2);
-        const T b1 = ux * ux + uy * uy + T(C1);
-        const T b2 = (sxx[j] - ux * ux) + (syy[j] - uy * uy) + T(C2);
-        const T inv = T(1) / (b1 * b2);
-        const T s = a1 * a2 * inv;
-        S[base + j] = s;
-        // dS/dmx (through a1, a2, b1 and b2), dS/dB(x^2) (through b2), dS/dB(xy) (through a2).
-        A[base + j] = T(2) * uy * (a2 - a1) * inv - T(2) * ux * s / b1 + T(2) * ux * s / b2;
-        Bc[base + j] = -s / b2;
-        Cc[base + j] = T(2) * a1 * inv;
+// Vertical adjoint of G a, G b, G c for image row m, values [j, j + NN Lanes<U>::value) into
+// z[s * zld + j]: row m gathers the rows t that replicate it (t = m inside, t <= 0 for the first
+// row, t >= H - 1 for the last), each t the window's zero-padded rows.
+template <typename U, int NN, typename T>
+inline void vadjoint_block(const T* G, const T* A, const T* Bc, const T* Cc, int64_t H, int64_t WC, const T* g,
+                           int r, int64_t m, int64_t j, T* z, int64_t zld) {
+  constexpr int64_t L = Lanes<U>::value;
+  U acc[NB][NN] = {};
+  const int64_t t0 = m == 0 ? -r : m, t1 = m == H - 1 ? H - 1 + r : m;
+  for (int64_t t = t0; t <= t1; ++t)
+    for (int k = 0; k <= 2 * r; ++k) {
+      const int64_t src = t - k + r;
+      if (src < 0 || src >= H) continue;
+      const U w = U{} + g[k];
+      const int64_t o = src * WC + j;
+      for (int n = 0; n < NN; ++n) {
+        const U wg = w * load<U>(G + o + n * L);
+        acc[0][n] = madd(wg, load<U>(A + o + n * L), acc[0][n]);
+        acc[1][n] = madd(wg, load<U>(Bc + o + n * L), acc[1][n]);
+        acc[2][n] = madd(wg, load<U>(Cc + o + n * L), acc[2][n]);
       }
     }
-  });
+  for (int q = 0; q < NB; ++q)
+    for (int n = 0; n < NN; ++n) store(z + q * zld + j + n * L, acc[q][n]);
 }
 
 // Backward: dx (H x W x C) from the upstream gradient G of S.
 template <typename T>
 void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const T* Cc, int64_t H, int64_t W,
               int64_t C, const T* g, int r, T* dx) {
-  constexpr int NB = 3;
-  const int64_t WC = W * C, plane = H * WC;
-  // Vertical adjoint of G a, G b, G c: row m gathers the rows t that replicate it (t = m inside,
-  // t <= 0 for the first row, t >= H - 1 for the last), each t the window's zero-padded rows.
-  std::unique_ptr<T[]> vbuf(new T[NB * plane]);  // uninitialised: each row is zeroed by its thread
-  T* const v = vbuf.get();
-  at::parallel_for(0, H, 8, [&](int64_t m0, int64_t m1) {
+  typedef typename Block<T>::V V;
+  constexpr int64_t L = Block<T>::L, N = Block<T>::N;
+  const int64_t WC = W * C, EW = (W + 2 * r) * C, eld = padded<T>(EW), zld = eld + 2 * r * C;
+  at::parallel_for(0, H, 16, [&](int64_t m0, int64_t m1) {
+    // z: the vertical adjoint of a row with 2r zero pixels each side; e: its horizontal adjoint
+    // over the row and r pixels each side (pixel u of e is image pixel u - r).
+    std::vector<T> z(NB * zld, T(0)), e(NB * eld);
     for (int64_t m = m0; m < m1; ++m) {
-      T* o[NB];
-      for (int s = 0; s < NB; ++s) {
-        o[s] = v + s * plane + m * WC;
-        std::fill(o[s], o[s] + WC, T(0));
-      }
-      const int64_t t0 = m == 0 ? -r : m, t1 = m == H - 1 ? H - 1 + r : m;
-      for (int64_t t = t0; t <= t1; ++t)
+      T* zm = z.data() + 2 * r * C;
+      int64_t j = 0;
+      for (; j + N <= WC; j += N) vadjoint_block<V, NV>(G, A, Bc, Cc, H, WC, g, r, m, j, zm, zld);
+      for (; j < WC; ++j) vadjoint_block<T, 1>(G, A, Bc, Cc, H, WC, g, r, m, j, zm, zld);
+      for (int64_t i = 0; i < EW; i += N) {
+        V acc[NB][NV] = {};
         for (int k = 0; k <= 2 * r; ++k) {
-          const int64_t src = t - k + r;
-          if (src < 0 || src >= H) continue;
-          const T w = g[k];
-          const T* gr = G + src * WC;
-          const T* ar = A + src * WC;
-          const T* br = Bc + src * WC;
-          const T* cr = Cc + src * WC;
-#pragma GCC ivdep
-          for (int64_t j = 0; j < WC; ++j) {
-            const T wg = w * gr[j];
-            o[0][j] += wg * ar[j];
-            o[1][j] += wg * br[j];
-            o[2][j] += wg * cr[j];
+          const V w = V{} + g[k];
+          for (int q = 0; q < NB; ++q) {
+            const T* zs = z.data() + q * zld + (2 * r - k) * C + i;
+            for (int n = 0; n < NV; ++n) acc[q][n] = madd(w, load<V>(zs + n * L), acc[q][n]);
           }
         }
-    }
-  });
-  // Horizontal adjoint on each row (zero-padded by 2r pixels, folded at the edges), then the
-  // chain rule through x, x^2 and xy.
-  at::parallel_for(0, H, 8, [&](int64_t y0, int64_t y1) {
-    const int64_t ZW = (W + 4 * r) * C, EW = (W + 2 * r) * C;
-    std::vector<T> z(NB * ZW, T(0)), e(NB * EW);
-    for (int64_t row = y0; row < y1; ++row) {
-      for (int s = 0; s < NB; ++s) {
-        std::copy(v + s * plane + row * WC, v + s * plane + (row + 1) * WC, z.data() + s * ZW + 2 * r * C);
-        T* es = e.data() + s * EW;
-        std::fill(es, es + EW, T(0));
-        for (int k = 0; k <= 2 * r; ++k) {
-          const T w = g[k];
-          const T* zs = z.data() + s * ZW + (2 * r - k) * C;
-#pragma GCC ivdep
-          for (int64_t j = 0; j < EW; ++j) es[j] += w * zs[j];
-        }
-        // Fold the padding's share onto the edge pixels (pixel u of e is image pixel u - r).
+        for (int q = 0; q < NB; ++q)
+          for (int n = 0; n < NV; ++n) store(e.data() + q * eld + i + n * L, acc[q][n]);
+      }
+      // Fold the padding's share onto the edge pixels.
+      for (int q = 0; q < NB; ++q) {
+        T* es = e.data() + q * eld;
         for (int64_t u = 0; u < r; ++u)
           for (int64_t c = 0; c < C; ++c) {
             es[r * C + c] += es[u * C + c];
             es[(W - 1 + r) * C + c] += es[(W + r + u) * C + c];
           }
       }
+      // The chain rule through x, x^2 and xy.
       const T* pa = e.data() + r * C;
-      const T* pb = pa + EW;
-      const T* pc = pb + EW;
-      const int64_t base = row * WC;
+      const T* pb = pa + eld;
+      const T* pc = pb + eld;
+      const int64_t base = m * WC;
 #pragma GCC ivdep
-      for (int64_t j = 0; j < WC; ++j) dx[base + j] = pa[j] + T(2) * x[base + j] * pb[j] + y[base + j] * pc[j];
+      for (int64_t i = 0; i < WC; ++i) dx[base + i] = pa[i] + T(2) * x[base + i] * pb[i] + y[base + i] * pc[i];
     }
   });
 }
