@@ -232,10 +232,11 @@ def kernel_worker(size: int, repeats: int) -> dict:
     feats = torch.cat([cols, proj.depths[:, None].detach(), torch.ones(len(cols), 1)], 1).contiguous()
     m2, con, dep = proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(), proj.depths.detach()
     offsets, gids, masks = stage("bin", lambda: mod.bin_tiles(m2, con, opac, dep, proj.radii, size, size))
+    C = feats.shape[1]
     _, tfin, ncon, rec = stage("composite_fwd", lambda: mod.forward(m2, con, opac, feats, offsets, gids, masks, size,
-                                                                    size))
-    gout = torch.rand(size, size, feats.shape[1], generator=torch.Generator().manual_seed(1))
-    stage("composite_bwd", lambda: mod.backward(rec, offsets, gids, masks, gout, tfin, ncon, size, size))
+                                                                    size, [C]))
+    gout = torch.rand(size, size, C, generator=torch.Generator().manual_seed(1))
+    stage("composite_bwd", lambda: mod.backward(rec, offsets, gids, masks, [gout], [C], tfin, ncon, size, size))
     g = [torch.randn_like(t) for t in (proj.means2d, proj.conics, proj.depths)]
 
     def proj_bwd():

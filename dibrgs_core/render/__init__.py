@@ -173,13 +173,14 @@ def rasterize(
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
     ones = torch.ones_like(proj.depths)
     feats = torch.cat([colors, proj.depths[:, None], ones[:, None]], dim=1)
-    out = composite(
-        proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height,
-        "fast" if use_fast else "reference",
-    )
-    image = out[..., :C]
-    depth_acc = out[..., C : C + 1]
-    alpha = out[..., C + 1 : C + 2]
+    if use_fast:
+        from . import fast
+
+        image, depth_acc, alpha = fast.composite_groups_fast(
+            proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height, (C, 1, 1))
+    else:
+        out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)
+        image, depth_acc, alpha = out[..., :C], out[..., C : C + 1], out[..., C + 1 : C + 2]
     if background is not None and (background.requires_grad or bool(background.any())):
         # (H,W,1) @ (1,C): the gradient to alpha is then a matmul, not a slow reduction over the
         # few channels (about 1 ms of a 256x256 step); a fixed black background adds nothing.

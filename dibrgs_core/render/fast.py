@@ -301,18 +301,24 @@ def available(required: bool = False) -> bool:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width, height):  # type: ignore[override]
-        out, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width, height)
+    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width, height, groups):  # type: ignore[override]
+        *outs, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width,
+                                                     height, list(groups))
         ctx.save_for_backward(rec, offsets, gids, masks, tfin, ncon)
         ctx.size = (width, height)
-        return out
+        ctx.groups = list(groups)
+        ctx.set_materialize_grads(False)  # an unused group's gradient stays None: no zero image made
+        return tuple(outs)
 
     @staticmethod
-    def backward(ctx, gout):  # type: ignore[override]
+    def backward(ctx, *gouts):  # type: ignore[override]
         rec, offsets, gids, masks, tfin, ncon = ctx.saved_tensors
         width, height = ctx.size
-        gm, gc, go, gf = extension().backward(rec, offsets, gids, masks, gout.contiguous(), tfin, ncon, width, height)
-        return gm, gc, go, gf, None, None, None, None, None
+        empty = rec.new_empty(0)  # a group without gradient reads as zeros
+        gm, gc, go, gf = extension().backward(rec, offsets, gids, masks,
+                                              [empty if g is None else g.contiguous() for g in gouts], ctx.groups,
+                                              tfin, ncon, width, height)
+        return gm, gc, go, gf, None, None, None, None, None, None
 
 
 def composite_fast(
@@ -326,6 +332,24 @@ def composite_fast(
     height: int,
 ) -> Tensor:
     """C++ version of :func:`reference.composite_reference` (CPU tensors, float32 or float64)."""
+    return composite_groups_fast(means2d, conics, opacities, feats, depths, radii, width, height,
+                                 (feats.shape[1],))[0]
+
+
+def composite_groups_fast(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    feats: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    groups: tuple[int, ...],
+) -> tuple[Tensor, ...]:
+    """:func:`composite_fast` whose (H, W, C) result comes as one contiguous (H, W, n) tensor for
+    each channel count of ``groups`` (consecutive channels, summing to C; up to four): what
+    would otherwise be strided slices (the renderer's colour, depth, alpha), written in place."""
     mod = extension()
     dt = feats.dtype
     m2 = means2d.to(dt).contiguous()
@@ -333,7 +357,7 @@ def composite_fast(
     op = opacities.to(dt).contiguous()
     fe = feats.contiguous()
     offsets, gids, masks = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
-    return _Composite.apply(m2, con, op, fe, offsets, gids, masks, width, height)
+    return _Composite.apply(m2, con, op, fe, offsets, gids, masks, width, height, tuple(groups))
 
 
 class _Project(torch.autograd.Function):

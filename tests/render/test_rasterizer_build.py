@@ -148,14 +148,16 @@ def test_two_copies_share_one_fresh_build(tmp_path):
 
 KERNELS = """#include "composite.h"
 using namespace dibrgs;
-template void dibrgs::forward_tile<float, 5, false>(const Scene<float>&, int64_t, Workspace<float>&, float*, float*,
-                                                    int32_t*, Stats*);
-template void dibrgs::backward_tile<float, 5, false>(const Scene<float>&, int64_t, Workspace<float>&, const float*,
-                                                     const float*, const int32_t*, float*, Stats*);
-template void dibrgs::forward_tile<float, 0, false>(const Scene<float>&, int64_t, Workspace<float>&, float*, float*,
-                                                    int32_t*, Stats*);
-template void dibrgs::backward_tile<float, 0, false>(const Scene<float>&, int64_t, Workspace<float>&, const float*,
-                                                     const float*, const int32_t*, float*, Stats*);
+template void dibrgs::forward_tile<float, 5, false>(const Scene<float>&, int64_t, Workspace<float>&, const Planes<float>&,
+                                                    float*, int32_t*, Stats*);
+template void dibrgs::backward_tile<float, 5, false>(const Scene<float>&, int64_t, Workspace<float>&,
+                                                     const Planes<const float>&, const float*, const int32_t*, float*,
+                                                     Stats*);
+template void dibrgs::forward_tile<float, 0, false>(const Scene<float>&, int64_t, Workspace<float>&, const Planes<float>&,
+                                                    float*, int32_t*, Stats*);
+template void dibrgs::backward_tile<float, 0, false>(const Scene<float>&, int64_t, Workspace<float>&,
+                                                     const Planes<const float>&, const float*, const int32_t*, float*,
+                                                     Stats*);
 """
 DOUBLE = KERNELS.replace("float", "double")
 

@@ -56,7 +56,7 @@ def test_segment_culling_keeps_every_contributing_pixel(dtype, atol):
     # The culling is real: far fewer pixels evaluated than the listed tiles hold.
     mod = fast.extension()
     offsets, gids, masks = mod.bin_tiles(m2, con, op, dep, rad, W, H)
-    _, tfin, ncon, rec = mod.forward(m2, con, op, feats, offsets, gids, masks, W, H)
+    _, tfin, ncon, rec = mod.forward(m2, con, op, feats, offsets, gids, masks, W, H, [feats.shape[1]])
     stats = mod.composite_stats(rec, offsets, gids, masks, torch.ones(H, W, feats.shape[1], dtype=dtype), W, H)
     vectors, lanes, contrib, _, entries = stats[0].tolist()
     assert lanes < 0.5 * entries * 256
@@ -122,6 +122,6 @@ def test_many_gaussians_stop_early_and_match():
 
     mod = fast.extension()
     offsets, gids, masks = mod.bin_tiles(*args[:3], args[4], args[5], 34, 32)
-    _, _, _, rec = mod.forward(*args[:4], offsets, gids, masks, 34, 32)
+    _, _, _, rec = mod.forward(*args[:4], offsets, gids, masks, 34, 32, [args[3].shape[1]])
     stats = mod.composite_stats(rec, offsets, gids, masks, torch.ones(32, 34, 4, dtype=f64), 34, 32)
     assert stats[0, 3] < 0.7 * stats[0, 4]

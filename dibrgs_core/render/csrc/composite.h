@@ -371,6 +371,17 @@ struct Scene {
   int64_t C, W, H, tx;
 };
 
+// A pixel's C channels over up to four (H, W, n_b) buffers of consecutive channel ranges
+// [first[b], first[b + 1]): the renderer keeps colour, depth and alpha apart, so that none of
+// them is a strided slice downstream (a slice's copies and its backward's scatter cost more than
+// the compositing's own writes). A null buffer reads as zeros: a gradient nobody asked for.
+template <typename P>
+struct Planes {
+  P* buf[4] = {nullptr, nullptr, nullptr, nullptr};
+  int64_t first[5] = {0, 0, 0, 0, 0};
+  int n = 0;
+};
+
 // Event counters of the instrumented kernels (STATS = true).
 struct Stats {
   int64_t vectors = 0;    // (Gaussian, vector) pairs evaluated
@@ -476,11 +487,11 @@ struct Workspace {
   }
 };
 
-// Forward compositing of one tile: writes its pixels of out (H, W, C), tfin
+// Forward compositing of one tile: writes its pixels of out (C channels), tfin
 // (H, W) and ncon (H, W) (1 + list position of the last Gaussian composited).
 // CT > 0 fixes the channel count at compile time.
 template <typename T, int CT, bool STATS>
-void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T* tfin, int32_t* ncon,
+void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Planes<T>& out, T* tfin, int32_t* ncon,
                   Stats* stats) {
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
@@ -563,7 +574,11 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
         const int64_t x = tx0 + s * G::L + l;
         if (x >= sc.W) break;
         const int64_t pix = (ty0 + r) * sc.W + x;
-        for (int64_t ch = 0; ch < C; ++ch) out[pix * C + ch] = p[3 + ch][l];
+        for (int b = 0; b < out.n; ++b) {
+          const int64_t c0 = out.first[b], nb = out.first[b + 1] - c0;
+          T* o = out.buf[b] + pix * nb;
+          for (int64_t ch = 0; ch < nb; ++ch) o[ch] = p[3 + c0 + ch][l];
+        }
         tfin[pix] = p[0][l];
         ncon[pix] = static_cast<int32_t>(last[l]);
       }
@@ -573,9 +588,10 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, T* out, T*
 
 // Backward of one tile: for list entry s0 + k of the tile, writes NG = 6 + C
 // partial gradients to buf[(s0 + k) * NG + j] (mx, my, a, b, c, opacity,
-// features), zeros for Gaussians that reach no pixel.
+// features), zeros for Gaussians that reach no pixel, from gout (the C channels'
+// gradients).
 template <typename T, int CT, bool STATS>
-void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* gout, const T* tfin,
+void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Planes<const T>& gout, const T* tfin,
                    const int32_t* ncon, T* buf, Stats* stats) {
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
@@ -605,7 +621,11 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const T* 
         p[0][l] = tfin[pix];
         last[l] = ncon[pix];
         mx = std::max(mx, static_cast<int>(ncon[pix]));
-        for (int64_t ch = 0; ch < C; ++ch) p[2 + C + ch][l] = gout[pix * C + ch];
+        for (int b = 0; b < gout.n; ++b) {
+          const int64_t c0 = gout.first[b], nb = gout.first[b + 1] - c0;
+          const T* gb = gout.buf[b] == nullptr ? nullptr : gout.buf[b] + pix * nb;
+          for (int64_t ch = 0; ch < nb; ++ch) p[2 + C + c0 + ch][l] = gb == nullptr ? T(0) : gb[ch];
+        }
       }
       p[1] = (V)last;
       int& sm = segmax[r * G::MS + s / G::VPM];

@@ -284,8 +284,29 @@ void by_channels(int64_t C, F&& f) {
   }
 }
 
+// The channels [0, C) of a pixel over consecutive ranges of the given counts, one (H, W, n)
+// buffer each (composite.h Planes); an undefined or empty tensor is a null buffer.
+template <typename P>
+dibrgs::Planes<P> planes(const std::vector<torch::Tensor>& bufs, const std::vector<int64_t>& counts) {
+  TORCH_CHECK(!counts.empty() && counts.size() <= 4 && bufs.size() == counts.size(),
+              "composite: one to four channel groups, one buffer each");
+  dibrgs::Planes<P> p;
+  p.n = static_cast<int>(counts.size());
+  for (int b = 0; b < p.n; ++b) {
+    TORCH_CHECK(counts[b] > 0, "composite: a channel group is empty");
+    p.first[b + 1] = p.first[b] + counts[b];
+    if (bufs[b].defined() && bufs[b].numel() > 0) {
+      TORCH_CHECK(bufs[b].is_contiguous() && bufs[b].size(-1) == counts[b], "composite: buffer ", b,
+                  " must be contiguous with ", counts[b], " channels");
+      p.buf[b] = bufs[b].data_ptr<typename std::remove_const<P>::type>();
+    }
+  }
+  return p;
+}
+
 template <typename T, bool STATS>
-void forward_tiles(const dibrgs::Scene<T>& sc, T* out, T* tfin, int32_t* ncon, dibrgs::Stats* stats) {
+void forward_tiles(const dibrgs::Scene<T>& sc, const dibrgs::Planes<T>& out, T* tfin, int32_t* ncon,
+                   dibrgs::Stats* stats) {
   const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
   by_channels(sc.C, [&](auto ct) {
     std::mutex mu;
@@ -302,27 +323,33 @@ void forward_tiles(const dibrgs::Scene<T>& sc, T* out, T* tfin, int32_t* ncon, d
   });
 }
 
-// Forward compositing. Returns (out (H, W, C), T_final (H, W), n_contrib
-// (H, W) int32: 1 + tile-list position of the last Gaussian composited, the
-// Gaussian records for backward).
+// Forward compositing. Returns the composited features as one (H, W, n) tensor for each of
+// the channel counts `groups` (summing to the features' C: [C] for one tensor), then T_final
+// (H, W), n_contrib (H, W) int32 (1 + tile-list position of the last Gaussian composited) and
+// the Gaussian records for backward.
 std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                    torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                   torch::Tensor masks, int64_t W, int64_t H) {
+                                   torch::Tensor masks, int64_t W, int64_t H, std::vector<int64_t> groups) {
   const int64_t C = feats.size(1);
+  int64_t total = 0;
+  for (const int64_t n : groups) total += n;
+  TORCH_CHECK(total == C, "composite: channel groups sum to ", total, ", the features have ", C);
   auto rec = records(means2d, conics, opac, feats);
-  auto out = torch::empty({H, W, C}, feats.options());
+  std::vector<torch::Tensor> res;
+  for (const int64_t n : groups) res.push_back(torch::empty({H, W, n}, feats.options()));
   auto tfin = torch::empty({H, W}, feats.options());
   auto ncon = torch::empty({H, W}, torch::dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_forward", [&] {
-    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), out.data_ptr<scalar_t>(),
+    forward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), planes<scalar_t>(res, groups),
                                    tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), nullptr);
   });
-  return {out, tfin, ncon, rec};
+  res.insert(res.end(), {tfin, ncon, rec});
+  return res;
 }
 
 template <typename T, bool STATS>
-void backward_tiles(const dibrgs::Scene<T>& sc, const T* gout, const T* tfin, const int32_t* ncon, T* buf,
-                    dibrgs::Stats* stats) {
+void backward_tiles(const dibrgs::Scene<T>& sc, const dibrgs::Planes<const T>& gout, const T* tfin,
+                    const int32_t* ncon, T* buf, dibrgs::Stats* stats) {
   const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
   by_channels(sc.C, [&](auto ct) {
     std::mutex mu;
@@ -372,17 +399,19 @@ void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int
 }
 
 // Backward: gradients (means2d (N, 2), conics (N, 3), opac (N,), feats (N, C))
-// from the gradient of the composited features (H, W, C).
+// from the gradients of forward's channel groups (an empty tensor: zeros).
 std::vector<torch::Tensor> backward(torch::Tensor rec, torch::Tensor offsets, torch::Tensor gids, torch::Tensor masks,
-                                    torch::Tensor gout, torch::Tensor tfin, torch::Tensor ncon, int64_t W, int64_t H) {
+                                    std::vector<torch::Tensor> gouts, std::vector<int64_t> groups, torch::Tensor tfin,
+                                    torch::Tensor ncon, int64_t W, int64_t H) {
   const int64_t N = rec.size(0), C = rec.size(1) - dibrgs::G_F, M = gids.size(0);
   auto opts = rec.options();
   auto gm = torch::empty({N, 2}, opts), gc = torch::empty({N, 3}, opts);
   auto go = torch::empty({N}, opts), gf = torch::empty({N, C}, opts);  // every row is written
   auto buf = torch::empty({M * (6 + C)}, opts);  // every entry is written
-  auto go_c = gout.contiguous();
+  for (auto& g : gouts)
+    if (g.defined()) g = g.to(rec.scalar_type()).contiguous();
   AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_backward", [&] {
-    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), go_c.data_ptr<scalar_t>(),
+    backward_tiles<scalar_t, false>(scene<scalar_t>(rec, offsets, gids, masks, W, H), planes<const scalar_t>(gouts, groups),
                                     tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(),
                                     nullptr);
     reduce_gradients<scalar_t>(buf.data_ptr<scalar_t>(), gids.data_ptr<int32_t>(), M, N, C, gm.data_ptr<scalar_t>(),
@@ -407,8 +436,9 @@ torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::T
   AT_DISPATCH_FLOATING_TYPES(rec.scalar_type(), "dibrgs_stats", [&] {
     const auto sc = scene<scalar_t>(rec, offsets, gids, masks, W, H);
     dibrgs::Stats f, b;
-    forward_tiles<scalar_t, true>(sc, out.data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(), &f);
-    backward_tiles<scalar_t, true>(sc, gout.contiguous().data_ptr<scalar_t>(), tfin.data_ptr<scalar_t>(),
+    forward_tiles<scalar_t, true>(sc, planes<scalar_t>({out}, {C}), tfin.data_ptr<scalar_t>(), ncon.data_ptr<int32_t>(),
+                                  &f);
+    backward_tiles<scalar_t, true>(sc, planes<const scalar_t>({gout.contiguous()}, {C}), tfin.data_ptr<scalar_t>(),
                                    ncon.data_ptr<int32_t>(), buf.data_ptr<scalar_t>(), &b);
     int i = 0;
     for (const auto* s : {&f, &b}) {
