@@ -43,6 +43,7 @@ from torch import nn
 from ..camera.frame import central_camera
 from ..camera.pinhole import Camera
 from ..geometry.pointcloud import voxelize
+from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .spawn import spawn
@@ -186,9 +187,15 @@ class NeuralGaussians(nn.Module):
 
         An anchor is kept when it is in front of the camera and its projection,
         grown by the largest extent its Gaussians can reach (3 sigma plus the
-        offset span), overlaps the image.
+        offset span), overlaps the image. One C++ pass (``render/csrc/spawn.h``
+        ``visible``) when the rasterizer's C++ path is in use, else torch.
         """
         near = self.near if near is None else near
+        if uses_fast(None, self.anchor):
+            from ..render.fast import extension
+
+            return extension().anchor_visibility(self.anchor.detach(), self.offset.detach(), self.scaling.detach(),
+                                                 K, w2c, int(width), int(height), float(near))
         with torch.no_grad():
             x = self.anchor @ w2c[:3, :3].T + w2c[:3, 3]
             z = x[:, 2]

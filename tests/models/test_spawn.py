@@ -122,3 +122,33 @@ def test_extreme_magnitudes_agree_and_stay_finite():
     for x, y in zip(fast_in, ref_in):
         assert bool(torch.isfinite(x.grad).all())
         torch.testing.assert_close(x.grad, y.grad, rtol=1e-5, atol=1e-30)
+
+
+def test_anchor_visibility_is_the_same_on_both_backends():
+    """Frustum culling through the C++ pass and through torch: the same anchors, among them
+    anchors behind the camera, beyond each image edge but reaching in through their offsets
+    or scales, at the near plane, non-finite, and with extreme log scalings."""
+    m = small_model(400)
+    c = camera_tensors(small_camera())
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        # Spread the anchors well past the image and behind the camera, some Gaussians large.
+        centre = m.anchor.mean(0)
+        m.anchor.copy_(centre + (m.anchor - centre) * 6.0)
+        m.offset.copy_(torch.randn(m.offset.shape, generator=g) * 3.0)
+        m.scaling.add_(torch.randn(m.scaling.shape, generator=g) * 2.0)
+        m.scaling[:5] = torch.tensor([40.0, -50.0, 0.0, 25.0, -45.0, 1.0])
+        m.anchor[5] = float("nan")
+        m.anchor[6, 0] = float("inf")
+    out = {}
+    for backend in ("fast", "reference"):
+        set_backend(backend)
+        try:
+            out[backend] = m.visible_anchors(c.K, c.w2c, 32, 32)
+        finally:
+            set_backend(None)
+    f, r = out["fast"], out["reference"]
+    assert f.dtype == torch.bool and f.shape == (400,)
+    assert 20 < int(r.sum()) < 380  # both kinds present
+    assert not f[5] and not f[6]
+    assert torch.equal(f, r)

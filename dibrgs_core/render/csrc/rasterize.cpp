@@ -770,6 +770,34 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
   return out;
 }
 
+// Frustum culling of anchors (spawn.h visible): anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)
+// of one dtype, K (3, 3) pixels, w2c (4, 4) world-to-camera. Returns (N,) bool.
+torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torch::Tensor log_scaling, torch::Tensor K,
+                                torch::Tensor w2c, int64_t W, int64_t H, double near) {
+  const int64_t N = anchor.size(0), k = offset.dim() == 3 ? offset.size(1) : 0;
+  TORCH_CHECK(anchor.dim() == 2 && anchor.size(1) == 3 && offset.sizes() == torch::IntArrayRef({N, k, 3}) &&
+                  log_scaling.sizes() == torch::IntArrayRef({N, 6}),
+              "anchor_visibility: shapes must be anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)");
+  const auto dt = anchor.scalar_type();
+  auto a = anchor.contiguous(), o = offset.to(dt).contiguous(), l = log_scaling.to(dt).contiguous();
+  TORCH_CHECK(K.numel() == 9 && w2c.numel() == 16, "anchor_visibility: K must be 3 x 3 and w2c 4 x 4");
+  const auto Kd = K.to(torch::kFloat64).contiguous(), vm = w2c.to(torch::kFloat64).contiguous();
+  const double* pk = Kd.data_ptr<double>();
+  const double* pv = vm.data_ptr<double>();
+  double cam[16];  // R row by row, t, fx, fy, cx, cy
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam[3 * i + j] = pv[4 * i + j];
+    cam[9 + i] = pv[4 * i + 3];
+  }
+  cam[12] = pk[0], cam[13] = pk[4], cam[14] = pk[2], cam[15] = pk[5];
+  auto out = torch::empty({N}, torch::kBool);
+  AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_anchor_visibility", [&] {
+    dibrgs::spawn::visible<scalar_t>(a.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), l.data_ptr<scalar_t>(), N, k,
+                                     cam, W, H, near, out.data_ptr<bool>());
+  });
+  return out;
+}
+
 // Gradients {nop, color, cov, anchor, scal, offset} of spawn_forward's inputs from those of its
 // outputs (gmeans, gquats, gscales, gopac, gcolors) and the inputs it saved.
 std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gquats, torch::Tensor gscales,
@@ -848,4 +876,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("all_finite", &all_finite, "whether every element of the tensors is finite");
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
   m.def("spawn_backward", &spawn_backward, "gradients of spawn_forward");
+  m.def("anchor_visibility", &anchor_visibility, "frustum culling of anchors");
 }
