@@ -46,7 +46,7 @@ from ..geometry.pointcloud import voxelize
 from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
-from .spawn import spawn
+from .spawn import spawn, take_rows
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -170,12 +170,12 @@ class NeuralGaussians(nn.Module):
     def anchor_scaling(self, idx: torch.Tensor | None = None) -> torch.Tensor:
         """(N,6) activated anchor scaling, or (len(idx),6) of the anchors ``idx``; the log is
         clamped so exp stays finite."""
-        log_s = self.scaling if idx is None else self.scaling.index_select(0, idx)
+        log_s = self.scaling if idx is None else take_rows(self.scaling, idx)
         return torch.exp(log_s.clamp(-30.0, 20.0))
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
-        f = self.anchor_feat.index_select(0, idx)
+        f = take_rows(self.anchor_feat, idx)
         if self.use_ibr and ibr_feats is not None:
             g = torch.sigmoid(self.e_mod(ibr_feats))
             f = f + g * self.e_ref(ibr_feats)
@@ -225,14 +225,14 @@ class NeuralGaussians(nn.Module):
         if visible is None:
             visible = self.visible_anchors(K, w2c, width, height)
         idx = torch.nonzero(visible).squeeze(1)
-        anchor = self.anchor.index_select(0, idx)
+        anchor = take_rows(self.anchor, idx)
         feat = self.fused_features(idx, ibr_feats)
         view = anchor - cam_center
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([feat, view / dist, dist / self.dist_scale], dim=1)
         neural_opacity = self.mlp_opacity(x).reshape(-1)
         g = spawn(neural_opacity, self.mlp_color(x), self.mlp_cov(x), anchor, self.anchor_scaling(idx),
-                  self.offset.index_select(0, idx))
+                  take_rows(self.offset, idx))
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
                        anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 

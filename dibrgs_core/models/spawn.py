@@ -56,6 +56,39 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor,
     return spawn_reference(nop, color, cov, anchor, scal, offset)
 
 
+def take_rows(t: Tensor, idx: Tensor, backend: Backend | None = None) -> Tensor:
+    """``t.index_select(0, idx)``: rows ``idx`` (int64) of ``t`` (N, ...).
+
+    On the C++ path (``render/csrc/rows.h``), when ``idx`` is strictly increasing (a nonzero of a
+    mask, as the visible anchors are), the gradient is one parallel pass of row copies into
+    otherwise zero rows; torch's index_add into a zeroed tensor runs on one thread. Other
+    indices (repeats, any order) fall back to that index_add; other devices and the reference
+    backend use index_select."""
+    if t.dtype in (torch.float32, torch.float64) and idx.dtype == torch.int64 and uses_fast(backend, t):
+        return _TakeRows.apply(t, idx)
+    return t.index_select(0, idx)
+
+
+class _TakeRows(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, t, idx):  # type: ignore[override]
+        from ..render.fast import extension
+
+        out, increasing = extension().take_rows_forward(t, idx)
+        ctx.save_for_backward(idx)
+        ctx.shape, ctx.increasing = t.shape, increasing
+        return out
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        from ..render.fast import extension
+
+        (idx,) = ctx.saved_tensors
+        if ctx.increasing:
+            return extension().take_rows_backward(g, idx, ctx.shape[0]), None
+        return g.new_zeros(ctx.shape).index_add_(0, idx, g), None
+
+
 def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor, offset: Tensor
                     ) -> Spawned:
     """:func:`spawn` in torch operators (autograd, any device)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dibrgs_core.models.spawn import spawn, spawn_reference
+from dibrgs_core.models.spawn import spawn, spawn_reference, take_rows
 from dibrgs_core.render import set_backend
 from model_synth import camera_tensors, small_camera, small_model
 
@@ -152,3 +152,33 @@ def test_anchor_visibility_is_the_same_on_both_backends():
     assert 20 < int(r.sum()) < 380  # both kinds present
     assert not f[5] and not f[6]
     assert torch.equal(f, r)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("kind", ["increasing", "repeats", "unordered", "empty", "all"])
+def test_take_rows_values_and_gradients(dtype, kind):
+    """take_rows equals index_select forward and backward on the C++ path, for the strictly
+    increasing indices it is fast for (unselected rows get exact zeros) and for the others."""
+    g = torch.Generator().manual_seed(9)
+    N = 3000  # more than one parallel chunk
+    src = torch.randn(N, 4, 3, generator=g, dtype=dtype)
+    idx = {"increasing": torch.sort(torch.randperm(N, generator=g)[:1700]).values,
+           "repeats": torch.tensor([5, 5, 2999, 0, 5], dtype=torch.int64),
+           "unordered": torch.randperm(N, generator=g)[:900],
+           "empty": torch.zeros(0, dtype=torch.int64),
+           "all": torch.arange(N)}[kind]
+    up = torch.randn((len(idx), 4, 3), generator=g, dtype=dtype)
+    grads = []
+    for backend in ("fast", "reference"):
+        t = src.clone().requires_grad_()
+        out = take_rows(t, idx, backend=backend)
+        assert torch.equal(out, src.index_select(0, idx))
+        (out * up).sum().backward()
+        grads.append(t.grad)
+    assert torch.equal(grads[0], grads[1])
+    if kind == "increasing":
+        unselected = torch.ones(N, dtype=torch.bool)
+        unselected[idx] = False
+        assert bool((grads[0][unselected] == 0).all()) and bool((grads[0][idx] == up).all())
+    with pytest.raises(RuntimeError, match="out of range"):
+        take_rows(src, torch.tensor([N]), backend="fast")

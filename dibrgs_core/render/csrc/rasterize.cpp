@@ -23,6 +23,7 @@
 #include "adam.h"
 #include "composite.h"
 #include "spawn.h"
+#include "rows.h"
 #include "ssim.h"
 
 using dibrgs::TILE;
@@ -770,6 +771,38 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
   return out;
 }
 
+// Rows idx (M,) int64 of src (N, ...) (rows.h gather): returns (M, ...) and whether idx is
+// strictly increasing (the backward's case).
+std::tuple<torch::Tensor, bool> take_rows_forward(torch::Tensor src, torch::Tensor idx) {
+  TORCH_CHECK(src.dim() >= 1 && idx.dim() == 1 && idx.scalar_type() == torch::kInt64,
+              "take_rows: src (N, ...) and idx (M,) int64");
+  auto s = src.contiguous(), ix = idx.contiguous();
+  const int64_t N = s.size(0), M = ix.size(0), D = N ? s.numel() / N : 0;
+  const int64_t* pi = ix.data_ptr<int64_t>();
+  for (int64_t i = 0; i < M; ++i) TORCH_CHECK(pi[i] >= 0 && pi[i] < N, "take_rows: index ", pi[i], " out of range");
+  auto sizes = s.sizes().vec();
+  sizes[0] = M;
+  auto out = torch::empty(sizes, s.options());
+  AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_take_rows", [&] {
+    dibrgs::rows::gather<scalar_t>(s.data_ptr<scalar_t>(), pi, M, D, out.data_ptr<scalar_t>());
+  });
+  return {out, dibrgs::rows::strictly_increasing(pi, M)};
+}
+
+// Gradient of take_rows_forward for strictly increasing idx (rows.h scatter): (N, ...) like src.
+torch::Tensor take_rows_backward(torch::Tensor g, torch::Tensor idx, int64_t N) {
+  auto gc = g.contiguous(), ix = idx.contiguous();
+  const int64_t M = ix.size(0), D = M ? gc.numel() / M : 0;
+  auto sizes = gc.sizes().vec();
+  sizes[0] = N;
+  auto out = torch::empty(sizes, gc.options());
+  if (M == 0) return out.zero_();
+  AT_DISPATCH_FLOATING_TYPES(gc.scalar_type(), "dibrgs_take_rows_backward", [&] {
+    dibrgs::rows::scatter<scalar_t>(gc.data_ptr<scalar_t>(), ix.data_ptr<int64_t>(), M, N, D, out.data_ptr<scalar_t>());
+  });
+  return out;
+}
+
 // Frustum culling of anchors (spawn.h visible): anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)
 // of one dtype, K (3, 3) pixels, w2c (4, 4) world-to-camera. Returns (N,) bool.
 torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torch::Tensor log_scaling, torch::Tensor K,
@@ -877,4 +910,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
   m.def("spawn_backward", &spawn_backward, "gradients of spawn_forward");
   m.def("anchor_visibility", &anchor_visibility, "frustum culling of anchors");
+  m.def("take_rows_forward", &take_rows_forward, "rows of a tensor");
+  m.def("take_rows_backward", &take_rows_backward, "gradient of take_rows_forward");
 }
