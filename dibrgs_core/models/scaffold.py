@@ -57,6 +57,11 @@ ANCHOR_PARAMS = ("anchor", "offset", "anchor_feat", "scaling")
 NEAR_FRACTION = 1e-4
 
 
+def _activate_scaling(log_s: torch.Tensor) -> torch.Tensor:
+    """Anchor scaling from its log, clamped so that exp stays finite."""
+    return torch.exp(log_s.clamp(-30.0, 20.0))
+
+
 def _mlp(in_dim: int, hidden: int, out_dim: int, act: nn.Module | None) -> nn.Sequential:
     layers: list[nn.Module] = [nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim)]
     if act is not None:
@@ -168,14 +173,15 @@ class NeuralGaussians(nn.Module):
 
     # -- per-anchor helpers ----------------------------------------------------
     def anchor_scaling(self, idx: torch.Tensor | None = None) -> torch.Tensor:
-        """(N,6) activated anchor scaling, or (len(idx),6) of the anchors ``idx``; the log is
-        clamped so exp stays finite."""
-        log_s = self.scaling if idx is None else take_rows(self.scaling, idx)
-        return torch.exp(log_s.clamp(-30.0, 20.0))
+        """(N,6) activated anchor scaling, or (len(idx),6) of the anchors ``idx``."""
+        return _activate_scaling(self.scaling if idx is None else take_rows([self.scaling], idx)[0])
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
-        f = take_rows(self.anchor_feat, idx)
+        return self._fuse(take_rows([self.anchor_feat], idx)[0], ibr_feats)
+
+    def _fuse(self, f: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
+        """:meth:`fused_features` of the anchors' own features ``f`` (M, feat_dim)."""
         if self.use_ibr and ibr_feats is not None:
             g = torch.sigmoid(self.e_mod(ibr_feats))
             f = f + g * self.e_ref(ibr_feats)
@@ -225,14 +231,13 @@ class NeuralGaussians(nn.Module):
         if visible is None:
             visible = self.visible_anchors(K, w2c, width, height)
         idx = torch.nonzero(visible).squeeze(1)
-        anchor = take_rows(self.anchor, idx)
-        feat = self.fused_features(idx, ibr_feats)
+        anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
+        feat = self._fuse(feat, ibr_feats)
         view = anchor - cam_center
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([feat, view / dist, dist / self.dist_scale], dim=1)
         neural_opacity = self.mlp_opacity(x).reshape(-1)
-        g = spawn(neural_opacity, self.mlp_color(x), self.mlp_cov(x), anchor, self.anchor_scaling(idx),
-                  take_rows(self.offset, idx))
+        g = spawn(neural_opacity, self.mlp_color(x), self.mlp_cov(x), anchor, _activate_scaling(log_s), offset)
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
                        anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 

@@ -16,7 +16,7 @@ the torch formulation (any device, the ``reference`` backend).
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 from torch import Tensor
@@ -56,37 +56,48 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor,
     return spawn_reference(nop, color, cov, anchor, scal, offset)
 
 
-def take_rows(t: Tensor, idx: Tensor, backend: Backend | None = None) -> Tensor:
-    """``t.index_select(0, idx)``: rows ``idx`` (int64) of ``t`` (N, ...).
+def take_rows(tensors: Sequence[Tensor], idx: Tensor, backend: Backend | None = None) -> list[Tensor]:
+    """``[t.index_select(0, idx) for t in tensors]``: rows ``idx`` (int64) of tensors (N, ...)
+    that share their rows (a model's per-anchor parameters).
 
-    On the C++ path (``render/csrc/rows.h``), when ``idx`` is strictly increasing (a nonzero of a
-    mask, as the visible anchors are), the gradient is one parallel pass of row copies into
-    otherwise zero rows; torch's index_add into a zeroed tensor runs on one thread. Other
-    indices (repeats, any order) fall back to that index_add; other devices and the reference
-    backend use index_select."""
-    if t.dtype in (torch.float32, torch.float64) and idx.dtype == torch.int64 and uses_fast(backend, t):
-        return _TakeRows.apply(t, idx)
-    return t.index_select(0, idx)
+    On the C++ path (``render/csrc/rows.h``; one autograd node for all of them, each node costs
+    tens of microseconds in Python), when ``idx`` is strictly increasing (a nonzero of a mask, as
+    the visible anchors are), a gradient is one parallel pass of row copies into otherwise zero
+    rows; torch's index_add into a zeroed tensor runs on one thread. Other indices (repeats, any
+    order) fall back to that index_add; other devices and the reference backend use
+    index_select."""
+    tensors = list(tensors)
+    if tensors and idx.dtype == torch.int64 and all(
+            t.dtype in (torch.float32, torch.float64) for t in tensors) and uses_fast(backend, tensors[0]):
+        return list(_TakeRows.apply(idx, *tensors))
+    return [t.index_select(0, idx) for t in tensors]
 
 
 class _TakeRows(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, t, idx):  # type: ignore[override]
+    def forward(ctx, idx, *tensors):  # type: ignore[override]
         from ..render.fast import extension
 
-        out, increasing = extension().take_rows_forward(t, idx)
+        outs, increasing = extension().take_rows_forward(list(tensors), idx)
         ctx.save_for_backward(idx)
-        ctx.shape, ctx.increasing = t.shape, increasing
-        return out
+        ctx.shapes, ctx.increasing = [t.shape for t in tensors], increasing
+        ctx.set_materialize_grads(False)  # a row set nobody used needs no gradient
+        return tuple(outs)
 
     @staticmethod
-    def backward(ctx, g):  # type: ignore[override]
+    def backward(ctx, *grads):  # type: ignore[override]
         from ..render.fast import extension
 
         (idx,) = ctx.saved_tensors
+        want = [i for i, g in enumerate(grads) if g is not None and ctx.needs_input_grad[1 + i]]
+        out: list[Tensor | None] = [None] * len(grads)
         if ctx.increasing:
-            return extension().take_rows_backward(g, idx, ctx.shape[0]), None
-        return g.new_zeros(ctx.shape).index_add_(0, idx, g), None
+            got = extension().take_rows_backward([grads[i] for i in want], idx, ctx.shapes[0][0])
+        else:
+            got = [grads[i].new_zeros(ctx.shapes[i]).index_add_(0, idx, grads[i]) for i in want]
+        for i, g in zip(want, got):
+            out[i] = g
+        return (None, *out)
 
 
 def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor, offset: Tensor

@@ -171,9 +171,11 @@ def test_take_rows_values_and_gradients(dtype, kind):
     grads = []
     for backend in ("fast", "reference"):
         t = src.clone().requires_grad_()
-        out = take_rows(t, idx, backend=backend)
-        assert torch.equal(out, src.index_select(0, idx))
+        other = torch.randn(N, 2, generator=g, dtype=dtype, requires_grad=True)  # unused: no gradient
+        out, out2 = take_rows([t, other], idx, backend=backend)
+        assert torch.equal(out, src.index_select(0, idx)) and torch.equal(out2, other.detach().index_select(0, idx))
         (out * up).sum().backward()
+        assert other.grad is None
         grads.append(t.grad)
     assert torch.equal(grads[0], grads[1])
     if kind == "increasing":
@@ -181,4 +183,4 @@ def test_take_rows_values_and_gradients(dtype, kind):
         unselected[idx] = False
         assert bool((grads[0][unselected] == 0).all()) and bool((grads[0][idx] == up).all())
     with pytest.raises(RuntimeError, match="out of range"):
-        take_rows(src, torch.tensor([N]), backend="fast")
+        take_rows([src], torch.tensor([N]), backend="fast")

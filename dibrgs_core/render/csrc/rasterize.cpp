@@ -771,36 +771,54 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
   return out;
 }
 
-// Rows idx (M,) int64 of src (N, ...) (rows.h gather): returns (M, ...) and whether idx is
-// strictly increasing (the backward's case).
-std::tuple<torch::Tensor, bool> take_rows_forward(torch::Tensor src, torch::Tensor idx) {
-  TORCH_CHECK(src.dim() >= 1 && idx.dim() == 1 && idx.scalar_type() == torch::kInt64,
-              "take_rows: src (N, ...) and idx (M,) int64");
-  auto s = src.contiguous(), ix = idx.contiguous();
-  const int64_t N = s.size(0), M = ix.size(0), D = N ? s.numel() / N : 0;
+// Rows idx (M,) int64 of each src (N, ...) (rows.h gather): returns the (M, ...) tensors and
+// whether idx is strictly increasing (the backward's case). One call for all of a model's
+// per-anchor parameters: each autograd node costs tens of microseconds in Python.
+std::tuple<std::vector<torch::Tensor>, bool> take_rows_forward(std::vector<torch::Tensor> srcs, torch::Tensor idx) {
+  TORCH_CHECK(idx.dim() == 1 && idx.scalar_type() == torch::kInt64, "take_rows: idx must be (M,) int64");
+  auto ix = idx.contiguous();
+  const int64_t M = ix.size(0);
   const int64_t* pi = ix.data_ptr<int64_t>();
-  for (int64_t i = 0; i < M; ++i) TORCH_CHECK(pi[i] >= 0 && pi[i] < N, "take_rows: index ", pi[i], " out of range");
-  auto sizes = s.sizes().vec();
-  sizes[0] = M;
-  auto out = torch::empty(sizes, s.options());
-  AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_take_rows", [&] {
-    dibrgs::rows::gather<scalar_t>(s.data_ptr<scalar_t>(), pi, M, D, out.data_ptr<scalar_t>());
-  });
-  return {out, dibrgs::rows::strictly_increasing(pi, M)};
+  std::vector<torch::Tensor> outs;
+  for (const auto& src : srcs) {
+    TORCH_CHECK(src.dim() >= 1, "take_rows: a source has no rows");
+    auto s = src.contiguous();
+    const int64_t N = s.size(0), D = N ? s.numel() / N : 0;
+    for (int64_t i = 0; i < M; ++i) TORCH_CHECK(pi[i] >= 0 && pi[i] < N, "take_rows: index ", pi[i], " out of range");
+    auto sizes = s.sizes().vec();
+    sizes[0] = M;
+    auto out = torch::empty(sizes, s.options());
+    AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_take_rows", [&] {
+      dibrgs::rows::gather<scalar_t>(s.data_ptr<scalar_t>(), pi, M, D, out.data_ptr<scalar_t>());
+    });
+    outs.push_back(out);
+  }
+  return {outs, dibrgs::rows::strictly_increasing(pi, M)};
 }
 
-// Gradient of take_rows_forward for strictly increasing idx (rows.h scatter): (N, ...) like src.
-torch::Tensor take_rows_backward(torch::Tensor g, torch::Tensor idx, int64_t N) {
-  auto gc = g.contiguous(), ix = idx.contiguous();
-  const int64_t M = ix.size(0), D = M ? gc.numel() / M : 0;
-  auto sizes = gc.sizes().vec();
-  sizes[0] = N;
-  auto out = torch::empty(sizes, gc.options());
-  if (M == 0) return out.zero_();
-  AT_DISPATCH_FLOATING_TYPES(gc.scalar_type(), "dibrgs_take_rows_backward", [&] {
-    dibrgs::rows::scatter<scalar_t>(gc.data_ptr<scalar_t>(), ix.data_ptr<int64_t>(), M, N, D, out.data_ptr<scalar_t>());
-  });
-  return out;
+// Gradient of take_rows_forward for strictly increasing idx (rows.h scatter): for each upstream
+// gradient (M, ...), the (N, ...) gradient of its source.
+std::vector<torch::Tensor> take_rows_backward(std::vector<torch::Tensor> grads, torch::Tensor idx, int64_t N) {
+  auto ix = idx.contiguous();
+  const int64_t M = ix.size(0);
+  std::vector<torch::Tensor> outs;
+  for (const auto& g : grads) {
+    auto gc = g.contiguous();
+    const int64_t D = M ? gc.numel() / M : 0;
+    auto sizes = gc.sizes().vec();
+    sizes[0] = N;
+    auto out = torch::empty(sizes, gc.options());
+    if (M == 0) {
+      outs.push_back(out.zero_());
+      continue;
+    }
+    AT_DISPATCH_FLOATING_TYPES(gc.scalar_type(), "dibrgs_take_rows_backward", [&] {
+      dibrgs::rows::scatter<scalar_t>(gc.data_ptr<scalar_t>(), ix.data_ptr<int64_t>(), M, N, D,
+                                      out.data_ptr<scalar_t>());
+    });
+    outs.push_back(out);
+  }
+  return outs;
 }
 
 // Frustum culling of anchors (spawn.h visible): anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)
