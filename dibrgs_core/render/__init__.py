@@ -90,7 +90,8 @@ def composite(
     if uses_fast(backend, feats):
         from . import fast
 
-        return fast.composite_fast(means2d, conics, opacities, feats, depths, radii, width, height)
+        C = feats.shape[1]
+        return fast.composite_fast(means2d, conics, opacities, feats, depths, radii, width, height, (C,))[0]
     return composite_reference(means2d, conics, opacities, feats, depths, radii, width, height)
 
 
@@ -176,7 +177,7 @@ def rasterize(
     if use_fast:
         from . import fast
 
-        image, depth_acc, alpha = fast.composite_groups_fast(
+        image, depth_acc, alpha = fast.composite_fast(
             proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height, (C, 1, 1))
     else:
         out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)

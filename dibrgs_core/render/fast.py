@@ -301,7 +301,8 @@ def available(required: bool = False) -> bool:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width, height, groups):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width,  # type: ignore[override]
+                height, groups):
         *outs, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width,
                                                      height, list(groups))
         ctx.save_for_backward(rec, offsets, gids, masks, tfin, ncon)
@@ -330,26 +331,12 @@ def composite_fast(
     radii: Tensor,
     width: int,
     height: int,
-) -> Tensor:
-    """C++ version of :func:`reference.composite_reference` (CPU tensors, float32 or float64)."""
-    return composite_groups_fast(means2d, conics, opacities, feats, depths, radii, width, height,
-                                 (feats.shape[1],))[0]
-
-
-def composite_groups_fast(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    feats: Tensor,
-    depths: Tensor,
-    radii: Tensor,
-    width: int,
-    height: int,
     groups: tuple[int, ...],
 ) -> tuple[Tensor, ...]:
-    """:func:`composite_fast` whose (H, W, C) result comes as one contiguous (H, W, n) tensor for
-    each channel count of ``groups`` (consecutive channels, summing to C; up to four): what
-    would otherwise be strided slices (the renderer's colour, depth, alpha), written in place."""
+    """C++ version of :func:`reference.composite_reference` (CPU tensors, float32 or float64), its
+    (H, W, C) result as one contiguous (H, W, n) tensor for each channel count of ``groups``
+    (consecutive channels, summing to C; up to four): what would otherwise be strided slices
+    (the renderer's colour, depth, alpha), written in place."""
     mod = extension()
     dt = feats.dtype
     m2 = means2d.to(dt).contiguous()
