@@ -242,8 +242,12 @@ def test_runner_failure_names_the_log(tmp_path):
 
 
 def test_runner_cancel_sends_sigint_so_the_process_can_save(tmp_path):
+    # The child installs its SIGINT handler as training does (guard.stop_on_signals): a process
+    # started with SIGINT ignored (a background job of a shell without job control) would
+    # otherwise inherit that, and Python would not raise KeyboardInterrupt.
     slow = _script(tmp_path, "slow.py", """
-        import json, sys, time
+        import json, signal, sys, time
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             for i in range(1000):
                 print(json.dumps({"iteration": i, "total": 1000}), flush=True)
