@@ -61,7 +61,7 @@ from .projection import Projected
 log = logging.getLogger("dibrgs.render")
 
 _CSRC = Path(__file__).with_name("csrc")
-_SOURCES = ("rasterize.cpp", "adam.h", "chunks.h", "composite.h", "rows.h", "spawn.h", "ssim.h")
+_SOURCES = ("rasterize.cpp", "adam.h", "chunks.h", "composite.h", "project.h", "rows.h", "spawn.h", "ssim.h")
 _NAME = "dibrgs_rasterize"
 _MARKER = "built.json"
 BUILD_TIME = "about 1-2 minutes"

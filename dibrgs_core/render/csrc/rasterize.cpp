@@ -23,6 +23,7 @@
 #include "adam.h"
 #include "composite.h"
 #include "spawn.h"
+#include "project.h"
 #include "rows.h"
 #include "ssim.h"
 
@@ -452,87 +453,15 @@ torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::T
 // The vector code path this build uses, and its float lanes.
 std::string simd() { return std::string(dibrgs::simd_name()) + " x" + std::to_string(dibrgs::VBYTES / 4); }
 
-// ---------------------------------------------------------------------------
-// Projection (EWA splatting), fused forward and backward. Same maths as
-// projection.py (see there); every per-Gaussian quantity is computed in double
-// whatever the tensor dtype, because squared covariances of large or very close
-// Gaussians overflow float32 and det = a c - b^2 cancels catastrophically for
-// thin ones. cam: float64 (16,) = R (row-major 3x3), t (3), fx, fy, cx, cy.
-
-namespace {
-
-constexpr double EPS2D = 0.3;
-constexpr double MAX_RADIUS = 1.0e9;
-constexpr double QUAT_EPS2 = 1.0e-30;
-
-struct Cam {
-  double R[9], t[3], fx, fy, cx, cy, lim_xn, lim_xp, lim_yn, lim_yp;
-  Cam(const double* c, int64_t W, int64_t H) {
-    std::copy(c, c + 9, R);
-    std::copy(c + 9, c + 12, t);
-    fx = c[12], fy = c[13], cx = c[14], cy = c[15];
-    // Jacobian clamp: field of view widened by 30 % of its half-width.
-    const double tfx = 0.5 * W / fx, tfy = 0.5 * H / fy;
-    lim_xp = (W - cx) / fx + 0.3 * tfx;
-    lim_xn = cx / fx + 0.3 * tfx;
-    lim_yp = (H - cy) / fy + 0.3 * tfy;
-    lim_yn = cy / fy + 0.3 * tfy;
-  }
-};
-
-// Everything the forward computes for one Gaussian that the backward needs.
-struct ProjState {
-  double p[3];        // camera-space mean
-  double zs;          // z, or 1 when culled by depth
-  bool in_depth, ok_q, ok_det;
-  double qn[4], inv_qn;  // normalised quaternion, 1 / |q|
-  double Rq[9], M[9];    // rotation, camera-space factor Mc = Rw R S (row-major)
-  double txz, tyz;
-  bool clx, cly;         // x/z, y/z inside the clamp
-  double u[3], v[3];
-  double a, b, c, det, det_s;
-};
-
-template <typename T>
-inline void project_one(const Cam& cam, const T* m, const T* q, const T* s, double near, double far, ProjState& st) {
-  for (int i = 0; i < 3; ++i)
-    st.p[i] = cam.R[3 * i] * double(m[0]) + cam.R[3 * i + 1] * double(m[1]) + cam.R[3 * i + 2] * double(m[2]) + cam.t[i];
-  const double z = st.p[2];
-  st.in_depth = z > near && z < far;
-  st.zs = st.in_depth ? z : 1.0;
-  double qq[4] = {double(q[0]), double(q[1]), double(q[2]), double(q[3])};
-  const double n2 = qq[0] * qq[0] + qq[1] * qq[1] + qq[2] * qq[2] + qq[3] * qq[3];
-  st.ok_q = n2 > QUAT_EPS2;
-  if (!st.ok_q) qq[0] = 1.0, qq[1] = qq[2] = qq[3] = 0.0;
-  st.inv_qn = st.ok_q ? 1.0 / std::sqrt(n2) : 1.0;
-  for (int i = 0; i < 4; ++i) st.qn[i] = qq[i] * st.inv_qn;
-  const double w = st.qn[0], x = st.qn[1], y = st.qn[2], zq = st.qn[3];
-  double* R = st.Rq;
-  R[0] = 1 - 2 * (y * y + zq * zq), R[1] = 2 * (x * y - w * zq), R[2] = 2 * (x * zq + w * y);
-  R[3] = 2 * (x * y + w * zq), R[4] = 1 - 2 * (x * x + zq * zq), R[5] = 2 * (y * zq - w * x);
-  R[6] = 2 * (x * zq - w * y), R[7] = 2 * (y * zq + w * x), R[8] = 1 - 2 * (x * x + y * y);
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j)
-      st.M[3 * i + j] = (cam.R[3 * i] * R[j] + cam.R[3 * i + 1] * R[3 + j] + cam.R[3 * i + 2] * R[6 + j]) * double(s[j]);
-  const double xz = st.p[0] / st.zs, yz = st.p[1] / st.zs;
-  st.txz = std::min(std::max(xz, -cam.lim_xn), cam.lim_xp);
-  st.tyz = std::min(std::max(yz, -cam.lim_yn), cam.lim_yp);
-  st.clx = xz > -cam.lim_xn && xz < cam.lim_xp;
-  st.cly = yz > -cam.lim_yn && yz < cam.lim_yp;
-  const double ku = cam.fx / st.zs, kv = cam.fy / st.zs;
-  for (int j = 0; j < 3; ++j) {
-    st.u[j] = ku * (st.M[j] - st.txz * st.M[6 + j]);
-    st.v[j] = kv * (st.M[3 + j] - st.tyz * st.M[6 + j]);
-  }
-  st.a = st.u[0] * st.u[0] + st.u[1] * st.u[1] + st.u[2] * st.u[2] + EPS2D;
-  st.b = st.u[0] * st.v[0] + st.u[1] * st.v[1] + st.u[2] * st.v[2];
-  st.c = st.v[0] * st.v[0] + st.v[1] * st.v[1] + st.v[2] * st.v[2] + EPS2D;
-  st.det = st.a * st.c - st.b * st.b;
-  st.ok_det = st.det > 0;
-  st.det_s = st.ok_det ? st.det : 1.0;
+// Projection (EWA splatting, project.h): whole vectors of Gaussians, then the rest one by one.
+template <typename F>
+void over_gaussians(int64_t N, F&& f) {
+  at::parallel_for(0, N, 4096, [&](int64_t b0, int64_t b1) {
+    int64_t i = b0;
+    for (; i + dibrgs::proj::LD <= b1; i += dibrgs::proj::LD) f(i, std::true_type());
+    for (; i < b1; ++i) f(i, std::false_type());
+  });
 }
-
-}  // namespace
 
 // Forward projection. Returns (means2d (N, 2), conics (N, 3), depths (N,)) in
 // the dtype of means and radii (N,) int32 (0 = culled).
@@ -543,30 +472,14 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
   auto con = torch::empty({N, 3}, means.options());
   auto dep = torch::empty({N}, means.options());
   auto rad = torch::empty({N}, torch::dtype(torch::kInt32));
-  const Cam cm(cam.data_ptr<double>(), W, H);
+  const dibrgs::proj::Cam cm(cam.data_ptr<double>(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_forward", [&] {
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
     scalar_t *om = m2.data_ptr<scalar_t>(), *oc = con.data_ptr<scalar_t>(), *od = dep.data_ptr<scalar_t>();
     int32_t* orad = rad.data_ptr<int32_t>();
-    at::parallel_for(0, N, 4096, [&](int64_t b0, int64_t b1) {
-      ProjState st;
-      for (int64_t i = b0; i < b1; ++i) {
-        project_one(cm, pm + 3 * i, pq + 4 * i, ps + 3 * i, near, far, st);
-        const double mx = cm.fx * st.p[0] / st.zs + cm.cx, my = cm.fy * st.p[1] / st.zs + cm.cy;
-        om[2 * i] = static_cast<scalar_t>(mx);
-        om[2 * i + 1] = static_cast<scalar_t>(my);
-        oc[3 * i] = static_cast<scalar_t>(st.c / st.det_s);
-        oc[3 * i + 1] = static_cast<scalar_t>(-st.b / st.det_s);
-        oc[3 * i + 2] = static_cast<scalar_t>(st.a / st.det_s);
-        od[i] = static_cast<scalar_t>(st.p[2]);
-        // 3DGS radius: 3 sigma along the major axis.
-        const double mid = 0.5 * (st.a + st.c);
-        const double lam = mid + std::sqrt(std::max(mid * mid - st.det, 0.1));
-        const double radius = std::min(std::ceil(3.0 * std::sqrt(lam)), MAX_RADIUS);
-        const bool valid = st.in_depth && st.ok_det && std::isfinite(radius);
-        const bool inside = mx + radius > 0 && mx - radius < W && my + radius > 0 && my - radius < H;
-        orad[i] = valid && inside ? static_cast<int32_t>(radius) : 0;
-      }
+    over_gaussians(N, [&](int64_t i, auto vec) {
+      typedef typename std::conditional<decltype(vec)::value, dibrgs::VD, double>::type D;
+      dibrgs::proj::forward<D>(cm, pm, pq, ps, i, near, far, W, H, om, oc, od, orad);
     });
   });
   return {m2, con, dep, rad};
@@ -581,79 +494,14 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
   auto gm = torch::empty_like(means);
   auto gq = torch::empty_like(quats);
   auto gs = torch::empty_like(scales);
-  const Cam cm(cam.data_ptr<double>(), W, H);
+  const dibrgs::proj::Cam cm(cam.data_ptr<double>(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_backward", [&] {
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
     const scalar_t *gm2 = g_m2.data_ptr<scalar_t>(), *gc = g_con.data_ptr<scalar_t>(), *gd = g_dep.data_ptr<scalar_t>();
     scalar_t *om = gm.data_ptr<scalar_t>(), *oq = gq.data_ptr<scalar_t>(), *os = gs.data_ptr<scalar_t>();
-    at::parallel_for(0, N, 4096, [&](int64_t b0, int64_t b1) {
-      ProjState st;
-      for (int64_t i = b0; i < b1; ++i) {
-        // The backward is linear in the incoming gradients: none (a Gaussian
-        // no tile lists) gives zeros, without the projection's work.
-        if (gm2[2 * i] == 0 && gm2[2 * i + 1] == 0 && gc[3 * i] == 0 && gc[3 * i + 1] == 0 && gc[3 * i + 2] == 0 &&
-            gd[i] == 0) {
-          std::fill(om + 3 * i, om + 3 * i + 3, scalar_t(0));
-          std::fill(oq + 4 * i, oq + 4 * i + 4, scalar_t(0));
-          std::fill(os + 3 * i, os + 3 * i + 3, scalar_t(0));
-          continue;
-        }
-        project_one(cm, pm + 3 * i, pq + 4 * i, ps + 3 * i, near, far, st);
-        const double g0 = gc[3 * i], g1 = gc[3 * i + 1], g2 = gc[3 * i + 2];
-        const double ids = 1.0 / st.det_s;
-        // conic = (c, -b, a) / det_s, det_s = a c - b^2 where positive.
-        const double gdet = st.ok_det ? -(g0 * st.c - g1 * st.b + g2 * st.a) * ids * ids : 0.0;
-        const double gA = g2 * ids + gdet * st.c;
-        const double gB = -g1 * ids - 2.0 * gdet * st.b;
-        const double gC = g0 * ids + gdet * st.a;
-        const double ku = cm.fx / st.zs, kv = cm.fy / st.zs;
-        double gMc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-        double gtx = 0, gty = 0, gku = 0, gkv = 0;
-        for (int j = 0; j < 3; ++j) {
-          const double gu = 2.0 * gA * st.u[j] + gB * st.v[j];
-          const double gv = 2.0 * gC * st.v[j] + gB * st.u[j];
-          gMc[j] += ku * gu;
-          gMc[3 + j] += kv * gv;
-          gMc[6 + j] -= ku * st.txz * gu + kv * st.tyz * gv;
-          gtx -= ku * gu * st.M[6 + j];
-          gty -= kv * gv * st.M[6 + j];
-          gku += gu * (st.M[j] - st.txz * st.M[6 + j]);
-          gkv += gv * (st.M[3 + j] - st.tyz * st.M[6 + j]);
-        }
-        const double izs = 1.0 / st.zs;
-        const double gmx = gm2[2 * i], gmy = gm2[2 * i + 1];
-        // x/z and y/z feed the clamp (Jacobian) and the projected mean.
-        const double gxz = (st.clx ? gtx : 0.0) + gmx * cm.fx;
-        const double gyz = (st.cly ? gty : 0.0) + gmy * cm.fy;
-        double gp[3];
-        gp[0] = gxz * izs;
-        gp[1] = gyz * izs;
-        const double gzs = -(gxz * st.p[0] + gyz * st.p[1]) * izs * izs - (gku * cm.fx + gkv * cm.fy) * izs * izs;
-        gp[2] = double(gd[i]) + (st.in_depth ? gzs : 0.0);
-        for (int k = 0; k < 3; ++k)
-          om[3 * i + k] = static_cast<scalar_t>(cm.R[k] * gp[0] + cm.R[3 + k] * gp[1] + cm.R[6 + k] * gp[2]);
-        // Mc = Rw (R S): gradient of R S is Rw^T gMc.
-        double gRS[9];
-        for (int r = 0; r < 3; ++r)
-          for (int j = 0; j < 3; ++j)
-            gRS[3 * r + j] = cm.R[r] * gMc[j] + cm.R[3 + r] * gMc[3 + j] + cm.R[6 + r] * gMc[6 + j];
-        double gR[9];
-        for (int j = 0; j < 3; ++j) {
-          const double sj = double(ps[3 * i + j]);
-          os[3 * i + j] = static_cast<scalar_t>(gRS[j] * st.Rq[j] + gRS[3 + j] * st.Rq[3 + j] + gRS[6 + j] * st.Rq[6 + j]);
-          for (int r = 0; r < 3; ++r) gR[3 * r + j] = gRS[3 * r + j] * sj;
-        }
-        const double w = st.qn[0], x = st.qn[1], y = st.qn[2], z = st.qn[3];
-        double gn[4];
-        gn[0] = 2 * (-z * gR[1] + y * gR[2] + z * gR[3] - x * gR[5] - y * gR[6] + x * gR[7]);
-        gn[1] = 2 * (y * gR[1] + z * gR[2] + y * gR[3] - 2 * x * gR[4] - w * gR[5] + z * gR[6] + w * gR[7] - 2 * x * gR[8]);
-        gn[2] = 2 * (-2 * y * gR[0] + x * gR[1] + w * gR[2] + x * gR[3] + z * gR[5] - w * gR[6] + z * gR[7] - 2 * y * gR[8]);
-        gn[3] = 2 * (-2 * z * gR[0] - w * gR[1] + x * gR[2] + w * gR[3] - 2 * z * gR[4] + y * gR[5] + x * gR[6] + y * gR[7]);
-        // qn = q / |q|: project out the radial part.
-        const double dot = w * gn[0] + x * gn[1] + y * gn[2] + z * gn[3];
-        for (int k = 0; k < 4; ++k)
-          oq[4 * i + k] = static_cast<scalar_t>(st.ok_q ? (gn[k] - st.qn[k] * dot) * st.inv_qn : 0.0);
-      }
+    over_gaussians(N, [&](int64_t i, auto vec) {
+      typedef typename std::conditional<decltype(vec)::value, dibrgs::VD, double>::type D;
+      dibrgs::proj::backward<D>(cm, pm, pq, ps, i, near, far, gm2, gc, gd, om, oq, os);
     });
   });
   return {gm, gq, gs};
