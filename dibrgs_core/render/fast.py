@@ -1,8 +1,10 @@
 """Fast CPU path: projection and compositing in a C++ torch extension compiled on first use.
 
 Build and cache
-    The extension (``csrc/rasterize.cpp``, ``csrc/composite.h`` and, for training, the loss's
-    SSIM ``csrc/ssim.h`` and the optimiser's step ``csrc/adam.h``) is compiled
+    The extension (``csrc/rasterize.cpp`` with the projection ``csrc/project.h`` and the tile
+    kernels ``csrc/composite.h``; for training, the loss's SSIM ``csrc/ssim.h``, the optimiser's
+    step ``csrc/adam.h``, the anchors' culling, gathers and spawning ``csrc/spawn.h``,
+    ``csrc/rows.h``) is compiled
     for the machine that runs it (``-march=native``: 16-lane float vectors with
     AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on
     first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default

@@ -1,6 +1,6 @@
 // CPU tile rasterizer for 3D Gaussian Splatting: binning, compositing (the
-// per-tile kernels are in composite.h) and the fused EWA projection, as a torch
-// extension. Same rules as reference.py (see there). Tiles are spread
+// per-tile kernels are in composite.h) and the fused EWA projection (project.h),
+// as a torch extension. Same rules as reference.py (see there). Tiles are spread
 // dynamically over torch's intra-op threads (the extension is built with
 // -fopenmp: at::parallel_for is a header template and would run serially
 // otherwise).
