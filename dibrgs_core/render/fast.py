@@ -4,10 +4,8 @@ Build and cache
     The extension (``csrc/rasterize.cpp`` with the projection ``csrc/project.h`` and the tile
     kernels ``csrc/composite.h``; for training, the loss's SSIM ``csrc/ssim.h``, the optimiser's
     step ``csrc/adam.h``, the anchors' culling, gathers and spawning ``csrc/spawn.h``,
-    ``csrc/rows.h``) is compiled
-    for the machine that runs it (``-march=native``: 16-lane float vectors with
-    AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on
-    first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
+    ``csrc/rows.h``) is compiled for the machine that runs it (``-march=native``: 16-lane float
+    vectors with AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
     ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source
     bytes, the compiler (``$CXX``, default ``c++``), the flags, the torch and
     Python versions and the CPU's instruction-set flags - not of the source's
