@@ -5,14 +5,13 @@ Build and cache
     kernels ``csrc/composite.h``; for training, the loss's SSIM ``csrc/ssim.h``, the optimiser's
     step ``csrc/adam.h``, the anchors' culling, gathers and spawning ``csrc/spawn.h``,
     ``csrc/rows.h``) is compiled for the machine that runs it (``-march=native``: 16-lane float
-    vectors with AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
-    ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source
-    bytes, the compiler (``$CXX``, default ``c++``), the flags, the torch and
-    Python versions and the CPU's instruction-set flags - not of the source's
-    path: the sources are copied into that folder and compiled there, so two
-    copies of the package (a git checkout and the installed Blender add-on)
-    share one build, and a cache copied to another CPU is rebuilt. Once built,
-    loading it is an import (no compiler, no ninja).
+    vectors with AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on first
+    use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default ``~/.cache/dibrgs/ext``), in a folder
+    named after a digest of the source bytes, the compiler (``$CXX``, default ``c++``), the flags,
+    the torch and Python versions and the CPU's instruction-set flags - not of the source's path:
+    the sources are copied into that folder and compiled there, so two copies of the package (a
+    git checkout and the installed Blender add-on) share one build, and a cache copied to another
+    CPU is rebuilt. Once built, loading it is an import (no compiler, no ninja).
 
     The first build takes one to two minutes. Callers that want to say so
     first check :func:`is_built` (cheap: hashes the sources, compiles nothing)
