@@ -110,6 +110,18 @@ inline VF vsqrt(VF x) {
   return x;
 #endif
 }
+inline VD vsqrt(VD x) {
+#if defined(__AVX512F__)
+  return (VD)_mm512_sqrt_pd((__m512d)x);
+#elif DIBRGS_VBYTES == 32
+  return (VD)_mm256_sqrt_pd((__m256d)x);
+#elif defined(__SSE2__)
+  return (VD)_mm_sqrt_pd((__m128d)x);
+#else
+  for (int i = 0; i < VBYTES / 8; ++i) x[i] = std::sqrt(x[i]);
+  return x;
+#endif
+}
 
 // Bit i = lane i of a 0 / -1 mask.
 inline uint32_t lanes(VIF m) {

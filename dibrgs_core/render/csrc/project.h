@@ -32,19 +32,8 @@ inline double vmin(double a, double b) { return std::min(a, b); }
 inline VD vmin(VD a, VD b) { return b < a ? b : a; }  // std::min's choice, NaN included
 inline double vmax(double a, double b) { return std::max(a, b); }
 inline VD vmax(VD a, VD b) { return a < b ? b : a; }
+using dibrgs::vsqrt;  // VD (composite.h)
 inline double vsqrt(double x) { return std::sqrt(x); }
-inline VD vsqrt(VD x) {
-#if defined(__AVX512F__)
-  return (VD)_mm512_sqrt_pd((__m512d)x);
-#elif DIBRGS_VBYTES == 32
-  return (VD)_mm256_sqrt_pd((__m256d)x);
-#elif defined(__SSE2__)
-  return (VD)_mm_sqrt_pd((__m128d)x);
-#else
-  for (int l = 0; l < LD; ++l) x[l] = std::sqrt(x[l]);
-  return x;
-#endif
-}
 inline double vceil(double x) { return std::ceil(x); }
 inline VD vceil(VD x) {
 #if defined(__AVX512F__)
