@@ -87,14 +87,17 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     if H > 2 * r and W > 2 * r:
         # The interior's mean as a weighted sum: its backward is one product, where a slice's
         # is a zeroed image and two strided copies.
-        return (m * _interior_weights(H, W, r, m.dim(), m.dtype, m.device)).sum() / (m.numel() // (H * W))
+        w = _interior_weights(H, W, r, m.dim(), m.dtype, m.device, torch.is_inference_mode_enabled())
+        return (m * w).sum() / (m.numel() // (H * W))
     return m.mean()
 
 
 @functools.lru_cache(maxsize=8)
-def _interior_weights(H: int, W: int, r: int, dim: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def _interior_weights(H: int, W: int, r: int, dim: int, dtype: torch.dtype, device: torch.device,
+                      inference: bool) -> torch.Tensor:
     """(H, W[, 1]) weights: 1 / (number of interior pixels) on the pixels at least ``r`` from the
-    border, 0 on the border. Cached (read only)."""
+    border, 0 on the border. Cached (read only); ``inference`` keys it too, since a tensor made in
+    inference mode cannot be saved for a later backward."""
     w = torch.zeros((H, W, 1)[:dim], dtype=dtype, device=device)
     w[r:H - r, r:W - r] = 1.0 / ((H - 2 * r) * (W - 2 * r))
     return w

@@ -144,3 +144,16 @@ def test_psnr_known_value():
     assert float(psnr(a, b)) == pytest.approx(20.0, abs=1e-4)
     m = torch.zeros(8, 8, dtype=torch.bool)
     assert float(psnr(a, b, mask=m)) == 0.0
+
+
+def test_ssim_after_inference_mode_still_trains():
+    """The cached interior weights of the mean SSIM: a first call in inference mode (evaluation)
+    must not hand a later training call a tensor that autograd cannot save."""
+    g = torch.Generator().manual_seed(11)
+    a, b = torch.rand(24, 20, 3, generator=g), torch.rand(24, 20, 3, generator=g)
+    with torch.inference_mode():
+        s0 = float(ssim(a, b))
+    p = a.clone().requires_grad_()
+    s1 = ssim(p, b)
+    s1.backward()
+    assert abs(float(s1.detach()) - s0) < 1e-6 and p.grad is not None and bool(torch.isfinite(p.grad).all())
