@@ -348,22 +348,22 @@ def composite_fast(
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, cam, width, height, near, far):  # type: ignore[override]
-        m2, con, dep, rad = extension().project_forward(means, quats, scales, cam, width, height, near, far)
-        ctx.save_for_backward(means, quats, scales, cam)
+    def forward(ctx, means, quats, scales, K, viewmat, width, height, near, far):  # type: ignore[override]
+        m2, con, dep, rad = extension().project_forward(means, quats, scales, K, viewmat, width, height, near, far)
+        ctx.save_for_backward(means, quats, scales, K, viewmat)
         ctx.args = (width, height, near, far)
         ctx.mark_non_differentiable(rad)
         return m2, con, dep, rad
 
     @staticmethod
     def backward(ctx, g_m2, g_con, g_dep, _g_rad):  # type: ignore[override]
-        means, quats, scales, cam = ctx.saved_tensors
+        means, quats, scales, K, viewmat = ctx.saved_tensors
         grads = [
             torch.zeros_like(ref) if g is None else g.contiguous()
             for g, ref in ((g_m2, means[:, :2]), (g_con, means), (g_dep, means[:, 0]))
         ]
-        gm, gq, gs = extension().project_backward(means, quats, scales, cam, *ctx.args, *grads)
-        return gm, gq, gs, None, None, None, None, None
+        gm, gq, gs = extension().project_backward(means, quats, scales, K, viewmat, *ctx.args, *grads)
+        return gm, gq, gs, None, None, None, None, None, None
 
 
 def project_fast(
@@ -386,11 +386,8 @@ def project_fast(
     if not near > 0:
         raise ValueError(f"near plane must be positive, got {near}")
     dt = means.dtype
-    vm = viewmat.detach().to(device="cpu", dtype=torch.float64)
-    Kd = K.detach().to(device="cpu", dtype=torch.float64)
-    cam = torch.cat([vm[:3, :3].reshape(-1), vm[:3, 3], torch.stack([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]])])
     m2, con, dep, rad = _Project.apply(
-        means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), cam.contiguous(),
+        means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), K.detach(), viewmat.detach(),
         width, height, float(near), float(far),
     )
     if m2.requires_grad:

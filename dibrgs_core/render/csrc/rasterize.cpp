@@ -9,6 +9,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <mutex>
@@ -453,6 +454,22 @@ torch::Tensor composite_stats(torch::Tensor rec, torch::Tensor offsets, torch::T
 // The vector code path this build uses, and its float lanes.
 std::string simd() { return std::string(dibrgs::simd_name()) + " x" + std::to_string(dibrgs::VBYTES / 4); }
 
+// A camera as the kernels read it (project.h Cam, spawn.h visible): float64 R (row-major 3x3)
+// and t of the world-to-camera w2c (4, 4), then fx, fy, cx, cy of K (3, 3, pixels).
+std::array<double, 16> camera_params(const torch::Tensor& K, const torch::Tensor& w2c) {
+  TORCH_CHECK(K.numel() == 9 && w2c.numel() == 16, "camera: K must be 3 x 3 and w2c 4 x 4");
+  const auto Kd = K.cpu().to(torch::kFloat64).contiguous(), vm = w2c.cpu().to(torch::kFloat64).contiguous();
+  const double* pk = Kd.data_ptr<double>();
+  const double* pv = vm.data_ptr<double>();
+  std::array<double, 16> cam;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam[3 * i + j] = pv[4 * i + j];
+    cam[9 + i] = pv[4 * i + 3];
+  }
+  cam[12] = pk[0], cam[13] = pk[4], cam[14] = pk[2], cam[15] = pk[5];
+  return cam;
+}
+
 // Projection (EWA splatting, project.h): whole vectors of Gaussians, then the rest one by one.
 template <typename F>
 void over_gaussians(int64_t N, F&& f) {
@@ -466,13 +483,14 @@ void over_gaussians(int64_t N, F&& f) {
 // Forward projection. Returns (means2d (N, 2), conics (N, 3), depths (N,)) in
 // the dtype of means and radii (N,) int32 (0 = culled).
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                           torch::Tensor cam, int64_t W, int64_t H, double near, double far) {
+                                           torch::Tensor K, torch::Tensor w2c, int64_t W, int64_t H, double near,
+                                           double far) {
   const int64_t N = means.size(0);
   auto m2 = torch::empty({N, 2}, means.options());
   auto con = torch::empty({N, 3}, means.options());
   auto dep = torch::empty({N}, means.options());
   auto rad = torch::empty({N}, torch::dtype(torch::kInt32));
-  const dibrgs::proj::Cam cm(cam.data_ptr<double>(), W, H);
+  const dibrgs::proj::Cam cm(camera_params(K, w2c).data(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_forward", [&] {
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
     scalar_t *om = m2.data_ptr<scalar_t>(), *oc = con.data_ptr<scalar_t>(), *od = dep.data_ptr<scalar_t>();
@@ -488,13 +506,14 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
 // Backward projection: gradients (means (N, 3), quats (N, 4), scales (N, 3))
 // from those of means2d, conics and depths.
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                            torch::Tensor cam, int64_t W, int64_t H, double near, double far,
+                                            torch::Tensor K, torch::Tensor w2c, int64_t W, int64_t H, double near,
+                                            double far,
                                             torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_dep) {
   const int64_t N = means.size(0);
   auto gm = torch::empty_like(means);
   auto gq = torch::empty_like(quats);
   auto gs = torch::empty_like(scales);
-  const dibrgs::proj::Cam cm(cam.data_ptr<double>(), W, H);
+  const dibrgs::proj::Cam cm(camera_params(K, w2c).data(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_backward", [&] {
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
     const scalar_t *gm2 = g_m2.data_ptr<scalar_t>(), *gc = g_con.data_ptr<scalar_t>(), *gd = g_dep.data_ptr<scalar_t>();
@@ -679,20 +698,11 @@ torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torc
               "anchor_visibility: shapes must be anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)");
   const auto dt = anchor.scalar_type();
   auto a = anchor.contiguous(), o = offset.to(dt).contiguous(), l = log_scaling.to(dt).contiguous();
-  TORCH_CHECK(K.numel() == 9 && w2c.numel() == 16, "anchor_visibility: K must be 3 x 3 and w2c 4 x 4");
-  const auto Kd = K.to(torch::kFloat64).contiguous(), vm = w2c.to(torch::kFloat64).contiguous();
-  const double* pk = Kd.data_ptr<double>();
-  const double* pv = vm.data_ptr<double>();
-  double cam[16];  // R row by row, t, fx, fy, cx, cy
-  for (int i = 0; i < 3; ++i) {
-    for (int j = 0; j < 3; ++j) cam[3 * i + j] = pv[4 * i + j];
-    cam[9 + i] = pv[4 * i + 3];
-  }
-  cam[12] = pk[0], cam[13] = pk[4], cam[14] = pk[2], cam[15] = pk[5];
+  const auto cam = camera_params(K, w2c);
   auto out = torch::empty({N}, torch::kBool);
   AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_anchor_visibility", [&] {
     dibrgs::spawn::visible<scalar_t>(a.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), l.data_ptr<scalar_t>(), N, k,
-                                     cam, W, H, near, out.data_ptr<bool>());
+                                     cam.data(), W, H, near, out.data_ptr<bool>());
   });
   return out;
 }
