@@ -172,9 +172,9 @@ class NeuralGaussians(nn.Module):
         return NEAR_FRACTION * self.dist_scale
 
     # -- per-anchor helpers ----------------------------------------------------
-    def anchor_scaling(self, idx: torch.Tensor | None = None) -> torch.Tensor:
-        """(N,6) activated anchor scaling, or (len(idx),6) of the anchors ``idx``."""
-        return _activate_scaling(self.scaling if idx is None else take_rows([self.scaling], idx)[0])
+    def anchor_scaling(self) -> torch.Tensor:
+        """(N,6) activated anchor scaling (the decode activates the visible anchors' rows itself)."""
+        return _activate_scaling(self.scaling)
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
