@@ -11,8 +11,14 @@ rendered at its held-out cameras at its own resolution and scored:
 * ``seen``: PSNR of the pooled squared error over the pixels at least one training photo sees;
 * ``unseen`` / ``one`` / ``two_plus``: pooled PSNR by how many training photos see the pixel.
 
+``--warp`` adds a baseline without training: the training photos warped straight into each held-out
+camera by progressive DIBR with the run's own dense cloud (``init/points.ply``; the same warp, depth
+completion and consistency check that make its pseudo views), scored beside the run's render over
+the pixels the warp covers. A run that does no better than this warp has learned nothing beyond its
+initial geometry.
+
     python scripts/eval_real_flight.py SCENE WORK [WORK ...] [--reference FILE] [--json FILE]
-        [--md FILE] [--png FILE] [--views NAME,NAME] [--curves FILE]
+        [--md FILE] [--png FILE] [--views NAME,NAME] [--curves FILE] [--warp]
 
 ``--png`` writes a side-by-side of two held-out photos (ground truth, then each run) with the
 unseen part shaded.
@@ -67,21 +73,27 @@ def plane_depth(cam, normal: np.ndarray, offset: float) -> np.ndarray:
     return t.reshape(cam.height, cam.width)
 
 
-def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
+def run_frames(scene_dir: Path, w: Path, t) -> tuple[list, list]:
+    """Training and held-out frames of run ``w`` (trained model ``t``): its split, its resolution."""
     from dibrgs_core.data.load import read_any_scene
-    from dibrgs_core.evaluation.evaluate import load_trained, run_scale
-    from dibrgs_core.geometry.visibility import SplitError, visibility_count
+    from dibrgs_core.evaluation.evaluate import run_scale
     from dibrgs_core.training.frames import views_to_frames
+
+    rep = json.loads((w / "report.json").read_text())["values"]["scene"]
+    scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=False)
+    s = run_scale(w, t, scene)
+    return views_to_frames(scene.train_views(), s), views_to_frames(scene.test_views(), s)
+
+
+def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
+    from dibrgs_core.evaluation.evaluate import load_trained
+    from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
     normal, offset = fit_plane(read_reference_points(reference))
     runs, counts_of, images = [], {}, {}
     for w in works:
         t = load_trained(w)
-        rep = json.loads((w / "report.json").read_text())["values"]["scene"]
-        scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=False)
-        s = run_scale(w, t, scene)
-        train = views_to_frames(scene.train_views(), s)
-        test = views_to_frames(scene.test_views(), s)
+        train, test = run_frames(scene_dir, w, t)
         sources = [(f.cam.cam, plane_depth(f.cam.cam, normal, offset)) for f in train]
         acc, per_view = SplitError.empty(), {}
         for f in test:
@@ -96,6 +108,7 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
             mse = float(((img - gt) ** 2).mean())
             per_view[cam.name] = -10.0 * np.log10(max(mse, 1e-20))
             images.setdefault(cam.name, {"gt": gt, "count": count})[str(w)] = img
+            images[cam.name].setdefault("key", {})[str(w)] = key
         p = acc.psnr()
         n_seen = acc.n["one"] + acc.n["two_plus"]
         sse_seen = acc.sse["one"] + acc.sse["two_plus"]
@@ -105,7 +118,70 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
                      "seen_fraction": n_seen / max(acc.n["all"], 1)})
     return {"scene": str(scene_dir), "reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset},
-            "runs": runs, "_images": images}
+            "runs": runs, "_images": images, "_counts": counts_of}
+
+
+def warp_baselines(scene_dir: Path, res: dict) -> list[dict]:
+    """For each run of :func:`evaluate_runs` ``res`` with a dense cloud: its training photos warped
+    into its held-out cameras (progressive DIBR, the run's cloud and pseudo-view settings), and the
+    pooled PSNR by visibility group of the warp and of the run's render over the pixels the warp
+    covers (warped or padded)."""
+    import tempfile
+
+    from dibrgs_core.data.ply import read_ply
+    from dibrgs_core.data.scene import View
+    from dibrgs_core.evaluation.evaluate import load_trained
+    from dibrgs_core.geometry.surface import decide
+    from dibrgs_core.geometry.visibility import SplitError
+    from dibrgs_core.training.pseudo_views import build_pseudo_views
+
+    rows = []
+    for r in res["runs"]:
+        w = Path(r["work"])
+        cloud = w / "init" / "points.ply"
+        if not cloud.is_file():
+            print(f"note: {w}: no dense cloud ({cloud}), no warp baseline", file=sys.stderr)
+            continue
+        t = load_trained(w)
+        train, test = run_frames(scene_dir, w, t)
+        cams = [f.cam.cam for f in train]
+        surface, _why = decide(t.cfg.pseudo.surface, cams)
+        with tempfile.TemporaryDirectory() as tmp:
+            built = build_pseudo_views([View(c, f.image.numpy()) for c, f in zip(cams, train)], read_ply(cloud)[0], 0,
+                                       t.cfg.seed, tmp, path=[f.cam.cam for f in test], surface=surface,
+                                       consistency_tol=t.cfg.pseudo.consistency_tol)
+        warp, model = SplitError.empty(), SplitError.empty()
+        for f, pv in zip(test, built.views):
+            d = res["_images"][f.cam.cam.name]
+            covered = pv.valid | pv.padded
+            count = np.where(covered, res["_counts"][d["key"][str(w)]], -1)  # -1: in no group
+            gt = f.image.numpy()
+            warp.add(pv.image[..., :3], gt, count)
+            model.add(d[str(w)], gt, count)
+
+        def seen(acc: SplitError) -> float | None:
+            n = acc.n["one"] + acc.n["two_plus"]
+            return None if n == 0 else float(-10.0 * np.log10(max((acc.sse["one"] + acc.sse["two_plus"]) / n, 1e-20)))
+
+        n_seen = r["seen_fraction"] * warp.n["all"]
+        rows.append({"work": str(w), "covered_seen": (warp.n["one"] + warp.n["two_plus"]) / max(n_seen, 1),
+                     "warp": {"seen": seen(warp), **warp.psnr()}, "model": {"seen": seen(model), **model.psnr()}})
+    return rows
+
+
+def warp_table(rows: list[dict]) -> str:
+    def fmt(x):
+        return "-" if x is None else f"{x:.2f}"
+
+    lines = ["Training photos warped into the held-out cameras with the run's dense cloud (no training), against "
+             "the run's render over the same pixels (those the warp covers); PSNR in dB.", "",
+             "| run | seen pixels covered | warp: seen | run: seen | warp: by one | run: by one | "
+             "warp: by two or more | run: by two or more |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        a, b = r["warp"], r["model"]
+        lines.append(f"| {Path(r['work']).name} | {r['covered_seen']:.1%} | {fmt(a['seen'])} | {fmt(b['seen'])} | "
+                     f"{fmt(a['one'])} | {fmt(b['one'])} | {fmt(a['two_plus'])} | {fmt(b['two_plus'])} |")
+    return "\n".join(lines)
 
 
 def table(res: dict) -> str:
@@ -198,6 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--png", type=Path, help="side-by-side of two held-out photos")
     ap.add_argument("--views", default=None, help="comma-separated held-out photo names for --png")
     ap.add_argument("--curves", type=Path, help="held-out PSNR against training time of every run (PNG)")
+    ap.add_argument("--warp", action="store_true",
+                    help="also score the training photos warped into the held-out cameras with each run's cloud")
     a = ap.parse_args(argv)
     ref = a.reference or a.scene / "reference_points.txt"
     if not ref.is_file():
@@ -208,9 +286,13 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(table(res))
+    text = table(res)
+    if a.warp:
+        res["warp"] = warp_baselines(a.scene, res)
+        text += "\n\n" + warp_table(res["warp"])
+    print(text)
     if a.md:
-        write_text(a.md, table(res) + "\n")
+        write_text(a.md, text + "\n")
     if a.png:
         side_by_side(res, a.png, a.views.split(",") if a.views else None)
     if a.curves:

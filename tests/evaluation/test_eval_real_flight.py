@@ -20,7 +20,8 @@ def test_scores_a_run_by_visibility_and_draws_its_figures(scene24, finished_run,
     out = tmp_path / "out"
     res = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(scene24), str(finished_run),
                           "--reference", str(ref), "--json", str(out / "r.json"), "--png", str(out / "views.png"),
-                          "--curves", str(out / "curves.png")], capture_output=True, text=True, timeout=600)
+                          "--curves", str(out / "curves.png"), "--warp", "--md", str(out / "t.md")],
+                         capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     r = json.loads((out / "r.json").read_text())
     (run,) = r["runs"]
@@ -28,6 +29,12 @@ def test_scores_a_run_by_visibility_and_draws_its_figures(scene24, finished_run,
     assert 0.0 < run["seen_fraction"] <= 1.0 and np.isfinite(run["seen"])
     assert abs(sum(run["fractions"][k] for k in ("one", "two_plus")) - run["seen_fraction"]) < 1e-6
     assert (out / "views.png").stat().st_size > 1000 and (out / "curves.png").stat().st_size > 1000
+    # The warp baseline: the training photos warped with the run's cloud cover part of the seen
+    # pixels, and both it and the run are scored there.
+    (wb,) = r["warp"]
+    assert wb["work"] == str(finished_run) and 0.0 < wb["covered_seen"] <= 1.0 + 1e-9
+    assert np.isfinite(wb["warp"]["seen"]) and np.isfinite(wb["model"]["seen"])
+    assert "warped into the held-out cameras" in (out / "t.md").read_text()
     # A missing reference file is one line naming it.
     bad = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(scene24),
                           str(finished_run), "--reference", str(tmp_path / "none.txt")],
