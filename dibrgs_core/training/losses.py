@@ -24,9 +24,17 @@ from ..render import uses_fast
 
 _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
+_WINDOW, _SIGMA = 11, 1.5  # the loss's SSIM window (Wang et al.)
 
 
 def _gauss_1d(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The normalised 1-D Gaussian window (cached, read only)."""
+    return _gauss_cached(window, float(sigma), dtype, device, torch.is_inference_mode_enabled())
+
+
+@functools.lru_cache(maxsize=16)
+def _gauss_cached(window: int, sigma: float, dtype: torch.dtype, device: torch.device, inference: bool
+                  ) -> torch.Tensor:
     r = window // 2
     x = torch.arange(-r, r + 1, dtype=dtype, device=device)
     g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
@@ -42,7 +50,7 @@ def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
 
 
-def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma: float = _SIGMA) -> torch.Tensor:
     """Per-pixel SSIM, shape (H, W, C). Differentiable with respect to both inputs.
 
     CPU tensors go through the C++ kernel (:func:`dibrgs_core.render.ssim.ssim_map_fast`, the
@@ -57,8 +65,7 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     g = _gauss_1d(window, sigma, pred.dtype, pred.device)
     hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)
     p3, t3 = pred.reshape(hwc), gt.to(pred.dtype).reshape(hwc)
-    if (pred.dtype in (torch.float32, torch.float64) and pred.numel() > 0 and not gt.requires_grad
-            and uses_fast(None, pred)):
+    if _kernel_applies(pred, gt):
         from ..render.ssim import ssim_map_fast
 
         return ssim_map_fast(p3, t3, g).reshape(pred.shape)
@@ -75,7 +82,7 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     return (num / den)[0].permute(1, 2, 0).reshape(pred.shape)
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma: float = _SIGMA) -> torch.Tensor:
     """Mean SSIM of two (H,W,C) or (H,W) images in [0,1] (0-d tensor, differentiable).
 
     Matches scikit-image's Gaussian-weighted SSIM: the mean excludes a border of
@@ -103,6 +110,26 @@ def _interior_weights(H: int, W: int, r: int, dim: int, dtype: torch.dtype, devi
     return w
 
 
+def _kernel_applies(pred: torch.Tensor, gt: torch.Tensor) -> bool:
+    """Whether the C++ SSIM / loss kernels take these images (else the torch formulation)."""
+    return (pred.dtype in (torch.float32, torch.float64) and pred.numel() > 0 and not gt.requires_grad
+            and uses_fast(None, pred))
+
+
+@functools.lru_cache(maxsize=8)
+def _plain_weights(H: int, W: int, C: int, r: int, dtype: torch.dtype, device: torch.device, inference: bool
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H, W, C) weights of the unmasked loss on the C++ path: L1's mean over every value, and
+    D-SSIM's over the interior (:func:`ssim`), each summing to 1. Cached (read only), keyed by
+    inference mode like :func:`_interior_weights`."""
+    wl = torch.full((H, W, C), 1.0 / (H * W * C), dtype=dtype, device=device)
+    if H > 2 * r and W > 2 * r:
+        ws = (_interior_weights(H, W, r, 3, dtype, device, inference) / C).expand(H, W, C).contiguous()
+    else:
+        ws = wl
+    return wl, ws
+
+
 def _mask_hw1(mask: torch.Tensor, H: int, W: int, like: torch.Tensor) -> torch.Tensor:
     m = mask.to(dtype=like.dtype, device=like.device)
     if m.dim() == 3:
@@ -126,16 +153,29 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     if pred.shape != gt.shape:
         raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
     gt = gt.to(pred.dtype)
+    H, W = pred.shape[0], pred.shape[1]
+    C = pred.shape[2] if pred.dim() == 3 else 1
+    fast = pred.dim() in (2, 3) and _kernel_applies(pred, gt)
     if mask is None:
+        if fast:
+            from ..render.ssim import photometric_fast
+
+            wl, ws = _plain_weights(H, W, C, _WINDOW // 2, pred.dtype, pred.device, torch.is_inference_mode_enabled())
+            return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
+                                    _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), wl, ws, lam)
         l1 = (pred - gt).abs().mean()
         return (1.0 - lam) * l1 + lam * (1.0 - ssim(pred, gt))
-    H, W = pred.shape[0], pred.shape[1]
     m = _mask_hw1(mask, H, W, pred)
     wsum = m.sum()
     if float(wsum) <= 0.0:
         # Keep the graph (zero gradients) without dividing by zero.
         return (pred * 0.0).sum()
-    C = pred.shape[2] if pred.dim() == 3 else 1
+    if fast:
+        from ..render.ssim import photometric_fast
+
+        w = (m / (wsum * C)).detach().expand(H, W, C)
+        return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
+                                _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), w, w, lam)
     diff = (pred - gt).abs()
     if diff.dim() == 2:
         diff = diff[..., None]

@@ -87,6 +87,45 @@ def test_ssim_kernel_equals_the_torch_formulation(shape, window):
         render.set_backend(None)
 
 
+@pytest.mark.parametrize("shape", [(23, 31, 3), (12, 9), (7, 5, 3), (40, 33, 1)])
+@pytest.mark.parametrize("masked", [False, True])
+def test_fused_loss_equals_the_torch_formulation(shape, masked):
+    """The loss in one C++ node (render/ssim.py photometric_fast: L1 + D-SSIM, plain or masked)
+    against the torch formulation: values and gradients equal to rounding in float64, within
+    float32 rounding in float32; its backward passes gradcheck; the same weights make the loss
+    of an empty mask exactly 0."""
+    gen = torch.Generator().manual_seed(sum(shape) + masked)
+    p64 = torch.rand(shape, generator=gen, dtype=torch.float64)
+    t64 = torch.rand(shape, generator=gen, dtype=torch.float64)
+    t64[:2] = p64[:2]  # equal pixels: |x - y| has gradient 0 there in both
+    mask = (torch.rand(shape[:2], generator=gen) > 0.4) if masked else None
+
+    def run(backend, dt):
+        render.set_backend(backend)
+        try:
+            p = p64.to(dt).requires_grad_()
+            loss = photometric_loss(p, t64.to(dt), lam=0.3, mask=mask)
+            # the fast backend is the one node
+            assert (type(loss.grad_fn).__name__ == "_PhotometricBackward") == (backend == "fast")
+            return loss.detach().double(), torch.autograd.grad(loss, p)[0].double()
+        finally:
+            render.set_backend(None)
+
+    ref64, fast64 = run("reference", torch.float64), run("fast", torch.float64)
+    assert abs(float(fast64[0] - ref64[0])) < 1e-12
+    assert float((fast64[1] - ref64[1]).abs().max()) < 1e-12 * float(ref64[1].abs().max())
+    fast32 = run("fast", torch.float32)
+    assert abs(float(fast32[0] - ref64[0])) < 1e-6
+    assert float((fast32[1] - ref64[1]).abs().max()) < 1e-5 * float(ref64[1].abs().max())
+    render.set_backend("fast")
+    try:
+        # away from |x - y| = 0, where L1 has no derivative
+        q = (p64 + 0.5 * (p64 > t64).double() - 0.25).requires_grad_()
+        assert torch.autograd.gradcheck(lambda x: photometric_loss(x, t64, lam=0.3, mask=mask), (q,))
+    finally:
+        render.set_backend(None)
+
+
 def test_ssim_gradient_reaches_a_target_that_needs_one():
     """With a target that needs a gradient the torch formulation runs (the kernel has none for it)."""
     a = torch.rand(10, 12, 3, dtype=torch.float64, requires_grad=True)

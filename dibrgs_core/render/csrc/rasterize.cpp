@@ -23,6 +23,7 @@
 
 #include "adam.h"
 #include "composite.h"
+#include "loss.h"
 #include "spawn.h"
 #include "project.h"
 #include "rows.h"
@@ -560,6 +561,45 @@ torch::Tensor ssim_backward(torch::Tensor gS, torch::Tensor x, torch::Tensor y, 
   return dx;
 }
 
+// The training loss (training/losses.py photometric_loss) of x against y ((H, W, C) each) in one
+// node: (1 - lam) sum(|x - y| wl) + lam sum((1 - S) ws) (loss.h), S the SSIM map (window g), wl and
+// ws (H, W, C) weights (the plain loss: 1 / (H W C) everywhere and the SSIM interior's 1 / (n C); a
+// pseudo view's: mask / (sum(mask) C) for both). Returns {loss (0-d), A, B, C}.
+std::vector<torch::Tensor> photometric_forward(torch::Tensor x, torch::Tensor y, torch::Tensor g, torch::Tensor wl,
+                                               torch::Tensor ws, double lam) {
+  x = x.contiguous();
+  y = y.to(x.scalar_type()).contiguous();
+  TORCH_CHECK(wl.sizes() == x.sizes() && ws.sizes() == x.sizes(), "photometric_forward: the weights must be (H, W, C)");
+  wl = wl.to(x.scalar_type()).contiguous();
+  ws = ws.to(x.scalar_type()).contiguous();
+  auto f = ssim_forward(x, y, g);
+  double sums[2];
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_forward", [&] {
+    dibrgs::loss::sums<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), f[0].data_ptr<scalar_t>(),
+                                 wl.data_ptr<scalar_t>(), ws.data_ptr<scalar_t>(), x.numel(), sums);
+  });
+  auto loss = torch::full({}, (1.0 - lam) * sums[0] + lam * sums[1], x.options());
+  return {loss, f[1], f[2], f[3]};
+}
+
+// Gradient of photometric_forward's loss with respect to x, times gl (the loss's gradient, 0-d).
+torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Tensor y, torch::Tensor A,
+                                   torch::Tensor B, torch::Tensor C, torch::Tensor g, torch::Tensor wl,
+                                   torch::Tensor ws, double lam) {
+  const double G = gl.item<double>();
+  auto gS = torch::empty_like(x);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_gS", [&] {
+    dibrgs::loss::ssim_grad<scalar_t>(ws.data_ptr<scalar_t>(), x.numel(), static_cast<scalar_t>(-lam * G),
+                                      gS.data_ptr<scalar_t>());
+  });
+  auto dx = ssim_backward(gS, x, y, A, B, C, g);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_backward", [&] {
+    dibrgs::loss::add_l1_grad<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), wl.data_ptr<scalar_t>(),
+                                        x.numel(), static_cast<scalar_t>((1.0 - lam) * G), dx.data_ptr<scalar_t>());
+  });
+  return dx;
+}
+
 // One Adam step (adam.h) over float32 CPU tensors: params, grads, exp_avgs and exp_avg_sqs
 // (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (n x 6 float64:
 // lr, beta1, beta2, eps, weight_decay, decoupled 0/1).
@@ -781,6 +821,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_backward, "gradients of the projection");
   m.def("ssim_forward", &ssim_forward, "SSIM map and its gradient factors");
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
+  m.def("photometric_forward", &photometric_forward, "L1 + D-SSIM training loss and its SSIM factors");
+  m.def("photometric_backward", &photometric_backward, "gradient of photometric_forward");
   m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
   m.def("all_finite", &all_finite, "whether every element of the tensors is finite");
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
