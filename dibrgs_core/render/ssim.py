@@ -58,4 +58,4 @@ def photometric_fast(x: Tensor, y: Tensor, window: Tensor, wl: Tensor, ws: Tenso
     only."""
     dt = x.dtype
     return _Photometric.apply(x.contiguous(), y.detach().to(dt).contiguous(), window.detach().to(dt).contiguous(),
-                              wl.detach().contiguous(), ws.detach().contiguous(), float(lam))
+                              wl.detach().to(dt).contiguous(), ws.detach().to(dt).contiguous(), float(lam))
