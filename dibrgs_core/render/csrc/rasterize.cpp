@@ -587,6 +587,8 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
                                    torch::Tensor B, torch::Tensor C, torch::Tensor g, torch::Tensor wl,
                                    torch::Tensor ws, double lam) {
   const double G = gl.item<double>();
+  wl = wl.to(x.scalar_type()).contiguous();  // as the forward reads them
+  ws = ws.to(x.scalar_type()).contiguous();
   auto gS = torch::empty_like(x);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_gS", [&] {
     dibrgs::loss::ssim_grad<scalar_t>(ws.data_ptr<scalar_t>(), x.numel(), static_cast<scalar_t>(-lam * G),
