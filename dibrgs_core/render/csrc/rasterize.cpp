@@ -688,12 +688,14 @@ std::tuple<std::vector<torch::Tensor>, bool> take_rows_forward(std::vector<torch
   auto ix = idx.contiguous();
   const int64_t M = ix.size(0);
   const int64_t* pi = ix.data_ptr<int64_t>();
+  // The indices' range once, checked against each source's rows.
+  const int64_t lo = M ? *std::min_element(pi, pi + M) : 0, hi = M ? *std::max_element(pi, pi + M) : -1;
   std::vector<torch::Tensor> outs;
   for (const auto& src : srcs) {
     TORCH_CHECK(src.dim() >= 1, "take_rows: a source has no rows");
     auto s = src.contiguous();
     const int64_t N = s.size(0), D = N ? s.numel() / N : 0;
-    for (int64_t i = 0; i < M; ++i) TORCH_CHECK(pi[i] >= 0 && pi[i] < N, "take_rows: index ", pi[i], " out of range");
+    TORCH_CHECK(lo >= 0 && hi < N, "take_rows: index ", lo < 0 ? lo : hi, " out of range for ", N, " rows");
     auto sizes = s.sizes().vec();
     sizes[0] = M;
     auto out = torch::empty(sizes, s.options());
