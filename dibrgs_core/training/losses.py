@@ -156,13 +156,18 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     H, W = pred.shape[0], pred.shape[1]
     C = pred.shape[2] if pred.dim() == 3 else 1
     fast = pred.dim() in (2, 3) and _kernel_applies(pred, gt)
+
+    def one_node(wl: torch.Tensor, ws: torch.Tensor) -> torch.Tensor:
+        # The C++ path: L1 and D-SSIM with per-value weights in one autograd node.
+        from ..render.ssim import photometric_fast
+
+        return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
+                                _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), wl, ws, lam)
+
     if mask is None:
         if fast:
-            from ..render.ssim import photometric_fast
-
-            wl, ws = _plain_weights(H, W, C, _WINDOW // 2, pred.dtype, pred.device, torch.is_inference_mode_enabled())
-            return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
-                                    _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), wl, ws, lam)
+            return one_node(*_plain_weights(H, W, C, _WINDOW // 2, pred.dtype, pred.device,
+                                            torch.is_inference_mode_enabled()))
         l1 = (pred - gt).abs().mean()
         return (1.0 - lam) * l1 + lam * (1.0 - ssim(pred, gt))
     m = _mask_hw1(mask, H, W, pred)
@@ -171,11 +176,8 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
         # Keep the graph (zero gradients) without dividing by zero.
         return (pred * 0.0).sum()
     if fast:
-        from ..render.ssim import photometric_fast
-
         w = (m / (wsum * C)).detach().expand(H, W, C)
-        return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
-                                _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), w, w, lam)
+        return one_node(w, w)
     diff = (pred - gt).abs()
     if diff.dim() == 2:
         diff = diff[..., None]
