@@ -19,13 +19,13 @@ namespace loss {
 
 constexpr int64_t BLOCK = 4096;
 
+// |d| of a native vector or a scalar (the same select for both).
 template <typename U>
 inline U vabs(U d) {
   return d < 0 ? -d : d;
 }
-inline float vabs(float d) { return d < 0 ? -d : d; }
-inline double vabs(double d) { return d < 0 ? -d : d; }
 
+// The lanes of v summed in double (composite.h's hsum sums them in T).
 template <typename U, typename T>
 inline double hsum(const U& v) {
   double s = 0.0;
