@@ -92,8 +92,8 @@ def test_ssim_kernel_equals_the_torch_formulation(shape, window):
 def test_fused_loss_equals_the_torch_formulation(shape, masked):
     """The loss in one C++ node (render/ssim.py photometric_fast: L1 + D-SSIM, plain or masked)
     against the torch formulation: values and gradients equal to rounding in float64, within
-    float32 rounding in float32; its backward passes gradcheck; the same weights make the loss
-    of an empty mask exactly 0."""
+    float32 rounding in float32; its backward passes gradcheck; the fast backend's loss is that
+    one node. (An empty mask returns before either path: test_mask_restricts_loss_...)"""
     gen = torch.Generator().manual_seed(sum(shape) + masked)
     p64 = torch.rand(shape, generator=gen, dtype=torch.float64)
     t64 = torch.rand(shape, generator=gen, dtype=torch.float64)
