@@ -56,33 +56,103 @@ void run_workers(F&& worker) {
 
 namespace {
 
-// Indices sorted by increasing key, ties in their given order (LSD radix sort
-// on the keys' bytes; bytes that all keys share are skipped). The histograms of
-// all bytes come from one pass over the keys.
+// Blocks of about `grain` items for the binning's parallel passes: as many as the threads can
+// share out dynamically, none so small that its fork costs more than its work.
+inline int64_t block_count(int64_t n, int64_t grain) {
+  return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads() * 8, (n + grain - 1) / grain));
+}
+
+// Calls fn(b) for b in [0, nb), the blocks pulled dynamically by torch's intra-op threads.
+template <typename F>
+void for_blocks(int64_t nb, F&& fn) {
+  std::atomic<int64_t> next(0);
+  at::parallel_for(0, std::min<int64_t>(nb, at::get_num_threads()), 1, [&](int64_t, int64_t) {
+    for (int64_t b = next++; b < nb; b = next++) fn(b);
+  });
+}
+
+// Stable LSD radix sort of the n (key, idx) pairs at key, idx by key (bytes that all keys
+// share skipped; the histograms of all bytes from one pass); k2, i2: scratch of n each. The
+// result ends in key, idx.
 template <typename K>
-void radix_sort(std::vector<K>& key, std::vector<int32_t>& idx) {
+void radix_sort(K* key, int32_t* idx, int64_t n, K* k2, int32_t* i2) {
   constexpr int NB = sizeof(K);
-  const size_t n = key.size();
   if (n == 0) return;
-  std::vector<size_t> cnt(NB * 256, 0);
-  for (size_t i = 0; i < n; ++i)
+  std::vector<int64_t> cnt(NB * 256, 0);
+  for (int64_t i = 0; i < n; ++i)
     for (int b = 0; b < NB; ++b) ++cnt[b * 256 + ((key[i] >> (8 * b)) & 0xFF)];
-  std::vector<K> k2(n);
-  std::vector<int32_t> i2(n);
+  bool swapped = false;
   for (int b = 0; b < NB; ++b) {
-    const size_t* c = cnt.data() + b * 256;
+    const int64_t* c = cnt.data() + b * 256;
     const int shift = 8 * b;
     if (c[(key[0] >> shift) & 0xFF] == n) continue;
-    size_t pos[256], sum = 0;
+    int64_t pos[256], sum = 0;
     for (int v = 0; v < 256; ++v) pos[v] = sum, sum += c[v];
-    for (size_t i = 0; i < n; ++i) {
-      const size_t p = pos[(key[i] >> shift) & 0xFF]++;
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t p = pos[(key[i] >> shift) & 0xFF]++;
       k2[p] = key[i];
       i2[p] = idx[i];
     }
-    key.swap(k2);
-    idx.swap(i2);
+    std::swap(key, k2);
+    std::swap(idx, i2);
+    swapped = !swapped;
   }
+  if (swapped) {  // the result is in the caller's scratch
+    std::copy(key, key + n, k2);
+    std::copy(idx, idx + n, i2);
+  }
+}
+
+// (key, idx) pairs sorted by key, ties in their given order. On more than one thread the two
+// halves are sorted side by side and merged, each thread writing its own part of the output
+// (a parallel radix pass would have both threads writing into every bucket: false sharing).
+template <typename K>
+void sort_by_key(std::vector<K>& key, std::vector<int32_t>& idx) {
+  const int64_t n = static_cast<int64_t>(key.size());
+  std::vector<K> k2(n);
+  std::vector<int32_t> i2(n);
+  const int64_t T = at::get_num_threads();
+  if (T < 2 || n < 8192) {
+    radix_sort(key.data(), idx.data(), n, k2.data(), i2.data());
+    return;
+  }
+  const int64_t h = n / 2;
+  at::parallel_for(0, 2, 1, [&](int64_t b, int64_t e) {
+    for (int64_t part = b; part < e; ++part) {
+      const int64_t o = part ? h : 0, m = part ? n - h : h;
+      radix_sort(key.data() + o, idx.data() + o, m, k2.data() + o, i2.data() + o);
+    }
+  });
+  // Merge [0, h) and [h, n) into k2, i2: output range [d0, d1) of each thread from the
+  // split of the merge path at d0 (ties taken from the first half, whose entries come first).
+  const K* A = key.data();
+  const K* B = key.data() + h;
+  const int64_t na = h, nb = n - h;
+  auto split = [&](int64_t d) {
+    int64_t lo = std::max<int64_t>(0, d - nb), hi = std::min(d, na);
+    while (lo < hi) {
+      const int64_t mid = (lo + hi) / 2;
+      if (A[mid] <= B[d - mid - 1])
+        lo = mid + 1;
+      else
+        hi = mid;
+    }
+    return lo;
+  };
+  at::parallel_for(0, T, 1, [&](int64_t tb, int64_t te) {
+    for (int64_t t = tb; t < te; ++t) {
+      const int64_t d0 = n * t / T, d1 = n * (t + 1) / T;
+      int64_t i = split(d0), j = d0 - i;
+      for (int64_t d = d0; d < d1; ++d) {
+        const bool fa = j >= nb || (i < na && A[i] <= B[j]);
+        const int64_t src = fa ? i++ : h + j++;
+        k2[d] = key[src];
+        i2[d] = idx[src];
+      }
+    }
+  });
+  key.swap(k2);
+  idx.swap(i2);
 }
 
 // Uninitialised storage of n objects, constructed in place by their users.
@@ -94,9 +164,14 @@ class RawArray {
 
  public:
   explicit RawArray(int64_t n) : p_(static_cast<T*>(::operator new(sizeof(T) * std::max<int64_t>(n, 1)))) {}
+  RawArray(RawArray&& o) noexcept : p_(o.p_) { o.p_ = nullptr; }
   ~RawArray() { ::operator delete(p_); }
   RawArray(const RawArray&) = delete;
   RawArray& operator=(const RawArray&) = delete;
+  RawArray& operator=(RawArray&& o) noexcept {
+    std::swap(p_, o.p_);
+    return *this;
+  }
   T& operator[](int64_t i) { return p_[i]; }
 };
 
@@ -112,23 +187,75 @@ inline uint64_t depth_key(double d) {
   return (u >> 63) ? ~u : (u | (uint64_t(1) << 63));
 }
 
-// Indices of the live Gaussians (alive[i] != 0) in increasing depth, ties by
-// index. float32 depths sort on 32-bit keys (half the passes; the same order as
-// their exact double values).
-template <typename T>
-std::vector<int32_t> depth_order(const T* depth, const std::vector<uint8_t>& alive) {
-  typedef typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type K;
-  std::vector<K> key;
-  std::vector<int32_t> live;
-  key.reserve(alive.size());
-  live.reserve(alive.size());
-  for (size_t i = 0; i < alive.size(); ++i)
-    if (alive[i]) {
-      key.push_back(depth_key(depth[i]));
-      live.push_back(static_cast<int32_t>(i));
+// What the tile emission needs of a Gaussian, in one cache line: gathered in depth order, so
+// that the emission reads memory sequentially.
+struct Bin {
+  double mx, my;
+  dibrgs::Chords ch;
+  int32_t x0, x1, y0, y1, id, pad;
+};
+
+// The tile rectangle and chords of Gaussian i (screen-space inputs of type S, radius of type R);
+// false when it reaches no tile (out is then left unwritten).
+template <typename S, typename R>
+inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t i, int64_t tx, int64_t ty, Bin* out) {
+  const double r = static_cast<double>(pr[i]);
+  const double mx = pm[2 * i], my = pm[2 * i + 1];
+  const double t = cull_level(po[i]);
+  if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) return false;
+  const double a = pc[3 * i], b = pc[3 * i + 1], c = pc[3 * i + 2];
+  double det = a * c - b * b;
+  if (!(det > 0)) det = 1.0;
+  const double ex = std::sqrt(t * c / det) + 1.0;
+  const double ey = std::sqrt(t * a / det) + 1.0;
+  auto clampt = [](double v, int64_t hi) {
+    return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
+  };
+  const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
+  const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
+  const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
+  const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
+  if (x1 <= x0 || y1 <= y0) return false;
+  new (out) Bin{mx, my, dibrgs::Chords(a, b, c, t), x0, x1, y0, y1, static_cast<int32_t>(i), 0};
+  return true;
+}
+
+// The live Gaussians' bins in increasing depth, ties by index (keys: 32-bit for float32
+// depths, the same order as their exact double values). Blocks of the Gaussians build their
+// bins and keys in parallel and compact them in index order; the sort is parallel too. nout:
+// the number of live Gaussians.
+template <typename S, typename R, typename D>
+RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
+                                  int64_t tx, int64_t ty, int64_t& nout) {
+  typedef typename std::conditional<sizeof(D) == 4, uint32_t, uint64_t>::type K;
+  RawArray<Bin> bins(N);
+  std::vector<uint8_t> alive(N);
+  const int64_t nb = block_count(N, 1024);
+  std::vector<int64_t> first(nb + 1, 0);
+  for_blocks(nb, [&](int64_t blk) {
+    int64_t n = 0;
+    for (int64_t i = N * blk / nb, e = N * (blk + 1) / nb; i < e; ++i) {
+      alive[i] = make_bin(pm, pc, po, pr, i, tx, ty, &bins[i]);
+      n += alive[i];
     }
-  radix_sort(key, live);
-  return live;
+    first[blk + 1] = n;
+  });
+  for (int64_t blk = 0; blk < nb; ++blk) first[blk + 1] += first[blk];
+  const int64_t nlive = first[nb];
+  std::vector<K> key(nlive);
+  std::vector<int32_t> live(nlive);
+  for_blocks(nb, [&](int64_t blk) {
+    int64_t j = first[blk];
+    for (int64_t i = N * blk / nb, e = N * (blk + 1) / nb; i < e; ++i)
+      if (alive[i]) key[j] = depth_key(dep[i]), live[j++] = static_cast<int32_t>(i);
+  });
+  sort_by_key(key, live);
+  nout = nlive;
+  RawArray<Bin> order(nlive);
+  at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t j = b; j < e; ++j) new (&order[j]) Bin(bins[live[j]]);
+  });
+  return order;
 }
 
 }  // namespace
@@ -137,66 +264,47 @@ std::vector<int32_t> depth_order(const T* depth, const std::vector<uint8_t>& ali
 // int64 (M)): Gaussians of a tile in increasing depth (ties by index), and the
 // row segments of its tile that each one reaches (dibrgs::segment_mask, laid
 // out for the dtype of means2d). A Gaussian is listed in the tiles of its
-// 3-sigma square that its culling ellipse reaches.
+// 3-sigma square that its culling ellipse reaches. means2d, conics and opac are
+// read in their own dtype when they share float32 or float64 (else as float64),
+// radii as int32 or int64; the bins are computed in double either way.
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                      torch::Tensor depths, torch::Tensor radii, int64_t W, int64_t H) {
-  auto m = means2d.to(torch::kFloat64).contiguous();
-  auto con = conics.to(torch::kFloat64).contiguous();
-  auto op = opac.to(torch::kFloat64).contiguous();
-  auto rad = radii.to(torch::kInt64).contiguous();
+  const auto st = means2d.scalar_type();
+  const bool same = conics.scalar_type() == st && opac.scalar_type() == st &&
+                    (st == torch::kFloat32 || st == torch::kFloat64);
+  const auto sdt = same ? st : torch::kFloat64;
+  const auto m = means2d.to(sdt).contiguous(), con = conics.to(sdt).contiguous(), op = opac.to(sdt).contiguous();
+  const auto rad = radii.scalar_type() == torch::kInt32 ? radii.contiguous() : radii.to(torch::kInt64).contiguous();
+  const auto dep = depths.to(depths.scalar_type() == torch::kFloat32 ? torch::kFloat32 : torch::kFloat64).contiguous();
   const int64_t N = m.size(0);
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
-  const double* pm = m.data_ptr<double>();
-  const double* pc = con.data_ptr<double>();
-  const double* po = op.data_ptr<double>();
-  const int64_t* pr = rad.data_ptr<int64_t>();
-  // What the tile emission needs of a Gaussian, in one cache line: gathered
-  // in depth order below, so that the emission reads memory sequentially.
-  struct Bin {
-    double mx, my;
-    dibrgs::Chords ch;
-    int32_t x0, x1, y0, y1, id, pad;
-  };
-  // Entries constructed by the parallel loops below (a std::vector would first
-  // construct all of them on one thread); bins: the live Gaussians' only.
-  RawArray<Bin> bins(N);
-  std::vector<uint8_t> alive(N, 0);
-  at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t i = b; i < e; ++i) {
-      const double r = static_cast<double>(pr[i]);
-      const double mx = pm[2 * i], my = pm[2 * i + 1];
-      const double t = cull_level(po[i]);
-      if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) continue;
-      double det = pc[3 * i] * pc[3 * i + 2] - pc[3 * i + 1] * pc[3 * i + 1];
-      if (!(det > 0)) det = 1.0;
-      const double ex = std::sqrt(t * pc[3 * i + 2] / det) + 1.0;
-      const double ey = std::sqrt(t * pc[3 * i] / det) + 1.0;
-      auto clampt = [](double v, int64_t hi) {
-        return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
-      };
-      const int32_t x0 = clampt(std::max(std::floor((mx - r) / TILE), std::floor((mx - ex) / TILE)), tx);
-      const int32_t x1 = clampt(std::min(std::ceil((mx + r) / TILE), std::floor((mx + ex) / TILE) + 1), tx);
-      const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
-      const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
-      if (x1 <= x0 || y1 <= y0) continue;
-      new (&bins[i]) Bin{mx, my, dibrgs::Chords(pc[3 * i], pc[3 * i + 1], pc[3 * i + 2], t),
-                    x0, x1, y0, y1, static_cast<int32_t>(i), 0};
-      alive[i] = 1;
-    }
+  RawArray<Bin> order(0);
+  int64_t nlive = 0;
+  AT_DISPATCH_FLOATING_TYPES(sdt, "dibrgs_bin_tiles", [&] {
+    const scalar_t *pm = m.data_ptr<scalar_t>(), *pc = con.data_ptr<scalar_t>(), *po = op.data_ptr<scalar_t>();
+    auto by_radius = [&](const auto* pr) {
+      order = dep.scalar_type() == torch::kFloat32
+                  ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive)
+                  : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive);
+    };
+    if (rad.scalar_type() == torch::kInt32)
+      by_radius(rad.data_ptr<int32_t>());
+    else
+      by_radius(rad.data_ptr<int64_t>());
   });
-  const bool f32 = depths.scalar_type() == torch::kFloat32;
-  const auto dep = depths.to(f32 ? torch::kFloat32 : torch::kFloat64).contiguous();
-  const std::vector<int32_t> live = f32 ? depth_order(dep.data_ptr<float>(), alive)
-                                        : depth_order(dep.data_ptr<double>(), alive);
-  const int64_t nlive = static_cast<int64_t>(live.size());
-  RawArray<Bin> order(nlive);
-  at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t j = b; j < e; ++j) new (&order[j]) Bin(bins[live[j]]);
-  });
-  // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in
-  // depth order, with the segments it reaches there: chunks of the depth
-  // order list their hits in parallel, then scatter them.
-  const int64_t nchunk = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads() * 4, nlive / 4096));
+  // Tiles of each Gaussian's rectangle that its culling ellipse reaches, in depth order, with
+  // the segments it reaches there: chunks of the depth order list their hits in parallel, then
+  // scatter them (a tile's entries: the chunks in order, each in depth order). The chunks hold
+  // equal numbers of rectangle tiles, not of Gaussians: the nearest Gaussians, first in the
+  // order, cover the most tiles. Per-chunk tile counts are bounded to about 2^20 entries.
+  std::vector<int64_t> work(nlive + 1, 0);
+  for (int64_t j = 0; j < nlive; ++j)
+    work[j + 1] = work[j] + int64_t(order[j].x1 - order[j].x0) * (order[j].y1 - order[j].y0);
+  const int64_t nchunk = std::max<int64_t>(1, std::min(block_count(nlive, 512), (int64_t(1) << 20) / ntiles));
+  std::vector<int64_t> cut(nchunk + 1);
+  for (int64_t c = 0; c <= nchunk; ++c)
+    cut[c] = std::lower_bound(work.begin(), work.end(), work[nlive] * c / nchunk) - work.begin();
+  cut[nchunk] = nlive;
   struct Hit {
     int32_t tile, id;
     uint64_t mask;
@@ -204,30 +312,30 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   std::vector<std::vector<Hit>> hits(nchunk);
   std::vector<std::vector<int64_t>> counts(nchunk);
   const bool dbl = means2d.scalar_type() == torch::kFloat64;
-  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
-    for (int64_t c = cb; c < ce; ++c) {
-      auto& ht = hits[c];
-      auto& cnt = counts[c];
-      cnt.assign(ntiles, 0);
-      const int64_t j0 = nlive * c / nchunk, j1 = nlive * (c + 1) / nchunk;
-      ht.reserve(4 * (j1 - j0));
-      for (int64_t j = j0; j < j1; ++j) {
-        const Bin& g = order[j];
-        for (int32_t y = g.y0; y < g.y1; ++y)
-          for (int32_t x = g.x0; x < g.x1; ++x) {
-            const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
-            const uint64_t mk = dbl ? dibrgs::segment_mask<double>(g.ch, mxr, myr)
-                                    : dibrgs::segment_mask<float>(g.ch, mxr, myr);
-            if (mk == 0) continue;  // no pixel of this tile can reach alpha >= 1/255
-            ht.push_back(Hit{static_cast<int32_t>(y * tx + x), g.id, mk});
-            ++cnt[y * tx + x];
-          }
-      }
+  for_blocks(nchunk, [&](int64_t c) {
+    // Local vectors, moved in at the end: neighbouring chunks' headers share cache lines.
+    std::vector<Hit> ht;
+    std::vector<int64_t> cnt(ntiles, 0);
+    ht.reserve(work[cut[c + 1]] - work[cut[c]]);
+    for (int64_t j = cut[c]; j < cut[c + 1]; ++j) {
+      const Bin& g = order[j];
+      for (int32_t y = g.y0; y < g.y1; ++y)
+        for (int32_t x = g.x0; x < g.x1; ++x) {
+          const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
+          const uint64_t mk = dbl ? dibrgs::segment_mask<double>(g.ch, mxr, myr)
+                                  : dibrgs::segment_mask<float>(g.ch, mxr, myr);
+          if (mk == 0) continue;  // no pixel of this tile can reach alpha >= 1/255
+          ht.push_back(Hit{static_cast<int32_t>(y * tx + x), g.id, mk});
+          ++cnt[y * tx + x];
+        }
     }
+    hits[c] = std::move(ht);
+    counts[c] = std::move(cnt);
   });
-  auto offsets = torch::zeros({ntiles + 1}, torch::kInt64);
+  auto offsets = torch::empty({ntiles + 1}, torch::kInt64);
   int64_t* off = offsets.data_ptr<int64_t>();
   // Start of each chunk's run in each tile: tiles in order, chunks in order.
+  off[0] = 0;
   for (int64_t t = 0; t < ntiles; ++t) {
     int64_t pos = off[t];
     for (int64_t c = 0; c < nchunk; ++c) {
@@ -237,17 +345,28 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     }
     off[t + 1] = pos;
   }
-  auto gids = torch::empty({off[ntiles]}, torch::kInt32);
-  auto masks = torch::empty({off[ntiles]}, torch::kInt64);
+  const int64_t M = off[ntiles];
+  auto gids = torch::empty({M}, torch::kInt32);
+  auto masks = torch::empty({M}, torch::kInt64);
   int32_t* pg = gids.data_ptr<int32_t>();
   uint64_t* pk = reinterpret_cast<uint64_t*>(masks.data_ptr<int64_t>());
-  at::parallel_for(0, nchunk, 1, [&](int64_t cb, int64_t ce) {
-    for (int64_t c = cb; c < ce; ++c) {
-      auto& pos = counts[c];
-      for (const Hit& h : hits[c]) {
-        const int64_t p = pos[h.tile]++;
-        pg[p] = h.id;
-        pk[p] = h.mask;
+  // Each thread scatters a run of consecutive chunks holding about M / threads hits: its entries
+  // in a tile are then one contiguous stretch (with chunks dealt out one by one, neighbouring
+  // chunks' few entries a tile would share cache lines between the threads).
+  std::vector<int64_t> seen(nchunk + 1, 0);
+  for (int64_t c = 0; c < nchunk; ++c) seen[c + 1] = seen[c] + static_cast<int64_t>(hits[c].size());
+  const int64_t T = std::min<int64_t>(at::get_num_threads(), nchunk);
+  at::parallel_for(0, T, 1, [&](int64_t tb, int64_t te) {
+    for (int64_t t = tb; t < te; ++t) {
+      const int64_t c0 = std::lower_bound(seen.begin(), seen.end(), M * t / T) - seen.begin();
+      const int64_t c1 = std::lower_bound(seen.begin(), seen.end(), M * (t + 1) / T) - seen.begin();
+      for (int64_t c = c0; c < std::min(c1, nchunk); ++c) {
+        auto& pos = counts[c];
+        for (const Hit& h : hits[c]) {
+          const int64_t p = pos[h.tile]++;
+          pg[p] = h.id;
+          pk[p] = h.mask;
+        }
       }
     }
   });
@@ -376,24 +495,25 @@ void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int
   // Deterministic: each Gaussian sums its entries in list order into one
   // interleaved row (one cache line to miss, prefetched), threads owning
   // ranges of Gaussians (each reads the whole list); then the rows are split.
-  std::vector<T> acc(N * G, T(0));
+  RawArray<T> acc(N * G);  // each thread zeroes the rows it owns
   const int64_t nt = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), N / 1024));
   at::parallel_for(0, nt, 1, [&](int64_t tb, int64_t te) {
     for (int64_t t = tb; t < te; ++t) {
       const int64_t g0 = N * t / nt, g1 = N * (t + 1) / nt;
+      std::fill(&acc[g0 * G], &acc[0] + g1 * G, T(0));
       for (int64_t k = 0; k < M; ++k) {
-        if (k + 16 < M) __builtin_prefetch(acc.data() + pg[k + 16] * G, 1);
+        if (k + 16 < M) __builtin_prefetch(&acc[0] + pg[k + 16] * G, 1);
         const int64_t g = pg[k];
         if (g < g0 || g >= g1) continue;
         const T* b = buf + k * G;
-        T* a = acc.data() + g * G;
+        T* a = &acc[0] + g * G;
         for (int64_t j = 0; j < G; ++j) a[j] += b[j];
       }
     }
   });
   at::parallel_for(0, N, 4096, [&](int64_t b, int64_t e) {
     for (int64_t g = b; g < e; ++g) {
-      const T* a = acc.data() + g * G;
+      const T* a = &acc[0] + g * G;
       gm[2 * g] = a[0], gm[2 * g + 1] = a[1];
       gc[3 * g] = a[2], gc[3 * g + 1] = a[3], gc[3 * g + 2] = a[4];
       go[g] = a[5];
