@@ -57,9 +57,10 @@ void run_workers(F&& worker) {
 namespace {
 
 // Blocks of about `grain` items for the binning's parallel passes: as many as the threads can
-// share out dynamically, none so small that its fork costs more than its work.
+// share out dynamically, none so small that its fork costs more than its work; one on one thread.
 inline int64_t block_count(int64_t n, int64_t grain) {
-  return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads() * 8, (n + grain - 1) / grain));
+  const int64_t T = at::get_num_threads();
+  return T < 2 ? 1 : std::max<int64_t>(1, std::min<int64_t>(T * 8, (n + grain - 1) / grain));
 }
 
 // Calls fn(b) for b in [0, nb), the blocks pulled dynamically by torch's intra-op threads.
