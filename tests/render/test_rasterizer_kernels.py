@@ -171,3 +171,7 @@ def test_tile_lists_do_not_depend_on_threads_or_input_types():
     assert ordered[inside].all()
     assert ((d[1:] == d[:-1]) & inside).sum() > 1000  # the ties were exercised
     assert not np.isin([5, 6, 7], ids).any()
+    # nothing to bin, or an image without pixels: empty lists
+    for args, size in (((m2[:0], con[:0], op[:0], dep[:0], rad[:0]), (w, h)), ((m2, con, op, dep, rad), (0, h))):
+        off, ids_, _ = mod.bin_tiles(*args, *size)
+        assert ids_.numel() == 0 and int(off[-1]) == 0

@@ -301,7 +301,8 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   std::vector<int64_t> work(nlive + 1, 0);
   for (int64_t j = 0; j < nlive; ++j)
     work[j + 1] = work[j] + int64_t(order[j].x1 - order[j].x0) * (order[j].y1 - order[j].y0);
-  const int64_t nchunk = std::max<int64_t>(1, std::min(block_count(nlive, 512), (int64_t(1) << 20) / ntiles));
+  const int64_t nchunk =
+      std::max<int64_t>(1, std::min(block_count(nlive, 512), (int64_t(1) << 20) / std::max<int64_t>(ntiles, 1)));
   std::vector<int64_t> cut(nchunk + 1);
   for (int64_t c = 0; c <= nchunk; ++c)
     cut[c] = std::lower_bound(work.begin(), work.end(), work[nlive] * c / nchunk) - work.begin();
