@@ -1,7 +1,8 @@
 """Where a training iteration's CPU time goes (issue 17), for DIBR-GS and 3DGS.
 
     python scripts/bench_iteration.py --scene SCENE --work WORK [--methods dibrgs 3dgs]
-        [--preset cpu] [--warmup 300] [--repeats 5] [--threads 1] [--out result.json]
+        [--preset cpu] [--warmup 300] [--repeats 5] [--threads 1] [--ratio-rounds R
+        [--ratio-threads 2]] [--out result.json]
 
 Builds each method as training does (``Trainer.setup`` with ``--preset``, pseudo views off:
 only training views are timed, and a pseudo-view iteration costs the same), trains
@@ -20,6 +21,10 @@ training views:
   ``ibr_P_maps`` (the projection through the full fused maps, as before issue 17, for
   comparison), ``rasterize`` (projection + compositing), ``composite`` (the compositing
   kernel alone), ``loss`` (L1 + D-SSIM), and ``step`` (finite checks + optimiser step).
+
+``--ratio-rounds R`` then times the iteration on one thread and on ``--ratio-threads``
+alternately, R rounds in the same process, and reports each round's ratio (two-thread against
+one-thread wall time): separate processes differ by the machine's drift between them.
 
 Run it from the repository root (or with the package on ``PYTHONPATH``); prints a table
 and writes JSON with the sizes, the load average, the OpenMP wait policy chosen at start
@@ -230,7 +235,26 @@ def bench_method(args, method: str) -> dict[str, Any]:
                                                args.repeats)
     t.method.zero_grad()
     res["sizes_after"] = t.method.model.sizes()
+    if args.ratio_rounds:
+        res["ratio"] = thread_ratio(all_views, len(frames), args.ratio_threads, args.ratio_rounds, args.repeats)
+    torch.set_num_threads(args.threads)
     return res
+
+
+def thread_ratio(all_views: Callable[[], None], n_views: int, threads: int, rounds: int,
+                 repeats: int) -> dict[str, Any]:
+    """Iteration wall time on one thread and on ``threads``, alternating in this process for
+    ``rounds`` rounds (the same build and model; drift of the machine hits both), and the ratio of
+    each round."""
+    one, many = [], []
+    for _ in range(rounds):
+        for n, acc in ((1, one), (threads, many)):
+            torch.set_num_threads(n)
+            acc.append(timed(all_views, repeats)["wall_ms"] / n_views)
+    ratios = [b / a for a, b in zip(one, many)]
+    return {"threads": threads, "one_ms": one, "many_ms": many, "ratios": ratios,
+            "median_ratio": float(np.median(ratios)), "median_one_ms": float(np.median(one)),
+            "median_many_ms": float(np.median(many))}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -242,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=300, help="real training iterations before timing")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--ratio-rounds", type=int, default=0,
+                    help="also time the iteration on one thread and on --ratio-threads, alternating, this many rounds")
+    ap.add_argument("--ratio-threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)  # set-up and warm-up as training does by default
@@ -259,6 +286,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['iteration']['cpu_ms']:.1f} ms CPU, {r['iteration']['wall_ms']:.1f} ms wall")
         for k, v in r["components"].items():
             print("  " + f"{k:14s} " + ", ".join(f"{q} {x:7.1f}" for q, x in v.items()))
+        if "ratio" in r:
+            q = r["ratio"]
+            print(f"  {q['threads']} threads against 1, {len(q['ratios'])} alternating rounds: "
+                  f"{q['median_one_ms']:.2f} and {q['median_many_ms']:.2f} ms wall (medians), ratio per round "
+                  f"{min(q['ratios']):.3f}-{max(q['ratios']):.3f}, median {q['median_ratio']:.3f}")
     out["loadavg_end"] = os.getloadavg()
     print(f"\nload average {out['loadavg_start']} -> {out['loadavg_end']}; OpenMP wait: {out['openmp_wait']}")
     if args.out:
