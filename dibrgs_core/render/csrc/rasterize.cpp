@@ -66,8 +66,7 @@ inline int64_t block_count(int64_t n, int64_t grain) {
 // Calls fn(b) for b in [0, nb), the blocks pulled dynamically by torch's intra-op threads.
 template <typename F>
 void for_blocks(int64_t nb, F&& fn) {
-  std::atomic<int64_t> next(0);
-  at::parallel_for(0, std::min<int64_t>(nb, at::get_num_threads()), 1, [&](int64_t, int64_t) {
+  run_workers([&](std::atomic<int64_t>& next) {
     for (int64_t b = next++; b < nb; b = next++) fn(b);
   });
 }
