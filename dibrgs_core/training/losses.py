@@ -176,7 +176,8 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
         # Keep the graph (zero gradients) without dividing by zero.
         return (pred * 0.0).sum()
     if fast:
-        w = (m / (wsum * C)).detach().expand(H, W, C)
+        # One contiguous weight tensor for both terms (expanded, each would be copied on its own).
+        w = (m / (wsum * C)).detach().expand(H, W, C).contiguous()
         return one_node(w, w)
     diff = (pred - gt).abs()
     if diff.dim() == 2:
