@@ -97,10 +97,11 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
     normal, offset = fit_plane(read_reference_points(reference))
-    runs, counts_of, images = [], {}, {}
+    runs, counts_of, images, loaded = [], {}, {}, {}
     for w in works:
         t = load_trained(w)
         train, test = run_frames(scene_dir, w, t)
+        loaded[str(w)] = (t, train, test)
         sources = [(f.cam.cam, plane_depth(f.cam.cam, normal, offset)) for f in train]
         acc, per_view = SplitError.empty(), {}
         for f in test:
@@ -124,10 +125,10 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
                      "seen_fraction": n_seen / max(acc.n["all"], 1)})
     return {"scene": str(scene_dir), "reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset},
-            "runs": runs, "_images": images, "_counts": counts_of}
+            "runs": runs, "_images": images, "_counts": counts_of, "_loaded": loaded}
 
 
-def warp_baselines(scene_dir: Path, res: dict) -> list[dict]:
+def warp_baselines(res: dict) -> list[dict]:
     """For each run of :func:`evaluate_runs` ``res`` with a dense cloud: its training photos warped
     into its held-out cameras (progressive DIBR, the run's cloud and pseudo-view settings), and the
     pooled PSNR by visibility group of the warp and of the run's render over the pixels the warp
@@ -136,7 +137,6 @@ def warp_baselines(scene_dir: Path, res: dict) -> list[dict]:
 
     from dibrgs_core.data.ply import read_ply
     from dibrgs_core.data.scene import View
-    from dibrgs_core.evaluation.evaluate import load_trained
     from dibrgs_core.geometry.surface import decide
     from dibrgs_core.geometry.visibility import SplitError
     from dibrgs_core.training.pseudo_views import build_pseudo_views
@@ -148,8 +148,7 @@ def warp_baselines(scene_dir: Path, res: dict) -> list[dict]:
         if not cloud.is_file():
             print(f"note: {w}: no dense cloud ({cloud}), no warp baseline", file=sys.stderr)
             continue
-        t = load_trained(w)
-        train, test = run_frames(scene_dir, w, t)
+        t, train, test = res["_loaded"][r["work"]]
         cams = [f.cam.cam for f in train]
         surface, _why = decide(t.cfg.pseudo.surface, cams)
         with tempfile.TemporaryDirectory() as tmp:
@@ -291,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = table(res)
     if a.warp:
-        res["warp"] = warp_baselines(a.scene, res)
+        res["warp"] = warp_baselines(res)
         text += "\n\n" + warp_table(res["warp"])
     print(text)
     if a.md:
