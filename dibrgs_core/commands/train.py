@@ -17,6 +17,7 @@ import logging
 from pathlib import Path
 
 from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
+from ..training.config import PRESET_SUMMARY
 from .options import (add_split, add_compute, apply_compute, locked, nonnegative_float, positive_int,
                       resolution_scale, seed)
 
@@ -29,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS or COLMAP layout)")
     p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
     p.add_argument("--preset", default="cpu", choices=choices(PresetName),
-                   help="numbers to use: the paper's (30k its), cpu (256x256 in < 20 min on 2 cores), test")
+                   help="; ".join(f"{k}: {v}" for k, v in PRESET_SUMMARY.items()))
     p.add_argument("--method", default="dibrgs", choices=choices(MethodName))
     p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
     p.add_argument("--resolution-scale", type=resolution_scale, default=None,
@@ -43,7 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --resume: accept changed options (recorded in report.json)")
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
-                   help="cameras for pseudo views instead of orbit samples (LEVIR Cams file/folder or JSON list)")
+                   help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
+                        "(LEVIR Cams file/folder or JSON list)")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
     g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")

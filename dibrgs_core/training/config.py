@@ -222,7 +222,7 @@ PRESETS: tuple[str, ...] = choices(PresetName)
 #: One line on each preset, for menus (the Blender add-on); keys are :data:`PRESETS`.
 PRESET_SUMMARY: dict[str, str] = {
     "paper": "The paper's schedule: 30,000 iterations at full resolution",
-    "cpu": "Scaled for a CPU: a 256x256 3-view scene in under 20 minutes; images at most 512 px",
+    "cpu": "Scaled for a CPU: 2,000 iterations, images at most 512 px on the long side (minutes on 2 cores)",
     "test": "A few hundred iterations (checks the pipeline end to end)",
 }
 

@@ -212,7 +212,8 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         cache_dir: folder for ``view_NNN.npz`` files and ``manifest.json``; the manifest
             stores a hash of every input (the training cameras, names and images, the
             cloud, every option, the path, the code version), so changed inputs - another
-            scene, another split - rebuild and identical ones load (resume). Files are
+            scene, another split - rebuild and identical ones load (resume) - and each kept
+            view's warped, padded and rejected fractions (``views``). Files are
             written atomically and the manifest last.
         path: cameras to use instead of sampled poses; all are kept, none filtered.
         max_gap_px: warped pixels farther than this (pixels) from any pixel the cloud
@@ -275,7 +276,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
                         complete_depth(zbuffer_depth(pts, v.camera, spacing), fill=fill)))
     check = consistency_tol > 0 and len(sources) > 1
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete
-    out, files = [], []
+    out, files, per_view = [], [], []
     tried = dropped_cloud = dropped_warped = 0
     total = len(cams) if not filtered else n
     bar = tqdm(total=total, desc="pseudo views", unit="view", leave=False)
@@ -301,11 +302,17 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         bar.update(1)
         if on_progress is not None:
             on_progress(len(out), total)
-        log.info("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
-                 100 * pv.valid.mean(), 100 * pv.padded.mean(), 0.0 if pv.rejected is None else 100 * pv.rejected.mean())
+        fractions = {"warped": float(pv.valid.mean()), "padded": float(pv.padded.mean()),
+                     "rejected": 0.0 if pv.rejected is None else float(pv.rejected.mean())}
+        per_view.append({"name": pv.camera.name, "file": fname, **fractions})
+        # Per view at debug level: on the console these lines would bury the progress bar; the
+        # manifest keeps them and the caller logs the means.
+        log.debug("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
+                  *(100 * f for f in fractions.values()))
     bar.close()
     stats = {"tried": tried, "dropped_cloud": dropped_cloud, "dropped_warped": dropped_warped}
-    write_json(cache_dir / "manifest.json", {"hash": key, "files": files, "count": len(files), "stats": stats})
+    write_json(cache_dir / "manifest.json", {"hash": key, "files": files, "count": len(files), "stats": stats,
+                                             "views": per_view})
     return PseudoBuild(out, traj, tried, dropped_cloud, dropped_warped, time.process_time() - t0)
 
 

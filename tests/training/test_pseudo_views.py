@@ -1,6 +1,7 @@
 """Tests for dibrgs_core.training.pseudo_views on an analytic two-layer scene with known depth and colour."""
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -161,6 +162,12 @@ def test_build_pseudo_views_cache(tmp_path):
         assert pv.valid.mean() > 0.3 and not (pv.valid & pv.padded).any()
         ref, _ = render(pv.camera)
         assert np.abs(pv.image - ref)[pv.valid].mean() < 0.05
+    # the manifest keeps each kept view's fractions (the log has them at debug level only)
+    listed = json.loads((tmp_path / "manifest.json").read_text())["views"]
+    assert [v["name"] for v in listed] == [pv.camera.name for pv in pvs]
+    for v, pv in zip(listed, pvs):
+        assert v["warped"] == pytest.approx(pv.valid.mean()) and v["padded"] == pytest.approx(pv.padded.mean())
+        assert 0.0 <= v["rejected"] <= 1.0 - v["warped"] - v["padded"] + 1e-9
     again = build_pseudo_views(views, pts, n=2, seed=0, cache_dir=tmp_path)
     assert again.cached and again.tried == built.tried and again.trajectory.kind == "orbit"
     for a, b in zip(pvs, again.views):
