@@ -26,8 +26,6 @@ CORE_PACKAGE = f"{_PARENT}.dibrgs_core" if _PARENT else "dibrgs_core"
 ADDON_PACKAGE = _PARENT or __package__
 
 pinhole = importlib.import_module(CORE_PACKAGE + ".camera.pinhole")
-camera_frame = importlib.import_module(CORE_PACKAGE + ".camera.frame")
-orbit = importlib.import_module(CORE_PACKAGE + ".camera.orbit")
 camera_blender = importlib.import_module(CORE_PACKAGE + ".camera.blender")
 serialize = importlib.import_module(CORE_PACKAGE + ".camera.serialize")
 path = importlib.import_module(CORE_PACKAGE + ".bridge.path")

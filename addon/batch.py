@@ -42,7 +42,7 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     p.add_argument("--method", choices=jobs.METHODS, default="dibrgs")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
     p.add_argument("--pseudo-views", type=int, default=0,
-                   help="pseudo views sampled along the orbit (0: the preset's number, 96 for cpu)")
+                   help="pseudo views sampled along the path (0: the preset's number, 96 for cpu)")
     p.add_argument("--fly-frames", type=int, default=0, help="render a fly-through of this many frames (0: none)")
     p.add_argument("--no-init", action="store_true", help="skip the separate initialise step (training runs it)")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")

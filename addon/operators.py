@@ -141,14 +141,14 @@ def why_not(context: bpy.types.Context, action: str) -> str | None:
     if action == "initialise":
         return None
     if action == "train":
-        return None if props.path_curve is not None else "no pseudo-view path: Reset Path to Orbit"
+        return None if props.path_curve is not None else "no pseudo-view path: Reset Path"
     problem = jobs.model_problem(_work(props))
     if problem:
         return problem
     if action == "render_active_camera" and _render_camera(context) is None:
         return "no camera: make a camera active or set the scene camera"
     if action in ("results", "flythrough") and props.path_curve is None:
-        return "no pseudo-view path: Reset Path to Orbit"
+        return "no pseudo-view path: Reset Path"
     return None
 
 
@@ -196,7 +196,8 @@ class DIBRGS_OT_import_scene(bpy.types.Operator):
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         objs = scene_build.build_scene(context, desc)
-        scene_build.create_path(context, scene_build.fit_orbit(desc))
+        plan = scene_build.plan_path(desc)
+        scene_build.create_path(context, plan)
         props.scene_dir = str(root)
         props.reference_view = desc["train"][0] if desc["train"] else desc["views"][0]["name"]
         props.preset = settings(context).default_preset
@@ -205,7 +206,7 @@ class DIBRGS_OT_import_scene(bpy.types.Operator):
         props.decisions.clear()
         n = {s: sum(v["split"] == s for v in desc["views"]) for s in ("train", "test", "other")}
         props.message = (f"Imported {len(objs)} views from {root.name}: {n['train']} training, "
-                         f"{n['test']} held-out, {n['other']} other")
+                         f"{n['test']} held-out, {n['other']} other; pseudo-view path: {plan.kind}")
         _set_error(props, "")
         self.report({"INFO"}, props.message)
         return {"FINISHED"}
@@ -225,10 +226,10 @@ def read_description(root: Path) -> dict[str, Any]:
 
 
 class DIBRGS_OT_reset_path(bpy.types.Operator):
-    """Replace the pseudo-view path by the orbit fitted to the acquisition cameras"""
+    """Replace the pseudo-view path by one along the training cameras' trajectory: a circle round an orbit, else lines along the flight strips and between neighbouring cameras"""
 
     bl_idname = "dibrgs.reset_path"
-    bl_label = "Reset Path to Orbit"
+    bl_label = "Reset Path"
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
@@ -236,7 +237,9 @@ class DIBRGS_OT_reset_path(bpy.types.Operator):
         return _poll(cls, context, "reset_path")
 
     def execute(self, context):
-        scene_build.create_path(context, scene_build.fit_orbit(scene_build.scene_description()))
+        plan = scene_build.plan_path(scene_build.scene_description())
+        scene_build.create_path(context, plan)
+        self.report({"INFO"}, f"Pseudo-view path: {plan.kind} ({plan.reason})")
         return {"FINISHED"}
 
 

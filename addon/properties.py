@@ -70,7 +70,8 @@ class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
     path_curve: PointerProperty(name="Path", type=bpy.types.Object, poll=_is_curve,
                                 description="Curve the pseudo views and the fly-through follow")
     path_target: PointerProperty(name="Look at", type=bpy.types.Object,
-                                 description="Object the pseudo and fly-through cameras look at")
+                                 description="Object the pseudo and fly-through cameras look at; empty: they take "
+                                             "the orientation of the nearest training cameras")
     scene_up: FloatVectorProperty(name="Up", size=3, default=(0.0, 0.0, 1.0),
                                   description="Scene up axis (from the cameras); appears up in pseudo views")
     fly_frames: IntProperty(name="Frames", default=48, min=2, max=10000,

@@ -14,7 +14,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ._core import camera_blender, camera_frame, geometry, height_map, orbit, pinhole, serialize, path as path_mod
+from ._core import camera_blender, geometry, height_map, pinhole, serialize, path as path_mod
 
 ROOT_COLLECTION = "DIBR-GS"
 TRAIN_COLLECTION = "DIBR-GS Train views"
@@ -177,58 +177,69 @@ def reference_camera(desc: dict[str, Any], name: str = "") -> "pinhole.Camera":
 # ---------------------------------------------------------------------------
 # pseudo-view path
 # ---------------------------------------------------------------------------
-def fit_orbit(desc: dict[str, Any]) -> "orbit.Orbit":
-    """The acquisition orbit: fitted to the Track cameras if any, else to the training views."""
+def plan_path(desc: dict[str, Any]) -> "path_mod.PathPlan":
+    """The pseudo-view path along the training cameras' acquisition trajectory (``path.plan_path``)."""
     track = [serialize.camera_from_dict(c, source=desc["root"]) for c in desc.get("track", [])]
     train = described_cameras(desc, "train")
-    all_views = train + described_cameras(desc, "test")
-    cams = track if len(track) >= 3 else (train if len(train) >= 3 else all_views)
-    up, _ = camera_frame.estimate_up(all_views or cams)
-    return orbit.fit_orbit(cams, up=up)
+    return path_mod.plan_path(train, track, train + described_cameras(desc, "test"))
 
 
-def create_path(context: bpy.types.Context, orbit: "orbit.Orbit", n_ctrl: int = 8) -> bpy.types.Object:
-    """The orbit as an editable cyclic Bezier curve, plus a look-at Empty; both set on ``scene.dibrgs``.
+def create_path(context: bpy.types.Context, plan: "path_mod.PathPlan", n_ctrl: int = 8) -> bpy.types.Object:
+    """The path as an editable curve, set on ``scene.dibrgs``: an orbit as a cyclic Bezier circle
+    plus a look-at Empty; flight lines and camera pairs as open poly splines, no Empty (cameras
+    along them follow the training cameras' orientation).
 
-    Handles are 'ALIGNED' with the length that makes each segment a circular
-    arc to ~1e-6 of the radius for 8 points; moving a point moves its handles.
+    Circle handles are 'ALIGNED' with the length that makes each segment a circular arc to
+    ~1e-6 of the radius for 8 points; moving a point moves its handles.
     """
     scene = context.scene
     props = scene.dibrgs
     for name in (PATH_NAME, TARGET_NAME):
         if name in bpy.data.objects:
             remove_object(bpy.data.objects[name])
-    pts = path_mod.orbit_control_points(orbit, n_ctrl)
-    tangent_len = 4.0 / 3.0 * math.tan(math.pi / (2 * n_ctrl)) * orbit.radius
     cu = bpy.data.curves.new(PATH_NAME, "CURVE")
     cu.dimensions = "3D"
     cu.resolution_u = 32
-    sp = cu.splines.new("BEZIER")
-    sp.bezier_points.add(n_ctrl - 1)
-    for k, bp in enumerate(sp.bezier_points):
-        th = 2.0 * math.pi * k / n_ctrl
-        tangent = -math.sin(th) * orbit.basis[0] + math.cos(th) * orbit.basis[1]
-        bp.handle_left_type = bp.handle_right_type = "ALIGNED"
-        bp.co = pts[k]
-        bp.handle_left = pts[k] - tangent_len * tangent
-        bp.handle_right = pts[k] + tangent_len * tangent
-    sp.use_cyclic_u = True
     root = _root(scene)
+    if plan.orbit is not None:
+        orbit = plan.orbit
+        pts = path_mod.orbit_control_points(orbit, n_ctrl)
+        tangent_len = 4.0 / 3.0 * math.tan(math.pi / (2 * n_ctrl)) * orbit.radius
+        sp = cu.splines.new("BEZIER")
+        sp.bezier_points.add(n_ctrl - 1)
+        for k, bp in enumerate(sp.bezier_points):
+            th = 2.0 * math.pi * k / n_ctrl
+            tangent = -math.sin(th) * orbit.basis[0] + math.cos(th) * orbit.basis[1]
+            bp.handle_left_type = bp.handle_right_type = "ALIGNED"
+            bp.co = pts[k]
+            bp.handle_left = pts[k] - tangent_len * tangent
+            bp.handle_right = pts[k] + tangent_len * tangent
+        sp.use_cyclic_u = True
+    else:
+        for line in plan.polylines:
+            sp = cu.splines.new("POLY")
+            sp.points.add(len(line) - 1)
+            for pt, co in zip(sp.points, line):
+                pt.co = (*co, 1.0)
     obj = bpy.data.objects.new(PATH_NAME, cu)
+    obj["dibrgs_trajectory"] = plan.kind
     root.objects.link(obj)
-    target = bpy.data.objects.new(TARGET_NAME, None)
-    target.empty_display_type = "SPHERE"
-    target.empty_display_size = max(orbit.radius * 0.05, 1e-3)
-    target.location = orbit.target
-    root.objects.link(target)
     props.path_curve = obj
-    props.path_target = target
-    props.scene_up = orbit.normal
+    props.path_target = None
+    if plan.orbit is not None:
+        target = bpy.data.objects.new(TARGET_NAME, None)
+        target.empty_display_type = "SPHERE"
+        target.empty_display_size = max(plan.orbit.radius * 0.05, 1e-3)
+        target.location = plan.orbit.target
+        root.objects.link(target)
+        props.path_target = target
+    props.scene_up = plan.up
     return obj
 
 
-def curve_polyline(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[np.ndarray, bool]:
-    """World-space points of the evaluated curve as it is now (first spline), and whether it is closed."""
+def curve_polylines(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[list[np.ndarray], list[bool]]:
+    """World-space points of each spline of the evaluated curve as it is now, and whether each
+    is closed (from the evaluated mesh: a spline's vertices are consecutive and joined by edges)."""
     if obj is None or obj.type != "CURVE" or not obj.data.splines:
         raise ValueError("the pseudo-view path must be a curve object with a spline")
     depsgraph = context.evaluated_depsgraph_get()
@@ -237,26 +248,35 @@ def curve_polyline(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[n
     try:
         co = np.empty(len(mesh.vertices) * 3)
         mesh.vertices.foreach_get("co", co)
+        ev_idx = np.empty(len(mesh.edges) * 2, dtype=np.int64)
+        mesh.edges.foreach_get("vertices", ev_idx)
     finally:
         ev.to_mesh_clear()
     if len(co) == 0:
         raise ValueError(f"the curve {obj.name} evaluates to no points")
     mw = np.array(obj.matrix_world)
     pts = co.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
-    first = obj.data.splines[0]
-    return pts, bool(first.use_cyclic_u)
+    edges = {tuple(sorted(e)) for e in ev_idx.reshape(-1, 2).tolist()}
+    polys, closed, start = [], [], 0
+    for i in range(1, len(pts) + 1):
+        if i == len(pts) or (i - 1, i) not in edges:
+            polys.append(pts[start:i])
+            closed.append(i - start > 2 and (start, i - 1) in edges)
+            start = i
+    return polys, closed
 
 
 def path_cameras(context: bpy.types.Context, n: int, prefix: str) -> list["pinhole.Camera"]:
-    """``n`` cameras sampled from the path curve as it is now, looking at the target object."""
+    """``n`` cameras sampled from the path curve as it is now: looking at the target object when
+    there is one, else following the training cameras' orientation."""
     props = context.scene.dibrgs
-    pts, closed = curve_polyline(context, props.path_curve)
-    if props.path_target is not None:
-        target = np.array(props.path_target.matrix_world.translation)
-    else:
-        target = fit_orbit(scene_description()).target
-    like = reference_camera(scene_description(), props.reference_view)
-    return path_mod.path_cameras(pts, n, target, np.array(props.scene_up), like, closed, prefix=prefix)
+    polys, closed = curve_polylines(context, props.path_curve)
+    desc = scene_description()
+    target = None if props.path_target is None else np.array(props.path_target.matrix_world.translation)
+    like = reference_camera(desc, props.reference_view)
+    train = described_cameras(desc, "train") or described_cameras(desc, "test")
+    return path_mod.path_cameras(polys, n, target, np.array(props.scene_up), like, closed, prefix=prefix,
+                                 follow=train)
 
 
 # ---------------------------------------------------------------------------

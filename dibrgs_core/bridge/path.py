@@ -1,21 +1,28 @@
-"""Cameras along a user-edited path (the add-on's pseudo-view curve).
+"""The add-on's pseudo-view path: where it starts, and cameras along it as the user edited it.
 
-The add-on evaluates its curve object in world space (Blender does the spline
-maths, whatever the spline type) and hands the resulting polyline here. The
-polyline is resampled uniformly by arc length and every sample becomes a
-camera looking at the target, with the intrinsics of a reference camera.
-World units and the OpenCV camera convention of :mod:`dibrgs_core.camera.pinhole`.
+:func:`plan_path` lays the path along the acquisition trajectory the command line samples its
+pseudo views from (:func:`dibrgs_core.camera.trajectory.classify` of the training cameras): a
+closed circle round an orbit, else open polylines along the flight lines and between neighbouring
+cameras. The add-on draws it as a curve object; when it trains, it evaluates the curve in world
+space (Blender does the spline maths, whatever the spline type) and hands the polylines of its
+splines to :func:`path_cameras`, which spaces cameras uniformly by arc length. Each looks at the
+target (an orbit's look-at Empty) or, without one, takes the orientation of the training cameras
+nearest to it (slerped between the two nearest), as the command line's poses between cameras do.
+World units and the OpenCV camera convention of :mod:`dibrgs_core.camera.pinhole`; numpy only.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from ..camera.frame import estimate_up
+from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
-from ..camera.orbit import Orbit
 from ..camera.serialize import camera_to_dict
+from ..camera.trajectory import TrajectoryKind, classify, slerp
 from ..common.fileio import write_json
 
 
@@ -60,26 +67,154 @@ def resample_polyline(points: np.ndarray, n: int, closed: bool) -> np.ndarray:
     return P[idx] + frac[:, None] * (P[idx + 1] - P[idx])
 
 
-def path_cameras(points: np.ndarray, n: int, target: Sequence[float], up: Sequence[float],
-                 like: Camera, closed: bool, prefix: str = "pseudo") -> list[Camera]:
-    """``n`` cameras spaced along the polyline, each looking at ``target``.
+def resample_polylines(polylines: Sequence[np.ndarray], n: int, closed: bool | Sequence[bool]) -> np.ndarray:
+    """``n`` points spaced uniformly by arc length over several polylines (a curve's splines).
 
-    ``up`` is the world direction that appears up in the images (the scene's
-    up axis); ``like`` gives K, image size and depth range. Names are
-    ``f"{prefix}_{k:03d}"``. A sample that coincides with the target is
-    moved off it along ``up`` by a tiny amount so the look-at is defined.
+    One polyline: :func:`resample_polyline`. Several: sample ``k`` sits at arc length
+    ``(k + 1/2) L / n`` of their total length ``L``, taken polyline after polyline in order (no
+    samples on the jumps between them); ``closed`` is one flag or one per polyline.
     """
-    eyes = resample_polyline(points, n, closed)
-    target = np.asarray(target, dtype=np.float64)
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in polylines]
+    flags = [bool(closed)] * len(polys) if isinstance(closed, (bool, np.bool_)) else [bool(c) for c in closed]
+    if not polys or len(flags) != len(polys):
+        raise ValueError("resample_polylines: give at least one polyline and one closed flag each")
+    if len(polys) == 1:
+        return resample_polyline(polys[0], n, flags[0])
+    if n < 1:
+        raise ValueError(f"resample_polylines: n must be >= 1, got {n}")
+    runs = []
+    for P, c in zip(polys, flags):
+        if len(P) == 0 or not np.isfinite(P).all():
+            raise ValueError("resample_polylines: empty polyline or non-finite vertices")
+        Q = np.concatenate([P, P[:1]]) if c else P
+        runs.append((Q, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q, axis=0), axis=1))])))
+    lengths = np.array([cum[-1] for _, cum in runs])
+    if lengths.sum() <= 0.0:
+        return np.repeat(polys[0][:1], n, axis=0)
+    starts = np.concatenate([[0.0], np.cumsum(lengths)])
+    out = np.empty((n, 3))
+    for k, s in enumerate((np.arange(n) + 0.5) * (starts[-1] / n)):
+        j = int(np.clip(np.searchsorted(starts, s, side="right") - 1, 0, len(runs) - 1))
+        Q, cum = runs[j]
+        local = s - starts[j]
+        i = int(np.clip(np.searchsorted(cum, local, side="right") - 1, 0, max(len(Q) - 2, 0)))
+        seg = cum[i + 1] - cum[i] if len(Q) > 1 else 0.0
+        f = (local - cum[i]) / seg if seg > 0 else 0.0
+        out[k] = Q[i] if len(Q) == 1 else Q[i] + f * (Q[i + 1] - Q[i])
+    return out
+
+
+def follow_rotation(eye: np.ndarray, cams: Sequence[Camera], up: np.ndarray) -> np.ndarray:
+    """World-to-camera rotation at ``eye`` from the cameras nearest to it across ``up``: the two
+    nearest camera centres' rotations slerped by relative distance (one camera: its rotation)."""
+    C = np.stack([c.center for c in cams])
+    u = np.asarray(up, np.float64) / max(np.linalg.norm(up), 1e-300)
+    d = C - eye
+    d = np.linalg.norm(d - np.outer(d @ u, u), axis=1)
+    if len(cams) == 1:
+        return cams[0].R.copy()
+    a, b = np.argsort(d, kind="stable")[:2]
+    t = d[a] / (d[a] + d[b]) if d[a] + d[b] > 0 else 0.0
+    return slerp(cams[a].R, cams[b].R, float(t))
+
+
+def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequence[float] | None,
+                 up: Sequence[float], like: Camera, closed: bool | Sequence[bool], prefix: str = "pseudo",
+                 follow: Sequence[Camera] = ()) -> list[Camera]:
+    """``n`` cameras spaced along the path by arc length.
+
+    ``points`` is one (M, 3) polyline or a list of them (a curve's splines; see
+    :func:`resample_polylines`). With a ``target`` every camera looks at it, ``up`` (the scene's
+    up axis) appearing up in the images; a sample that coincides with the target is moved off
+    it along ``up`` by a tiny amount so the look-at is defined. Without one every camera takes
+    :func:`follow_rotation` of the cameras ``follow`` (the training cameras). ``like`` gives K,
+    image size and depth range. Names are ``f"{prefix}_{k:03d}"``.
+    """
+    multi = not isinstance(points, np.ndarray) or np.asarray(points).ndim == 3
+    eyes = (resample_polylines(points, n, closed) if multi else
+            resample_polyline(points, n, bool(closed)))
     up = np.asarray(up, dtype=np.float64)
-    scale = max(float(np.abs(eyes).max(initial=0.0)), float(np.abs(target).max()), 1.0)
+    if target is None and not len(follow):
+        raise ValueError("path_cameras: give a target to look at or cameras to follow")
     cams = []
+    if target is not None:
+        target = np.asarray(target, dtype=np.float64)
+        scale = max(float(np.abs(eyes).max(initial=0.0)), float(np.abs(target).max()), 1.0)
     for k, eye in enumerate(eyes):
-        if np.linalg.norm(eye - target) < 1e-9 * scale:
-            eye = eye + 1e-6 * scale * up / max(np.linalg.norm(up), 1e-300)
-        cams.append(Camera(K=like.K.copy(), w2c=look_at(eye, target, up), width=like.width,
-                           height=like.height, name=f"{prefix}_{k:03d}", depth_range=like.depth_range))
+        if target is not None:
+            if np.linalg.norm(eye - target) < 1e-9 * scale:
+                eye = eye + 1e-6 * scale * up / max(np.linalg.norm(up), 1e-300)
+            w2c = look_at(eye, target, up)
+        else:
+            w2c = np.eye(4)
+            w2c[:3, :3] = follow_rotation(eye, follow, up)
+            w2c[:3, 3] = -w2c[:3, :3] @ eye
+        cams.append(Camera(K=like.K.copy(), w2c=w2c, width=like.width, height=like.height,
+                           name=f"{prefix}_{k:03d}", depth_range=like.depth_range))
     return cams
+
+
+@dataclass
+class PathPlan:
+    """Where the add-on's pseudo-view path starts (:func:`plan_path`).
+
+    Attributes:
+        kind, reason: the training cameras' trajectory (:func:`~dibrgs_core.camera.trajectory.classify`).
+        up: unit up axis of the scene (world).
+        orbit: the circle to draw (kind ``orbit``), fitted to the scene's Track cameras when it
+            has three or more, else to the training cameras; cameras on it look at its target.
+        polylines: otherwise, the open polylines to draw (world points in order): each fitted
+            flight line through its cameras, continued past its end cameras as the command line's
+            sampling is, and each pair of neighbouring cameras not on one line; cameras along
+            them follow the training cameras' orientation.
+    """
+
+    kind: TrajectoryKind
+    reason: str
+    up: np.ndarray
+    orbit: Orbit | None = None
+    polylines: list[np.ndarray] | None = None
+
+
+def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequence[Camera] = ()) -> PathPlan:
+    """The pseudo-view path along the acquisition trajectory of the training cameras ``train``
+    (``views``: all the scene's cameras, for the up axis; ``track``: a LEVIR-NVS Track)."""
+    train, track, views = list(train), list(track), list(views)
+    cams = train or views
+    if not cams:
+        raise ValueError("plan_path needs at least one camera")
+    up, _ = estimate_up(views or cams)
+    traj = classify(cams, up=up)
+    lines = [] if traj.kind == "orbit" else _trajectory_polylines(traj, cams)
+    if lines:
+        return PathPlan(traj.kind, traj.reason, traj.up, polylines=lines)
+    circle = track if len(track) >= 3 else (cams if len(cams) >= 3 else views)
+    reason = traj.reason if traj.kind == "orbit" else f"{traj.reason}; no line to draw, a circle instead"
+    return PathPlan("orbit", reason, traj.up, orbit=fit_orbit(circle, up=up))
+
+
+def _trajectory_polylines(traj, cams: Sequence[Camera]) -> list[np.ndarray]:
+    """Open polylines of a ``strips`` or ``free`` trajectory (see :class:`PathPlan`); segments of
+    zero length (cameras at one position) are left out."""
+    C = np.stack([c.center for c in cams])
+    on_line = set()
+    out = []
+    ends = {}
+    for s in traj.segments:
+        if s.t1 > 1.0:  # a line continued past its end camera s.b
+            ends[s.b] = C[s.a] + s.t1 * (C[s.b] - C[s.a])
+    for line in traj.lines:
+        if len(line) < 2:
+            continue
+        pts = [C[i] for i in line]
+        pts = ([ends[line[0]]] if line[0] in ends else []) + pts + ([ends[line[-1]]] if line[-1] in ends else [])
+        out.append(np.stack(pts))
+        on_line.update(zip(line[:-1], line[1:]))
+    for s in traj.segments:
+        if s.t1 <= 1.0 and (s.a, s.b) not in on_line and (s.b, s.a) not in on_line and s.a != s.b:
+            out.append(np.stack([C[s.a], C[s.b]]))
+    scale = max(float(np.abs(C).max()), 1e-300)
+    return [p for p in out if np.linalg.norm(np.diff(p, axis=0), axis=1).sum() > 1e-9 * scale]
 
 
 def orbit_control_points(orbit: Orbit, n: int = 8) -> np.ndarray:

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 PYTHON_VERSION = (3, 11)
 COMPILER_FIX = ("install a C++ compiler (Debian/Ubuntu: sudo apt install g++; Fedora: sudo dnf install gcc-c++; "
-                "macOS: xcode-select --install); without it training uses the slower torch path")
+                "macOS: xcode-select --install); or train on the torch path, about 100x slower: --rasterizer reference "
+                "(DIBRGS_RASTERIZER=reference)")
 
 
 @dataclass(frozen=True)

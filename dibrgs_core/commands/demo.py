@@ -2,9 +2,9 @@
 
 Renders a procedural aerial city with the scene generator (Blender's bpy
 module, Cycles on CPU), then runs the same stages a user runs by hand:
-``init`` (geometry), ``train``, ``eval`` and ``render`` of the held-out
-views, each through the public command line so the demo exercises exactly
-what users call.
+``train`` (which initialises the geometry first), ``eval`` of the held-out
+views and ``render`` of the scene's 60-pose Track, each through the public
+command line so the demo exercises exactly what users call.
 """
 from __future__ import annotations
 

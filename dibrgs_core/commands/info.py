@@ -3,8 +3,9 @@
 Prints the number of views, resolution, train/test split and where it came from
 (``--train``/``--test``, ``split.json`` or the default), depth range, the
 up axis estimated from the cameras (with its confidence), the mean angle off
-nadir and the circular orbit fitted through the orbit views. Bad input exits
-with code 2 and a message naming the file.
+nadir, the training cameras' acquisition trajectory (orbit, strips or free, and
+why: what pseudo views are sampled along) and, for an orbit, the circle fitted
+through the orbit views. Bad input exits with code 2 and a message naming the file.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ def summarize(scene) -> dict:
     """The JSON-serialisable summary printed by ``dibrgs info``."""
     from ..camera.frame import estimate_up, nadir_angle_deg
     from ..camera.orbit import fit_orbit
+    from ..camera.trajectory import classify
     from ..data.scene import orbit_ids
 
     cams = scene.cameras
@@ -52,8 +54,12 @@ def summarize(scene) -> dict:
     if depths and any(d.size for d in depths):
         allz = np.concatenate(depths)
         out["depth_range_maps"] = [float(allz.min()), float(allz.max())]
+    train = [scene.views[i].camera for i in scene.train] or cams
+    traj = classify(train, up=up)
+    out["trajectory"] = {"kind": traj.kind, "reason": traj.reason,
+                         "lines": [[scene.train[i] for i in line] for line in traj.lines] if scene.train else traj.lines}
     orbit = [scene.views[i].camera for i in orbit_ids(list(scene.views))]
-    if len(orbit) >= 3:
+    if len(orbit) >= 3 and traj.kind == "orbit":
         o = fit_orbit(orbit, up)
         out["orbit"] = {k: np.round(np.asarray(v, dtype=np.float64), 6).tolist() for k, v in o.to_dict().items()}
         out["orbit"]["views"] = len(orbit)

@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="dibrgs", choices=choices(MethodName))
     p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
     p.add_argument("--resolution-scale", type=resolution_scale, default=None,
-                   help="resize the images by this factor, in (0, 4]")
+                   help="resize the images by this factor, in (0, 4] (default: the preset's pixel budget, "
+                        "cpu: long side at most 512 px; else full resolution)")
     p.add_argument("--seed", type=seed, default=None)
     add_split(p)
     p.add_argument("--resume", action="store_true",

@@ -78,7 +78,7 @@ class PseudoConfig:
     """Pseudo-view supervision through progressive DIBR."""
 
     mode: Switch = "auto"       # auto: skip with >= dense_views training views
-    n_views: int = 24           # poses sampled once on the acquisition orbit and cached
+    n_views: int = 24           # poses sampled once along the training cameras' trajectory, cached
     start: float = 0.1
     until: float = 2 / 3
     every: float = 50 / 30000
@@ -231,7 +231,7 @@ def preset(name: PresetName) -> TrainConfig:
     """A named preset.
 
     * ``paper``: the paper's numbers (30k iterations, full resolution).
-    * ``cpu``: one 256x256, 3-view scene in under 20 minutes on a 2-core CPU:
+    * ``cpu``: a 3-view scene in minutes on a 2-core CPU (images at most 512 px on the long side):
       2,000 iterations, at most 8,000 initial anchors (the voxel grows to fit) and
       20,000 in all; 96 pseudo views on every other iteration from 10% to the end
       (a short run has too few iterations for the paper's every-50th schedule to

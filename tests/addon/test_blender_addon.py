@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import shared_file
 
 bpy = pytest.importorskip("bpy")
 
@@ -137,8 +138,10 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     props = fresh.dibrgs
     n = 16
     before = sb.path_cameras(bpy.context, n, "pseudo")
-    # The sampled path starts on the fitted orbit: samples are on the orbit's circle.
-    orbit = sb.fit_orbit(sb.scene_description())
+    # The generated scene's cameras are on an orbit: the path starts on the circle fitted to them.
+    plan = sb.plan_path(sb.scene_description())
+    assert plan.kind == "orbit" and props.path_curve["dibrgs_trajectory"] == "orbit"
+    orbit = plan.orbit
     radii = [np.linalg.norm(c.center - orbit.center) for c in before]
     np.testing.assert_allclose(radii, orbit.radius, rtol=1e-3)
     # Lift control point 0 (where sample 0 sits) along the scene up axis.
@@ -159,6 +162,44 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     turned = sb.path_cameras(bpy.context, n, "pseudo")
     uv, _ = turned[3].project(np.array(props.path_target.location)[None])
     np.testing.assert_allclose(uv[0], [turned[3].cx, turned[3].cy], atol=1e-6)
+
+
+def test_strip_flight_path_follows_the_strips(fresh):
+    """A real mapping flight (one photo of each of three strips): the path is the line through the
+    training cameras, continued past its ends, with nadir cameras oriented like the photos - not
+    a circle fitted through three nearly collinear cameras (views of padding)."""
+    scene = shared_file("data/brighton_north")
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    props = fresh.dibrgs
+    desc = sb.scene_description()
+    train = sb.described_cameras(desc, "train")
+    assert props.path_target is None and sb.TARGET_NAME not in bpy.data.objects
+    assert props.path_curve["dibrgs_trajectory"] == "strips" and "strips" in props.message
+    polys, closed = sb.curve_polylines(bpy.context, props.path_curve)
+    assert len(polys) == 1 and closed == [False]
+    C = np.stack([c.center for c in train])
+    d = C[-1] - C[0]
+    d /= np.linalg.norm(d)
+    along = sorted(float((c - C[0]) @ d) for c in C)
+    ends = sorted(float((p - C[0]) @ d) for p in polys[0][[0, -1]])
+    assert ends[0] < along[0] - 0.2 * (along[1] - along[0]) and ends[1] > along[-1] + 0.2 * (along[-1] - along[-2])
+    cams = sb.path_cameras(bpy.context, 12, "pseudo")
+    spread = np.linalg.norm(C[-1] - C[0])
+    for cam in cams:
+        off = cam.center - C[0]
+        assert np.linalg.norm(off - (off @ d) * d) < 0.1 * spread  # on the line through the cameras
+        nearest = min(train, key=lambda t: np.linalg.norm(t.center - cam.center))
+        assert nearest.view_dir @ cam.view_dir > np.cos(np.radians(5))  # looks as the photos do (nadir)
+    # At a training camera the path camera is that camera's pose.
+    at = sb.path_mod.path_cameras([C[[0, 1]]], 2, None, props.scene_up, train[0], False, follow=train)
+    np.testing.assert_allclose(at[0].w2c, train[0].w2c, atol=1e-9)
+    np.testing.assert_allclose(at[1].w2c, train[1].w2c, atol=1e-9)
+    # Reset Path draws the same path again after an edit.
+    props.path_curve.data.splines[0].points[0].co[2] += 1.0
+    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}
+    again, _ = sb.curve_polylines(bpy.context, props.path_curve)
+    np.testing.assert_allclose(again[0], polys[0], atol=1e-6)
 
 
 # ---------------------------------------------------------------------------

@@ -85,6 +85,64 @@ def test_path_camera_on_the_target_stays_finite():
     assert all(np.isfinite(c.w2c).all() for c in cams)
 
 
+def test_resample_polylines_spreads_samples_over_splines_by_length():
+    a = np.array([[0, 0, 0], [3, 0, 0]], float)
+    b = np.array([[0, 5, 0], [0, 5, 1]], float)
+    s = path.resample_polylines([a, b], 8, closed=False)
+    # length 3 + 1: samples at (k + 1/2) * 0.5 -> six on the first line, two on the second
+    np.testing.assert_allclose(s[:6, 0], [0.25, 0.75, 1.25, 1.75, 2.25, 2.75])
+    np.testing.assert_allclose(s[6:], [[0, 5, 0.25], [0, 5, 0.75]])
+    assert np.allclose(path.resample_polylines([a], 4, [False]), path.resample_polyline(a, 4, False))
+    with pytest.raises(ValueError):
+        path.resample_polylines([a, b], 3, [False])
+
+
+def _strip_cams(rows: int, cols: int, yaw_deg: float = 0.0) -> list[Camera]:
+    """Nadir cameras 100 units up on a grid (rows = strips 30 apart, cameras 20 apart along them)."""
+    cams = []
+    for r in range(rows):
+        for c in range(cols):
+            eye = np.array([20.0 * c, 30.0 * r, 100.0])
+            cy, sy = math.cos(math.radians(yaw_deg * c)), math.sin(math.radians(yaw_deg * c))
+            w2c = look_at(eye, eye - [0, 0, 100.0], [cy, sy, 0.0])
+            cams.append(Camera(K=_like().K, w2c=w2c, width=64, height=60, name=f"v{r}{c}"))
+    return cams
+
+
+def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
+    grid = _strip_cams(2, 3)
+    plan = path.plan_path(grid, views=grid)
+    assert plan.kind == "strips" and plan.orbit is None
+    lines = [p for p in plan.polylines if len(p) > 2]
+    assert len(lines) == 2  # each strip, continued half a spacing past its end cameras
+    for line in lines:
+        np.testing.assert_allclose(sorted(line[:, 0]), [-10, 0, 20, 40, 50], atol=1e-9)
+        assert np.ptp(line[:, 1]) < 1e-9 and np.allclose(line[:, 2], 100.0)
+    cross = [p for p in plan.polylines if len(p) == 2]
+    assert cross and all(abs(p[1, 1] - p[0, 1]) == pytest.approx(30.0) for p in cross)  # strip to strip
+    cams = path.path_cameras(plan.polylines, 10, None, plan.up, grid[0], False, follow=grid)
+    for c in cams:  # nadir, like the photos
+        np.testing.assert_allclose(c.view_dir, [0, 0, -1], atol=1e-9)
+    with pytest.raises(ValueError):
+        path.path_cameras(plan.polylines, 3, None, plan.up, grid[0], False)
+    # cameras on an orbit: a circle fitted to them, looked at from the path
+    eyes = [np.array([200 * math.cos(a), 200 * math.sin(a), 150.0]) for a in np.radians([10, 130, 250])]
+    ring = [Camera(K=_like().K, w2c=look_at(e, [0, 0, 0], [0, 0, 1]), width=64, height=60) for e in eyes]
+    orbit = path.plan_path(ring, views=ring)
+    assert orbit.kind == "orbit" and orbit.polylines is None
+    np.testing.assert_allclose(orbit.orbit.radius, 200.0, rtol=1e-6)
+
+
+def test_follow_rotation_slerps_between_the_two_nearest_cameras():
+    cams = _strip_cams(1, 2, yaw_deg=40.0)  # the second camera turned 40 degrees about the vertical
+    up = np.array([0.0, 0, 1])
+    np.testing.assert_allclose(path.follow_rotation(cams[0].center, cams, up), cams[0].R, atol=1e-12)
+    mid = path.follow_rotation(0.5 * (cams[0].center + cams[1].center) + [0, 0, 7.0], cams, up)
+    right = mid[0]  # image x in world coordinates: turned half way, 20 degrees
+    assert math.degrees(math.atan2(right[1], right[0])) - math.degrees(math.atan2(cams[0].R[0, 1], cams[0].R[0, 0])) \
+        == pytest.approx(20.0, abs=1e-6)
+
+
 def test_orbit_control_points_lie_on_the_fitted_orbit(tmp_path):
     eyes = [np.array([200 * math.cos(a), 200 * math.sin(a), 150.0]) for a in np.radians([10, 130, 250])]
     cams = [Camera(K=_like().K, w2c=look_at(e, [0, 0, 0], [0, 0, 1]), width=64, height=60) for e in eyes]

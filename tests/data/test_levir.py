@@ -239,7 +239,7 @@ def test_info_command(scene_dir, capsys):
     assert out["train"] == ["001", "008", "015"] and len(out["test"]) == 17
     assert out["track_cameras"] == 6
     assert np.allclose(out["up"], [0, 0, 1], atol=0.01) and out["up_confidence"] > 0.5
-    assert out["orbit"]["radius"] == pytest.approx(150.0, abs=1e-3)
+    assert out["trajectory"]["kind"] == "orbit" and out["orbit"]["radius"] == pytest.approx(150.0, abs=1e-3)
     assert out["orbit"]["tilt_deg"] < 0.5 and out["orbit"]["views"] == 20
     assert 30 < out["nadir_angle_deg"] < 36
     lo, hi = out["depth_range_maps"]

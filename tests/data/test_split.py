@@ -104,3 +104,9 @@ def test_brighton_north_uses_its_split_json(tmp_path):
     shutil.copytree(root, copy, ignore=shutil.ignore_patterns("split.json", "images"))
     (copy / "images").symlink_to(root / "images")
     assert read_any_scene(copy).train == ["DJI_0018", "DJI_0027", "DJI_0030"]
+    # `dibrgs info` names the training cameras' trajectory: one line across the three strips.
+    from dibrgs_core.commands.info import summarize
+
+    info = summarize(s)
+    assert info["trajectory"]["kind"] == "strips" and "orbit" not in info
+    assert info["trajectory"]["lines"] == [["DJI_0019", "DJI_0028", "DJI_0031"]]
