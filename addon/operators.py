@@ -485,10 +485,16 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
     def build(self, context) -> Job:
         props = context.scene.dibrgs
         run = _run(context)
-        pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count), "pseudo")
-        pseudo_json = path_mod.write_camera_list(run.blender / "pseudo_path.json", pseudo)
+        # An edited path is the user's: training takes its cameras as they are. An unedited one
+        # only shows the trajectory, which training samples itself, as the command line does.
+        pseudo_json = None
+        if scene_build.path_edited(context):
+            pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count),
+                                              "pseudo")
+            pseudo_json = path_mod.write_camera_list(run.blender / "pseudo_path.json", pseudo)
         opts = jobs.TrainOptions(preset=props.preset, method=props.method, iterations=props.iterations or None,
-                                 pseudo_path=pseudo_json, resume=props.resume, weights=settings(context).weights)
+                                 pseudo_views=props.pseudo_count or None, pseudo_path=pseudo_json,
+                                 resume=props.resume, weights=settings(context).weights)
         steps = [run.step("Training", jobs.train_command(run.python, run.scene, run.work, opts), progress=True)]
         more, finish_results = _result_steps(context, run)
 

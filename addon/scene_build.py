@@ -5,6 +5,7 @@ Poses and intrinsics go through ``dibrgs_core.camera.pinhole.to_blender`` /
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -28,6 +29,8 @@ POINTS_NAME = "DIBR-GS Dense points"
 HEIGHT_NAME = "DIBR-GS Height map"
 FLY_NAME = "DIBR-GS Fly-through camera"
 SCENE_TEXT = "DIBR-GS scene.json"
+#: Custom property of the path curve: :func:`path_fingerprint` as the add-on drew it.
+FINGERPRINT_KEY = "dibrgs_path_fingerprint"
 
 
 # ---------------------------------------------------------------------------
@@ -234,7 +237,40 @@ def create_path(context: bpy.types.Context, plan: "path_mod.PathPlan", n_ctrl: i
         root.objects.link(target)
         props.path_target = target
     props.scene_up = plan.up
+    context.view_layer.update()  # the new objects' world matrices
+    obj[FINGERPRINT_KEY] = path_fingerprint(obj, props.path_target)
     return obj
+
+
+def path_fingerprint(curve: bpy.types.Object, target: bpy.types.Object | None) -> str:
+    """A digest of the path as drawn: every spline's points and handles, the curve's and the
+    look-at target's placement (numbers rounded to 1e-6 of their largest, so re-evaluation noise
+    does not count)."""
+    vals = [float(v) for row in curve.matrix_world for v in row]
+    for sp in curve.data.splines:
+        vals += [float(sp.use_cyclic_u), float(len(sp.points)), float(len(sp.bezier_points))]
+        for pt in sp.points:
+            vals += list(pt.co)
+        for bp in sp.bezier_points:
+            vals += [*bp.co, *bp.handle_left, *bp.handle_right]
+    if target is not None:
+        vals += [1.0, *target.matrix_world.translation]
+    a = np.asarray(vals, np.float64)
+    a = np.round(a / max(float(np.abs(a).max(initial=0.0)), 1e-300), 6)
+    return hashlib.sha256(a.tobytes()).hexdigest()
+
+
+def path_edited(context: bpy.types.Context) -> bool:
+    """Whether the user changed the path (its curve, the look-at target, or which objects they
+    are) since the add-on drew it. An unedited path is only a picture of the trajectory training
+    samples itself (with jitter and a check that the cloud covers each pose), so training is
+    not given it."""
+    props = context.scene.dibrgs
+    curve = props.path_curve
+    if curve is None or FINGERPRINT_KEY not in curve:
+        return True
+    context.view_layer.update()
+    return curve[FINGERPRINT_KEY] != path_fingerprint(curve, props.path_target)
 
 
 def curve_polylines(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[list[np.ndarray], list[bool]]:

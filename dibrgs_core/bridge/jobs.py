@@ -84,11 +84,14 @@ class Weights:
 
 @dataclass
 class TrainOptions:
-    """What the add-on passes to ``dibrgs train`` (``iterations=None``: the preset's)."""
+    """What the add-on passes to ``dibrgs train`` (``iterations=None`` / ``pseudo_views=None``:
+    the preset's; ``pseudo_path``: cameras of a path the user edited, else None and training
+    samples pseudo views along the trajectory itself)."""
 
     preset: str = "cpu"
     method: str = "dibrgs"
     iterations: int | None = None
+    pseudo_views: int | None = None
     pseudo_path: Path | None = None
     resume: bool = False
     weights: Weights = field(default_factory=Weights)
@@ -101,6 +104,8 @@ class TrainOptions:
             raise ValueError(f"unknown method {self.method!r}; expected one of {METHODS}")
         if self.iterations is not None and self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.pseudo_views is not None and self.pseudo_views < 1:
+            raise ValueError(f"pseudo_views must be >= 1, got {self.pseudo_views}")
 
 
 def train_command(python: str, scene: Path, work: Path, opts: TrainOptions) -> list[str]:
@@ -111,6 +116,8 @@ def train_command(python: str, scene: Path, work: Path, opts: TrainOptions) -> l
         args += ["--iterations", str(opts.iterations)]
     if opts.pseudo_path is not None:
         args += ["--pseudo-path", str(opts.pseudo_path)]
+    elif opts.pseudo_views is not None:
+        args += ["--pseudo-views", str(opts.pseudo_views)]
     if opts.resume:
         args.append("--resume")
     args += opts.weights.flags("depth_model", "dino_resnet", "dino_vit")

@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
-                        "(LEVIR Cams file/folder or JSON list)")
+                        "(LEVIR Cams file/folder or JSON list; intrinsics in the scene's pixels, resized with "
+                        "its images)")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
     g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")
@@ -56,6 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pseudo views: auto (skip with >= 10 training views), on, off")
     g.add_argument("--pseudo-surface", default="auto", choices=choices(Switch),
                    help="fill pseudo-view depth holes from a height field of the cloud (auto: near-nadir views)")
+    g.add_argument("--pseudo-views", type=positive_int, default=None, metavar="N",
+                   help="pseudo views to sample along the trajectory (default: the preset's, 96 for cpu; "
+                        "a --pseudo-path keeps its own cameras)")
     g.add_argument("--pseudo-consistency", type=nonnegative_float, default=None, metavar="TOL",
                    help="leave out pseudo-view pixels two training views colour more than TOL apart "
                         "(mean |RGB| in [0,1]; 0 keeps all; default 0.1)")
@@ -88,6 +92,8 @@ def config_from_args(args: argparse.Namespace):
     cfg.pseudo.surface = args.pseudo_surface
     if args.pseudo_consistency is not None:
         cfg.pseudo.consistency_tol = args.pseudo_consistency
+    if args.pseudo_views is not None:
+        cfg.pseudo.n_views = args.pseudo_views
     cfg.depth_prior = args.depth_prior
     cfg.dino_resnet = args.dino_resnet
     cfg.dino_vit = args.dino_vit

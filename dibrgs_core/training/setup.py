@@ -36,7 +36,8 @@ log = logging.getLogger("dibrgs.train")
 @dataclass
 class SetupContext:
     """What building a method needs: the run's configuration, folder and report, the scene and
-    its training frames, the set-up random generator, the checkpoint to resume (or None)."""
+    its training frames (the scene's images resized by ``resolution_scale``), the set-up random
+    generator, the checkpoint to resume (or None)."""
 
     cfg: TrainConfig
     work: Path
@@ -48,6 +49,7 @@ class SetupContext:
     depth_model: str | None = None
     # Announces a long set-up stage: (what, done, total), counts None when unknown.
     stage: Callable[[str, int | None, int | None], None] = lambda what, done=None, total=None: None
+    resolution_scale: float = 1.0
 
 
 @dataclass
@@ -259,7 +261,12 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
     if cfg.pseudo_path:
         from ..data.levir import read_cameras
 
-        path = read_cameras(cfg.pseudo_path)
+        # A path's cameras are in the scene's pixels (the add-on copies a scene camera's
+        # intrinsics): resized with the images, else the pseudo views would be rendered and
+        # supervised at another resolution than the training views (3.5x the pixels at the cpu
+        # preset's budget on a 953 px photo).
+        path = [c.scaled(ctx.resolution_scale) if ctx.resolution_scale != 1.0 else c
+                for c in read_cameras(cfg.pseudo_path)]
         rep.values[PSEUDO_PATH_DIGEST] = file_digest(cfg.pseudo_path)
     cams = [f.cam.cam for f in ctx.train_frames]
     train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]

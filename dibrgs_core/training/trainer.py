@@ -161,7 +161,7 @@ class Trainer:
         self._build_rasterizer()
         # set-up randomness only (random init), apart from the training streams
         ctx = SetupContext(cfg, self.work, scene, self.train_frames, self.report,
-                           np.random.default_rng(cfg.seed + 1), ckpt, self.depth_model, self._stage)
+                           np.random.default_rng(cfg.seed + 1), ckpt, self.depth_model, self._stage, s)
         built = METHODS[cfg.method](ctx)
         self.method, self.pseudo_frames = built.method, built.pseudo_frames
         return ckpt

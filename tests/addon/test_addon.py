@@ -157,15 +157,16 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     assert mod("scene_build").POINTS_NAME in bpy.data.objects
     lap("initialise")
     sb, comp = mod("scene_build"), mod("compositor")
-    expected_pseudo = sb.path_cameras(C, 4, "pseudo")
     assert not bpy.ops.dibrgs.results.poll()  # nothing trained yet
+    assert not sb.path_edited(C)
     assert bpy.ops.dibrgs.train(blocking=True) == {"FINISHED"}, props.error
     lap("train")
     assert (work / "model.pt").is_file() and bpy.ops.dibrgs.results.poll()
-    sent = [camera_from_dict(d) for d in json.loads((work / "blender" / "pseudo_path.json").read_text())]
-    assert len(sent) == 4
-    for a, b in zip(sent, expected_pseudo):  # training got the path as it was when it started
-        np.testing.assert_allclose(a.w2c, b.w2c, atol=1e-9)
+    # The path as drawn only shows the trajectory: training sampled its 4 pseudo views itself.
+    report = json.loads((work / "report.json").read_text())
+    assert not (work / "blender" / "pseudo_path.json").exists()
+    assert {d["step"]: d["applied"] for d in report["decisions"]}["pseudo_trajectory"]
+    assert report["values"]["pseudo_views"]["wanted"] == 4
     ref = read_scene(scene, load_depth=False)
     tree = C.scene.compositing_node_group
     image_nodes = [n for n in tree.nodes if n.name.startswith(core.compositor.IMAGE_NODE_PREFIX)]
@@ -224,8 +225,7 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
                                    "--iterations", "24", "--pseudo-views", "4", "--no-init", "--resume"])
     assert rc == 0
     resumed = json.loads((batch_out / "report.json").read_text())["values"]
-    assert resumed["resumed_from"] == 20 and ["pseudo_path", str(work / "blender" / "pseudo_path.json"),
-                                              str(batch_out / "blender" / "pseudo_path.json")] in resumed["resume_changes"]
+    assert resumed["resumed_from"] == 20 and resumed["pseudo_views"]["wanted"] == 4
     blend = batch_out / "dibrgs.blend"
     assert blend.is_file() and len(list((batch_out / "blender" / "renders" / "pseudo").glob("pseudo_*.png"))) == 4
     bpy.ops.wm.open_mainfile(filepath=str(blend))
@@ -233,6 +233,24 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     assert sum(n.bl_idname == "CompositorNodeImage" for n in tree.nodes) == len(ref.test) + 4
     assert len(bpy.context.scene.dibrgs.metrics) > 0 and sb.PATH_NAME in bpy.data.objects
     lap("batch")
+
+    # A path the user edited is theirs: training takes its cameras as they are when it starts.
+    C = bpy.context
+    props = C.scene.dibrgs
+    edited = batch_out.parent / "edited_path_run"
+    props.work_dir, props.resume = str(edited), False
+    bp = props.path_curve.data.splines[0].bezier_points[0]
+    bp.co = np.array(bp.co) + 0.2 * np.array(props.scene_up) * np.linalg.norm(np.array(bp.co))
+    assert sb.path_edited(C)
+    expected_pseudo = sb.path_cameras(C, 4, "pseudo")
+    assert bpy.ops.dibrgs.train(blocking=True) == {"FINISHED"}, props.error
+    sent = [camera_from_dict(d) for d in json.loads((edited / "blender" / "pseudo_path.json").read_text())]
+    assert len(sent) == 4
+    for a, b in zip(sent, expected_pseudo):
+        np.testing.assert_allclose(a.w2c, b.w2c, atol=1e-9)
+    report = json.loads((edited / "report.json").read_text())
+    assert not {d["step"]: d["applied"] for d in report["decisions"]}["pseudo_trajectory"]
+    lap("edited path")
     print("TIMINGS " + json.dumps(timings), flush=True)
 
 

@@ -138,6 +138,7 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     props = fresh.dibrgs
     n = 16
     before = sb.path_cameras(bpy.context, n, "pseudo")
+    assert not sb.path_edited(bpy.context)  # as drawn: training samples the trajectory itself
     # The generated scene's cameras are on an orbit: the path starts on the circle fitted to them.
     plan = sb.plan_path(sb.scene_description())
     assert plan.kind == "orbit" and props.path_curve["dibrgs_trajectory"] == "orbit"
@@ -151,17 +152,20 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     for attr in ("co", "handle_left", "handle_right"):
         setattr(bp, attr, np.array(getattr(bp, attr)) + lift * up)
     after = sb.path_cameras(bpy.context, n, "pseudo")
+    assert sb.path_edited(bpy.context)  # the user's path now: training takes these cameras
     assert (after[0].center - before[0].center) @ up > 0.5 * lift  # the sample at the edited point follows it up
     # The far side of the path only slides along the old circle (arc-length spacing), it does not rise.
     far = after[n // 2].center
     assert abs((far - before[n // 2].center) @ up) < 1e-3 * lift
     assert abs(np.linalg.norm(far - orbit.center) - orbit.radius) < 1e-3 * orbit.radius
-    # Moving the look-at Empty turns the cameras towards it.
+    # Moving the look-at Empty turns the cameras towards it (and is an edit of the path).
+    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"} and not sb.path_edited(bpy.context)
     props.path_target.location = np.array(props.path_target.location) + [0.2 * orbit.radius, 0, 0]
     bpy.context.view_layer.update()
     turned = sb.path_cameras(bpy.context, n, "pseudo")
     uv, _ = turned[3].project(np.array(props.path_target.location)[None])
     np.testing.assert_allclose(uv[0], [turned[3].cx, turned[3].cy], atol=1e-6)
+    assert sb.path_edited(bpy.context)
 
 
 def test_strip_flight_path_follows_the_strips(fresh):
@@ -196,8 +200,10 @@ def test_strip_flight_path_follows_the_strips(fresh):
     np.testing.assert_allclose(at[0].w2c, train[0].w2c, atol=1e-9)
     np.testing.assert_allclose(at[1].w2c, train[1].w2c, atol=1e-9)
     # Reset Path draws the same path again after an edit.
+    assert not sb.path_edited(bpy.context)
     props.path_curve.data.splines[0].points[0].co[2] += 1.0
-    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}
+    assert sb.path_edited(bpy.context)
+    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"} and not sb.path_edited(bpy.context)
     again, _ = sb.curve_polylines(bpy.context, props.path_curve)
     np.testing.assert_allclose(again[0], polys[0], atol=1e-6)
 

@@ -239,11 +239,22 @@ def test_train_command_carries_the_options(tmp_path):
                  "--resume", "--progress-json", "--depth-model /w/da", f"--out {tmp_path / 'work'}"):
         assert part in s
     assert "--lpips" not in s  # LPIPS is for eval
+    assert "--pseudo-views" not in s  # a path keeps its own cameras
+    sampled = jobs.train_command("py", tmp_path, tmp_path, jobs.TrainOptions(pseudo_views=7))
+    assert "--pseudo-views 7" in " ".join(sampled) and "--pseudo-path" not in sampled
+    # ... and the command line takes it: the preset's count replaced
+    from dibrgs_core.cli import build_parser
+    from dibrgs_core.commands.train import config_from_args
+
+    args = build_parser().parse_args(sampled[sampled.index("train"):])
+    assert config_from_args(args).pseudo.n_views == 7
     assert "--lpips /w/lpips" in " ".join(jobs.eval_command("py", tmp_path, opts.weights))
     with pytest.raises(ValueError):
         jobs.TrainOptions(preset="fast")
     with pytest.raises(ValueError):
         jobs.TrainOptions(iterations=0)
+    with pytest.raises(ValueError):
+        jobs.TrainOptions(pseudo_views=0)
     env = jobs.subprocess_env({"PYTHONPATH": "/elsewhere"})
     assert env["PYTHONPATH"].split(":")[0] == str(REPO) and "/elsewhere" in env["PYTHONPATH"]
     # The panel's "Pseudo views" 0 means the preset's own count; a number the user sets wins.

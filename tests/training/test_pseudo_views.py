@@ -394,6 +394,16 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
     d = {x.step: x for x in rep.decisions}
     assert not d["pseudo_trajectory"].applied and str(path) in d["pseudo_trajectory"].reason
     assert len(frames) == 2 and rep.values["pseudo_views"]["wanted"] == 2
+    # Training on images resized by 1/2: the path's cameras (in the scene's pixels) are resized with
+    # them, so pseudo views are built and supervised at the training views' resolution.
+    half = views_to_frames(views, 0.5)
+    ctx = SetupContext(cfg, tmp_path / "c", None, half, Report(), np.random.default_rng(0), None,
+                       resolution_scale=0.5)
+    small = pseudo_frames(ctx, scene_points(step=0.06))
+    assert len(small) == 2
+    for f, full in zip(small, frames):
+        assert f.image.shape == (20, 20, 3) and f.mask.shape == (20, 20)
+        np.testing.assert_allclose(f.cam.cam.K[:2], full.cam.cam.K[:2] * 0.5)
 
 
 def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(tiny_scene, tmp_path):
