@@ -130,7 +130,7 @@ def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequ
     :func:`follow_rotation` of the cameras ``follow`` (the training cameras). ``like`` gives K,
     image size and depth range. Names are ``f"{prefix}_{k:03d}"``.
     """
-    multi = not isinstance(points, np.ndarray) or np.asarray(points).ndim == 3
+    multi = points.ndim == 3 if isinstance(points, np.ndarray) else len(points) > 0 and np.ndim(points[0]) == 2
     eyes = (resample_polylines(points, n, closed) if multi else
             resample_polyline(points, n, bool(closed)))
     up = np.asarray(up, dtype=np.float64)
