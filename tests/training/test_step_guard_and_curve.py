@@ -150,9 +150,9 @@ def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_ca
 
 
 def test_curve_time_is_not_training_time(synth, init_cache, tmp_path):
-    """Points on every held-out view after every iteration take most of the run's wall time;
-    the training clock leaves them out (were they counted, train + curve would exceed wall)."""
-    cfg = _cfg(8)
+    """Points on every held-out view after every iteration take several times the training steps'
+    time; the training clock leaves them out (were they counted, it would exceed the curve's time)."""
+    cfg = _cfg(12)
     cfg.curve_every_s = 0.0
     cfg.curve_max_views = None
     t = Trainer(synth, _work(init_cache, tmp_path / "t"), cfg)
@@ -160,6 +160,6 @@ def test_curve_time_is_not_training_time(synth, init_cache, tmp_path):
     res = t.run()
     wall = time.perf_counter() - t0
     curve_s = t.report.values["curve"]["eval_seconds"]
-    assert curve_s > 0.4 * wall, "the curve points should dominate this run"
+    assert curve_s > 2 * res.seconds, "the curve points should outweigh the training steps"
     assert res.seconds + curve_s <= wall
     assert np.isfinite(res.seconds) and res.seconds > 0
