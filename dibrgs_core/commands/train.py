@@ -104,10 +104,13 @@ def config_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    if args.force_config and not args.resume:
-        from ..common.errors import InputError
+    from ..common.errors import InputError
 
+    if args.force_config and not args.resume:
         raise InputError(None, "--force-config only applies with --resume")
+    if args.pseudo_views is not None and args.pseudo_path:
+        raise InputError(None, "--pseudo-views does not apply with --pseudo-path (the path's cameras are the "
+                               "pseudo views)")
     with locked(args.out, "train"):  # before torch is imported: a second writer hears at once
         apply_compute(args)
         from ..training.methods import TrainingFailed

@@ -502,6 +502,10 @@ def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
     assert _config(work)["forced_config"] == forced
     rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--force-config")
     assert rc == 2 and "--force-config only applies with --resume" in one_line(err)
+    rc, err = dibrgs("train", scene24, "--out", tmp_path / "p", *QUICK, "--pseudo-views", "3",
+                     "--pseudo-path", work / "nowhere.json")
+    assert rc == 2 and "--pseudo-views does not apply with --pseudo-path" in one_line(err)
+    assert not (tmp_path / "p").exists()
 
 
 def test_resume_refuses_another_split(scene24, finished_run, tmp_path):
