@@ -125,6 +125,18 @@ def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
         np.testing.assert_allclose(c.view_dir, [0, 0, -1], atol=1e-9)
     with pytest.raises(ValueError):
         path.path_cameras(plan.polylines, 3, None, plan.up, grid[0], False)
+    # the same flight in millimetres or kilometres: the same path, scaled
+    for s in (1e-3, 1e4):
+        scaled = [Camera(K=c.K, w2c=np.block([[c.R, s * c.t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]),
+                         width=c.width, height=c.height) for c in grid]
+        other = path.plan_path(scaled, views=scaled)
+        assert other.kind == "strips" and len(other.polylines) == len(plan.polylines)
+        for a, b in zip(other.polylines, plan.polylines):
+            np.testing.assert_allclose(a, s * b, rtol=1e-9, atol=1e-9 * s)
+        far = path.path_cameras(other.polylines, 10, None, other.up, scaled[0], False, follow=scaled)
+        for c, d in zip(far, cams):
+            np.testing.assert_allclose(c.R, d.R, atol=1e-9)
+            np.testing.assert_allclose(c.center, s * d.center, rtol=1e-9, atol=1e-9 * s)
     # cameras on an orbit: a circle fitted to them, looked at from the path
     eyes = [np.array([200 * math.cos(a), 200 * math.sin(a), 150.0]) for a in np.radians([10, 130, 250])]
     ring = [Camera(K=_like().K, w2c=look_at(e, [0, 0, 0], [0, 0, 1]), width=64, height=60) for e in eyes]
