@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import setup
+from . import scene_build, setup
 from .operators import job_progress, running_job, why_not
 
 
@@ -64,6 +64,12 @@ class DIBRGS_PT_main(bpy.types.Panel):
         row.enabled = not locked
         row.prop(props, "pseudo_count")
         box.operator("dibrgs.reset_path", icon="FILE_REFRESH")
+        if props.path_curve is not None:
+            if scene_build.path_edited(context, update=False):
+                box.label(text="Edited: training takes this path's cameras", icon="INFO")
+            else:
+                kind = props.path_curve.get(scene_build.TRAJECTORY_KEY, "")
+                box.label(text=f"As drawn: training samples the {kind} trajectory itself", icon="INFO")
 
         box = layout.box()
         box.label(text="Train", icon="SHADERFX")

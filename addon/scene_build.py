@@ -29,8 +29,10 @@ POINTS_NAME = "DIBR-GS Dense points"
 HEIGHT_NAME = "DIBR-GS Height map"
 FLY_NAME = "DIBR-GS Fly-through camera"
 SCENE_TEXT = "DIBR-GS scene.json"
-#: Custom property of the path curve: :func:`path_fingerprint` as the add-on drew it.
+#: Custom properties of the path curve: :func:`path_fingerprint` as the add-on drew it, and the
+#: kind of trajectory it was drawn along.
 FINGERPRINT_KEY = "dibrgs_path_fingerprint"
+TRAJECTORY_KEY = "dibrgs_trajectory"
 
 
 # ---------------------------------------------------------------------------
@@ -225,7 +227,7 @@ def create_path(context: bpy.types.Context, plan: "path_mod.PathPlan", n_ctrl: i
             for pt, co in zip(sp.points, line):
                 pt.co = (*co, 1.0)
     obj = bpy.data.objects.new(PATH_NAME, cu)
-    obj["dibrgs_trajectory"] = plan.kind
+    obj[TRAJECTORY_KEY] = plan.kind
     root.objects.link(obj)
     props.path_curve = obj
     props.path_target = None
@@ -260,16 +262,18 @@ def path_fingerprint(curve: bpy.types.Object, target: bpy.types.Object | None) -
     return hashlib.sha256(a.tobytes()).hexdigest()
 
 
-def path_edited(context: bpy.types.Context) -> bool:
+def path_edited(context: bpy.types.Context, update: bool = True) -> bool:
     """Whether the user changed the path (its curve, the look-at target, or which objects they
     are) since the add-on drew it. An unedited path is only a picture of the trajectory training
     samples itself (with jitter and a check that the cloud covers each pose), so training is
-    not given it."""
+    not given it. ``update=False`` (panel drawing, which may not change data) skips refreshing
+    the world matrices."""
     props = context.scene.dibrgs
     curve = props.path_curve
     if curve is None or FINGERPRINT_KEY not in curve:
         return True
-    context.view_layer.update()
+    if update:
+        context.view_layer.update()
     return curve[FINGERPRINT_KEY] != path_fingerprint(curve, props.path_target)
 
 

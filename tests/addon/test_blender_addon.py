@@ -141,7 +141,7 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     assert not sb.path_edited(bpy.context)  # as drawn: training samples the trajectory itself
     # The generated scene's cameras are on an orbit: the path starts on the circle fitted to them.
     plan = sb.plan_path(sb.scene_description())
-    assert plan.kind == "orbit" and props.path_curve["dibrgs_trajectory"] == "orbit"
+    assert plan.kind == "orbit" and props.path_curve[sb.TRAJECTORY_KEY] == "orbit"
     orbit = plan.orbit
     radii = [np.linalg.norm(c.center - orbit.center) for c in before]
     np.testing.assert_allclose(radii, orbit.radius, rtol=1e-3)
@@ -168,6 +168,30 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     assert sb.path_edited(bpy.context)
 
 
+class _Layout:
+    """Stands in for a panel's ``UILayout``: records label texts, accepts everything else."""
+
+    def __init__(self, labels: list[str]):
+        self.labels = labels
+
+    def label(self, text: str = "", **_):
+        self.labels.append(text)
+
+    def operator(self, *_, **__):
+        return type("Op", (), {})()
+
+    def __getattr__(self, name):
+        if name in ("box", "row", "column"):
+            return lambda *a, **k: _Layout(self.labels)
+        return lambda *a, **k: None
+
+
+def _panel_labels() -> list[str]:
+    labels: list[str] = []
+    _mod("panel").DIBRGS_PT_main.draw(type("P", (), {"layout": _Layout(labels)})(), bpy.context)
+    return labels
+
+
 def test_strip_flight_path_follows_the_strips(fresh):
     """A real mapping flight (one photo of each of three strips): the path is the line through the
     training cameras, continued past its ends, with nadir cameras oriented like the photos - not
@@ -179,7 +203,7 @@ def test_strip_flight_path_follows_the_strips(fresh):
     desc = sb.scene_description()
     train = sb.described_cameras(desc, "train")
     assert props.path_target is None and sb.TARGET_NAME not in bpy.data.objects
-    assert props.path_curve["dibrgs_trajectory"] == "strips" and "strips" in props.message
+    assert props.path_curve[sb.TRAJECTORY_KEY] == "strips" and "strips" in props.message
     polys, closed = sb.curve_polylines(bpy.context, props.path_curve)
     assert len(polys) == 1 and closed == [False]
     C = np.stack([c.center for c in train])
@@ -199,10 +223,12 @@ def test_strip_flight_path_follows_the_strips(fresh):
     at = sb.path_mod.path_cameras([C[[0, 1]]], 2, None, props.scene_up, train[0], False, follow=train)
     np.testing.assert_allclose(at[0].w2c, train[0].w2c, atol=1e-9)
     np.testing.assert_allclose(at[1].w2c, train[1].w2c, atol=1e-9)
-    # Reset Path draws the same path again after an edit.
+    # Reset Path draws the same path again after an edit; the panel says which path training takes.
     assert not sb.path_edited(bpy.context)
+    assert "As drawn: training samples the strips trajectory itself" in _panel_labels()
     props.path_curve.data.splines[0].points[0].co[2] += 1.0
     assert sb.path_edited(bpy.context)
+    assert "Edited: training takes this path's cameras" in _panel_labels()
     assert bpy.ops.dibrgs.reset_path() == {"FINISHED"} and not sb.path_edited(bpy.context)
     again, _ = sb.curve_polylines(bpy.context, props.path_curve)
     np.testing.assert_allclose(again[0], polys[0], atol=1e-6)
