@@ -534,7 +534,7 @@ class DIBRGS_OT_flythrough(_JobOperator, bpy.types.Operator):
         problem = jobs.model_problem(run.work)
         if problem:
             raise UserError(problem)
-        cams = scene_build.path_cameras(context, props.fly_frames, "fly")
+        cams = scene_build.path_cameras(context, props.fly_frames, "fly", route=True)
         for k, c in enumerate(cams):  # frame numbers in the names: Blender reads them as a sequence
             c.name = f"fly_{k + 1:04d}"
         out = run.blender / "renders" / "flythrough"

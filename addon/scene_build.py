@@ -306,11 +306,15 @@ def curve_polylines(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[
     return polys, closed
 
 
-def path_cameras(context: bpy.types.Context, n: int, prefix: str) -> list["pinhole.Camera"]:
+def path_cameras(context: bpy.types.Context, n: int, prefix: str, route: bool = False) -> list["pinhole.Camera"]:
     """``n`` cameras sampled from the path curve as it is now: looking at the target object when
-    there is one, else following the training cameras' orientation."""
+    there is one, else following the training cameras' orientation. ``route``: along one
+    continuous route through all its splines (``path.chain_polylines``; a fly-through), else
+    spline by spline (pseudo views)."""
     props = context.scene.dibrgs
     polys, closed = curve_polylines(context, props.path_curve)
+    if route and len(polys) > 1:
+        polys, closed = [path_mod.chain_polylines(polys, closed)], [False]
     desc = scene_description()
     target = None if props.path_target is None else np.array(props.path_target.matrix_world.translation)
     like = reference_camera(desc, props.reference_view)

@@ -104,6 +104,26 @@ def resample_polylines(polylines: Sequence[np.ndarray], n: int, closed: bool | S
     return out
 
 
+def chain_polylines(polylines: Sequence[np.ndarray], closed: bool | Sequence[bool] = False) -> np.ndarray:
+    """One continuous route through several polylines (a fly-through along a curve of several
+    splines): the first as given, then again and again the remaining polyline with an end nearest
+    to the route's end, reversed when its last point is the nearer; consecutive polylines are
+    joined by the straight step between them. A closed polyline is opened at its first vertex."""
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in polylines]
+    flags = [bool(closed)] * len(polys) if isinstance(closed, (bool, np.bool_)) else [bool(c) for c in closed]
+    if not polys or len(flags) != len(polys):
+        raise ValueError("chain_polylines: give at least one polyline and one closed flag each")
+    polys = [np.concatenate([p, p[:1]]) if c and len(p) > 1 else p for p, c in zip(polys, flags)]
+    route, rest = [polys[0]], list(polys[1:])
+    while rest:
+        end = route[-1][-1]
+        k = min(range(len(rest)), key=lambda i: min(np.linalg.norm(rest[i][0] - end),
+                                                    np.linalg.norm(rest[i][-1] - end)))
+        nxt = rest.pop(k)
+        route.append(nxt[::-1] if np.linalg.norm(nxt[-1] - end) < np.linalg.norm(nxt[0] - end) else nxt)
+    return np.concatenate(route)
+
+
 def follow_rotation(eye: np.ndarray, cams: Sequence[Camera], up: np.ndarray) -> np.ndarray:
     """World-to-camera rotation at ``eye`` from the cameras nearest to it across ``up``: the two
     nearest camera centres' rotations slerped by relative distance (one camera: its rotation)."""

@@ -223,6 +223,20 @@ def test_strip_flight_path_follows_the_strips(fresh):
     at = sb.path_mod.path_cameras([C[[0, 1]]], 2, None, props.scene_up, train[0], False, follow=train)
     np.testing.assert_allclose(at[0].w2c, train[0].w2c, atol=1e-9)
     np.testing.assert_allclose(at[1].w2c, train[1].w2c, atol=1e-9)
+    # A curve of several splines (here the line continued by a second spline drawn back towards
+    # it): pseudo views stay on the splines, a fly-through takes one route through them without
+    # jumping back (spline by spline it would run out along the line, jump, and come back).
+    sp = props.path_curve.data.splines.new("POLY")
+    sp.points.add(1)
+    far = polys[0][-1] if (polys[0][-1] - polys[0][0]) @ d > 0 else polys[0][0]
+    sp.points[0].co, sp.points[1].co = (*(far + 0.5 * spread * d), 1.0), (*far, 1.0)
+    two, _ = sb.curve_polylines(bpy.context, props.path_curve)
+    assert len(two) == 2
+    fly = [c.center for c in sb.path_cameras(bpy.context, 20, "fly", route=True)]
+    along_fly = [float((c - C[0]) @ d) for c in fly]
+    assert all(b >= a - 1e-9 for a, b in zip(along_fly, along_fly[1:])) or \
+        all(b <= a + 1e-9 for a, b in zip(along_fly, along_fly[1:]))  # one way along the line
+    props.path_curve.data.splines.remove(sp)
     # Reset Path draws the same path again after an edit; the panel says which path training takes.
     assert not sb.path_edited(bpy.context)
     assert "As drawn: training samples the strips trajectory itself" in _panel_labels()

@@ -145,6 +145,23 @@ def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
     np.testing.assert_allclose(orbit.orbit.radius, 200.0, rtol=1e-6)
 
 
+def test_chain_polylines_makes_one_route_without_long_jumps():
+    grid = _strip_cams(2, 3)
+    polys = path.plan_path(grid, views=grid).polylines
+    route = path.chain_polylines(polys)
+    assert route.shape[1] == 3 and len(route) == sum(len(p) for p in polys)
+    # every vertex of every spline is on the route, and no step is longer than the longest spline
+    # segment or the widest gap between the grid's strips
+    for p in polys:
+        assert all(np.isclose(np.linalg.norm(route - v, axis=1), 0).any() for v in p)
+    steps = np.linalg.norm(np.diff(route, axis=0), axis=1)
+    assert steps.max() <= max(np.linalg.norm(np.diff(p, axis=0), axis=1).max() for p in polys) + 30.0 + 1e-9
+    np.testing.assert_allclose(route[: len(polys[0])], polys[0])  # starts as the first spline
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0]], float)
+    closed = path.chain_polylines([square], True)
+    np.testing.assert_allclose(closed[[0, -1]], [[0, 0, 0], [0, 0, 0]])  # opened at its first vertex
+
+
 def test_follow_rotation_slerps_between_the_two_nearest_cameras():
     cams = _strip_cams(1, 2, yaw_deg=40.0)  # the second camera turned 40 degrees about the vertical
     up = np.array([0.0, 0, 1])
