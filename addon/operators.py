@@ -488,7 +488,7 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
         # An edited path is the user's: training takes its cameras as they are. An unedited one
         # only shows the trajectory, which training samples itself, as the command line does.
         pseudo_json = None
-        if scene_build.path_edited(context):
+        if scene_build.training_takes_path(context, run.work, props.resume):
             pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count),
                                               "pseudo")
             pseudo_json = path_mod.write_camera_list(run.blender / "pseudo_path.json", pseudo)

@@ -15,7 +15,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ._core import camera_blender, geometry, height_map, pinhole, serialize, path as path_mod
+from ._core import camera_blender, geometry, height_map, jobs, pinhole, serialize, path as path_mod
 
 ROOT_COLLECTION = "DIBR-GS"
 TRAIN_COLLECTION = "DIBR-GS Train views"
@@ -240,26 +240,31 @@ def create_path(context: bpy.types.Context, plan: "path_mod.PathPlan", n_ctrl: i
         props.path_target = target
     props.scene_up = plan.up
     context.view_layer.update()  # the new objects' world matrices
-    obj[FINGERPRINT_KEY] = path_fingerprint(obj, props.path_target)
+    obj[FINGERPRINT_KEY] = path_fingerprint(obj, props.path_target, props.scene_up)
     return obj
 
 
-def path_fingerprint(curve: bpy.types.Object, target: bpy.types.Object | None) -> str:
-    """A digest of the path as drawn: every spline's points and handles, the curve's and the
-    look-at target's placement (numbers rounded to 1e-6 of their largest, so re-evaluation noise
-    does not count)."""
-    vals = [float(v) for row in curve.matrix_world for v in row]
-    for sp in curve.data.splines:
-        vals += [float(sp.use_cyclic_u), float(len(sp.points)), float(len(sp.bezier_points))]
+_SPLINE_TYPES = {"POLY": 0.0, "BEZIER": 1.0, "NURBS": 2.0}
+
+
+def path_fingerprint(curve: bpy.types.Object, target: bpy.types.Object | None, up) -> str:
+    """A digest of everything that places the path's cameras, exactly as stored (Blender keeps
+    the float32 values bit for bit, also through save and reload): the curve's placement and
+    resolution, every spline's type, settings, points and handles, the look-at target's position
+    and the scene's up axis."""
+    cu = curve.data
+    vals = [float(v) for row in curve.matrix_world for v in row] + [float(cu.resolution_u), *map(float, up)]
+    for sp in cu.splines:
+        vals += [_SPLINE_TYPES.get(sp.type, 3.0), float(sp.use_cyclic_u), float(sp.order_u),
+                 float(sp.use_endpoint_u), float(sp.use_bezier_u), float(sp.resolution_u),
+                 float(len(sp.points)), float(len(sp.bezier_points))]
         for pt in sp.points:
             vals += list(pt.co)
         for bp in sp.bezier_points:
             vals += [*bp.co, *bp.handle_left, *bp.handle_right]
     if target is not None:
         vals += [1.0, *target.matrix_world.translation]
-    a = np.asarray(vals, np.float64)
-    a = np.round(a / max(float(np.abs(a).max(initial=0.0)), 1e-300), 6)
-    return hashlib.sha256(a.tobytes()).hexdigest()
+    return hashlib.sha256(np.asarray(vals, np.float64).tobytes()).hexdigest()
 
 
 def path_edited(context: bpy.types.Context, update: bool = True) -> bool:
@@ -274,7 +279,14 @@ def path_edited(context: bpy.types.Context, update: bool = True) -> bool:
         return True
     if update:
         context.view_layer.update()
-    return curve[FINGERPRINT_KEY] != path_fingerprint(curve, props.path_target)
+    return curve[FINGERPRINT_KEY] != path_fingerprint(curve, props.path_target, props.scene_up)
+
+
+def training_takes_path(context: bpy.types.Context, work: Path, resume: bool) -> bool:
+    """Whether training in ``work`` is given the path's cameras (``--pseudo-path``): when the user
+    edited the path, or when resuming a run that started with a path (one the add-on began before
+    2026-11-24 always had one; an unchanged path then resumes it)."""
+    return path_edited(context) or bool(resume and jobs.run_pseudo_path(work))
 
 
 def curve_polylines(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[list[np.ndarray], list[bool]]:
@@ -282,16 +294,30 @@ def curve_polylines(context: bpy.types.Context, obj: bpy.types.Object) -> tuple[
     is closed (from the evaluated mesh: a spline's vertices are consecutive and joined by edges)."""
     if obj is None or obj.type != "CURVE" or not obj.data.splines:
         raise ValueError("the pseudo-view path must be a curve object with a spline")
-    depsgraph = context.evaluated_depsgraph_get()
-    ev = obj.evaluated_get(depsgraph)
-    mesh = ev.to_mesh()
+    cu = obj.data
+    # A bevelled, extruded or offset curve evaluates to a surface: its centre line is wanted.
+    shape = {k: getattr(cu, k) for k in ("bevel_depth", "extrude", "offset", "bevel_object", "taper_object")}
+    flat = {"bevel_depth": 0.0, "extrude": 0.0, "offset": 0.0, "bevel_object": None, "taper_object": None}
+    changed = any(shape[k] != flat[k] for k in shape)
     try:
-        co = np.empty(len(mesh.vertices) * 3)
-        mesh.vertices.foreach_get("co", co)
-        ev_idx = np.empty(len(mesh.edges) * 2, dtype=np.int64)
-        mesh.edges.foreach_get("vertices", ev_idx)
+        if changed:
+            for k, v in flat.items():
+                setattr(cu, k, v)
+            context.view_layer.update()
+        ev = obj.evaluated_get(context.evaluated_depsgraph_get())
+        mesh = ev.to_mesh()
+        try:
+            co = np.empty(len(mesh.vertices) * 3)
+            mesh.vertices.foreach_get("co", co)
+            ev_idx = np.empty(len(mesh.edges) * 2, dtype=np.int64)
+            mesh.edges.foreach_get("vertices", ev_idx)
+        finally:
+            ev.to_mesh_clear()
     finally:
-        ev.to_mesh_clear()
+        if changed:
+            for k, v in shape.items():
+                setattr(cu, k, v)
+            context.view_layer.update()
     if len(co) == 0:
         raise ValueError(f"the curve {obj.name} evaluates to no points")
     mw = np.array(obj.matrix_world)

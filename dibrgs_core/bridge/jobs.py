@@ -16,6 +16,7 @@ process if it has not stopped after a grace period.
 """
 from __future__ import annotations
 
+import json
 import os
 import queue
 import signal
@@ -149,6 +150,8 @@ def check_command(python: str) -> list[str]:
 MODEL_FILE = "model.pt"
 #: Written at every checkpoint and on interruption; ``--resume`` continues from it.
 CHECKPOINT_FILE = "checkpoint.pt"
+#: The run's scene, split and configuration (``training/run_folder.py``), written when it starts.
+CONFIG_FILE = "config.json"
 
 
 def model_problem(work: Path) -> str | None:
@@ -159,6 +162,17 @@ def model_problem(work: Path) -> str | None:
     if (work / CHECKPOINT_FILE).is_file():
         return f"training in {work} stopped before the end: train with Resume to finish it"
     return f"no trained model in {work}: train first"
+
+
+def run_pseudo_path(work: Path) -> str | None:
+    """The ``--pseudo-path`` the run in ``work`` was started with (its ``config.json``), or None
+    (none, or no readable run there)."""
+    try:
+        cfg = json.loads((Path(work) / CONFIG_FILE).read_text())["config"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    path = cfg.get("pseudo_path") if isinstance(cfg, dict) else None
+    return path if isinstance(path, str) and path else None
 
 
 def log_tail(path: Path, lines: int = 5) -> str:

@@ -22,7 +22,7 @@ from ..camera.frame import estimate_up
 from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
 from ..camera.serialize import camera_to_dict
-from ..camera.trajectory import TrajectoryKind, classify, slerp
+from ..camera.trajectory import Segment, TrajectoryKind, classify, slerp
 from ..common.fileio import write_json
 
 
@@ -124,18 +124,43 @@ def chain_polylines(polylines: Sequence[np.ndarray], closed: bool | Sequence[boo
     return np.concatenate(route)
 
 
-def follow_rotation(eye: np.ndarray, cams: Sequence[Camera], up: np.ndarray) -> np.ndarray:
-    """World-to-camera rotation at ``eye`` from the cameras nearest to it across ``up``: the two
-    nearest camera centres' rotations slerped by relative distance (one camera: its rotation)."""
-    C = np.stack([c.center for c in cams])
-    u = np.asarray(up, np.float64) / max(np.linalg.norm(up), 1e-300)
-    d = C - eye
-    d = np.linalg.norm(d - np.outer(d @ u, u), axis=1)
+def follow_rotation(eye: np.ndarray, cams: Sequence[Camera], up: np.ndarray,
+                    segments: Sequence[Segment] | None = None) -> np.ndarray:
+    """World-to-camera rotation at ``eye`` that follows the cameras ``cams`` as the command line's
+    poses between cameras do: the trajectory segment nearest to ``eye`` across ``up`` (default:
+    :func:`~dibrgs_core.camera.trajectory.classify`'s segments, else each camera's nearest
+    neighbour), its end cameras' rotations slerped at ``eye``'s place along it, clamped to the
+    segment (past a line's end camera: that camera's rotation). Consecutive segments share their
+    camera, so the rotation is continuous along a line and across its cameras."""
+    cams = list(cams)
     if len(cams) == 1:
         return cams[0].R.copy()
-    a, b = np.argsort(d, kind="stable")[:2]
-    t = d[a] / (d[a] + d[b]) if d[a] + d[b] > 0 else 0.0
-    return slerp(cams[a].R, cams[b].R, float(t))
+    u = np.asarray(up, np.float64) / max(np.linalg.norm(up), 1e-300)
+    C = np.stack([c.center for c in cams])
+    C = C - np.outer(C @ u, u)
+    e = np.asarray(eye, np.float64) - (np.asarray(eye, np.float64) @ u) * u
+    segs = list(segments) if segments else _follow_segments(cams, u)
+    best = (np.inf, 0, 0, 0.0)
+    for s in segs:
+        ab = C[s.b] - C[s.a]
+        L2 = float(ab @ ab)
+        t = float(np.clip((e - C[s.a]) @ ab / L2, 0.0, 1.0)) if L2 > 0 else 0.0
+        d = float(np.linalg.norm(C[s.a] + t * ab - e))
+        if d < best[0]:
+            best = (d, s.a, s.b, t)
+    _, a, b, t = best
+    return cams[a].R.copy() if a == b else slerp(cams[a].R, cams[b].R, t)
+
+
+def _follow_segments(cams: Sequence[Camera], up: np.ndarray) -> list[Segment]:
+    """The segments :func:`follow_rotation` projects onto: the trajectory's, or (an orbit, whose
+    poses look at its target and have none) each camera and its nearest neighbour."""
+    segs = [s for s in classify(cams, up=up).segments if s.a != s.b]
+    if segs:
+        return segs
+    C = np.stack([c.center for c in cams])
+    D = np.linalg.norm(C[:, None] - C[None], axis=-1) + np.diag(np.full(len(cams), np.inf))
+    return [Segment(i, int(np.argmin(D[i]))) for i in range(len(cams))]
 
 
 def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequence[float] | None,
@@ -160,6 +185,9 @@ def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequ
     if target is not None:
         target = np.asarray(target, dtype=np.float64)
         scale = max(float(np.abs(eyes).max(initial=0.0)), float(np.abs(target).max()), 1.0)
+    else:
+        follow = list(follow)
+        segs = _follow_segments(follow, up) if len(follow) > 1 else None
     for k, eye in enumerate(eyes):
         if target is not None:
             if np.linalg.norm(eye - target) < 1e-9 * scale:
@@ -167,7 +195,7 @@ def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequ
             w2c = look_at(eye, target, up)
         else:
             w2c = np.eye(4)
-            w2c[:3, :3] = follow_rotation(eye, follow, up)
+            w2c[:3, :3] = follow_rotation(eye, follow, up, segs)
             w2c[:3, 3] = -w2c[:3, :3] @ eye
         cams.append(Camera(K=like.K.copy(), w2c=w2c, width=like.width, height=like.height,
                            name=f"{prefix}_{k:03d}", depth_range=like.depth_range))
@@ -179,10 +207,12 @@ class PathPlan:
     """Where the add-on's pseudo-view path starts (:func:`plan_path`).
 
     Attributes:
-        kind, reason: the training cameras' trajectory (:func:`~dibrgs_core.camera.trajectory.classify`).
-        up: unit up axis of the scene (world).
-        orbit: the circle to draw (kind ``orbit``), fitted to the scene's Track cameras when it
-            has three or more, else to the training cameras; cameras on it look at its target.
+        kind, reason: the training cameras' trajectory as the trainer classifies it
+            (:func:`~dibrgs_core.camera.trajectory.classify` with their own up axis).
+        up: unit up axis of the scene (world, from all its cameras).
+        orbit: the circle to draw (kind ``orbit``, or when nothing else can be drawn: cameras at
+            one position), fitted to the scene's Track cameras when it has three or more, else
+            to the training cameras; cameras on it look at its target.
         polylines: otherwise, the open polylines to draw (world points in order): each fitted
             flight line through its cameras, continued past its end cameras as the command line's
             sampling is, and each pair of neighbouring cameras not on one line; cameras along
@@ -204,13 +234,13 @@ def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequ
     if not cams:
         raise ValueError("plan_path needs at least one camera")
     up, _ = estimate_up(views or cams)
-    traj = classify(cams, up=up)
+    traj = classify(cams)  # as the trainer does: the training cameras' own up axis
     lines = [] if traj.kind == "orbit" else _trajectory_polylines(traj, cams)
     if lines:
-        return PathPlan(traj.kind, traj.reason, traj.up, polylines=lines)
+        return PathPlan(traj.kind, traj.reason, up, polylines=lines)
     circle = track if len(track) >= 3 else (cams if len(cams) >= 3 else views)
     reason = traj.reason if traj.kind == "orbit" else f"{traj.reason}; no line to draw, a circle instead"
-    return PathPlan("orbit", reason, traj.up, orbit=fit_orbit(circle, up=up))
+    return PathPlan(traj.kind, reason, up, orbit=fit_orbit(circle, up=up))
 
 
 def _trajectory_polylines(traj, cams: Sequence[Camera]) -> list[np.ndarray]:

@@ -152,7 +152,7 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
 
     assert bpy.ops.dibrgs.import_scene(directory=str(scene)) == {"FINISHED"}
     props.work_dir = str(work)
-    props.preset, props.iterations, props.pseudo_count = "test", 20, 4
+    props.preset, props.iterations, props.pseudo_count = "test", 20, 3  # the preset has 4
     assert bpy.ops.dibrgs.initialise(blocking=True) == {"FINISHED"}, props.error
     assert mod("scene_build").POINTS_NAME in bpy.data.objects
     lap("initialise")
@@ -162,15 +162,15 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     assert bpy.ops.dibrgs.train(blocking=True) == {"FINISHED"}, props.error
     lap("train")
     assert (work / "model.pt").is_file() and bpy.ops.dibrgs.results.poll()
-    # The path as drawn only shows the trajectory: training sampled its 4 pseudo views itself.
+    # The path as drawn only shows the trajectory: training sampled its 3 pseudo views itself.
     report = json.loads((work / "report.json").read_text())
     assert not (work / "blender" / "pseudo_path.json").exists()
     assert {d["step"]: d["applied"] for d in report["decisions"]}["pseudo_trajectory"]
-    assert report["values"]["pseudo_views"]["wanted"] == 4
+    assert report["values"]["pseudo_views"]["wanted"] == 3
     ref = read_scene(scene, load_depth=False)
     tree = C.scene.compositing_node_group
     image_nodes = [n for n in tree.nodes if n.name.startswith(core.compositor.IMAGE_NODE_PREFIX)]
-    assert len(image_nodes) == len(ref.test) + 4
+    assert len(image_nodes) == len(ref.test) + 3
     for n in image_nodes:
         assert tuple(n.image.size) == ref.resolution and n.image.has_data
     first = f"heldout_{ref.test[0]}"
@@ -217,20 +217,20 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     lap("fly-through")
 
     # Batch mode from the installed extension (what `blender -b -c dibrgs ...` runs), continuing the
-    # trained run in a copy of its folder: the same pseudo-view path, written to the copy's own
-    # blender/ folder, is the same configuration (compared by content, not by path).
+    # trained run in a copy of its folder: the scene imported again draws the same path, unedited,
+    # so training samples the trajectory as before (3 views) and the run continues.
     batch_out = Path(batch_out)
     shutil.copytree(work, batch_out, ignore=shutil.ignore_patterns("blender", "final.png"))
     rc = mod("batch").cli_command(["--scene", str(scene), "--out", str(batch_out), "--preset", "test",
-                                   "--iterations", "24", "--pseudo-views", "4", "--no-init", "--resume"])
+                                   "--iterations", "24", "--pseudo-views", "3", "--no-init", "--resume"])
     assert rc == 0
     resumed = json.loads((batch_out / "report.json").read_text())["values"]
-    assert resumed["resumed_from"] == 20 and resumed["pseudo_views"]["wanted"] == 4
+    assert resumed["resumed_from"] == 20 and resumed["pseudo_views"]["wanted"] == 3
     blend = batch_out / "dibrgs.blend"
-    assert blend.is_file() and len(list((batch_out / "blender" / "renders" / "pseudo").glob("pseudo_*.png"))) == 4
+    assert blend.is_file() and len(list((batch_out / "blender" / "renders" / "pseudo").glob("pseudo_*.png"))) == 3
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     tree = bpy.context.scene.compositing_node_group
-    assert sum(n.bl_idname == "CompositorNodeImage" for n in tree.nodes) == len(ref.test) + 4
+    assert sum(n.bl_idname == "CompositorNodeImage" for n in tree.nodes) == len(ref.test) + 3
     assert len(bpy.context.scene.dibrgs.metrics) > 0 and sb.PATH_NAME in bpy.data.objects
     lap("batch")
 
@@ -242,10 +242,10 @@ def _installed_workflow(zip_path: str, scene: str, work: str, batch_out: str) ->
     bp = props.path_curve.data.splines[0].bezier_points[0]
     bp.co = np.array(bp.co) + 0.2 * np.array(props.scene_up) * np.linalg.norm(np.array(bp.co))
     assert sb.path_edited(C)
-    expected_pseudo = sb.path_cameras(C, 4, "pseudo")
+    expected_pseudo = sb.path_cameras(C, 3, "pseudo")
     assert bpy.ops.dibrgs.train(blocking=True) == {"FINISHED"}, props.error
     sent = [camera_from_dict(d) for d in json.loads((edited / "blender" / "pseudo_path.json").read_text())]
-    assert len(sent) == 4
+    assert len(sent) == 3
     for a, b in zip(sent, expected_pseudo):
         np.testing.assert_allclose(a.w2c, b.w2c, atol=1e-9)
     report = json.loads((edited / "report.json").read_text())
@@ -311,7 +311,7 @@ def test_batch_stops_cleanly_on_sigint_and_sigterm(installed, tiny_scene, tmp_pa
     shutil.copytree(installed["work"], out, ignore=shutil.ignore_patterns("blender", "final.png"))
     (out / "model.pt").unlink()  # so that we see the interrupted run does not write one
     cmd = [sys.executable, str(REPO / "scripts" / "run.py"), "--scene", str(tiny_scene), "--out", str(out),
-           "--preset", "test", "--iterations", "100000", "--pseudo-views", "4", "--no-init", "--resume"]
+           "--preset", "test", "--iterations", "100000", "--pseudo-views", "3", "--no-init", "--resume"]
     for sig in (signal.SIGINT, signal.SIGTERM):
         before = (out / "checkpoint.pt").stat().st_mtime_ns
         p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -142,6 +142,7 @@ def test_editing_the_curve_moves_the_pseudo_views(scene64, fresh):
     # The generated scene's cameras are on an orbit: the path starts on the circle fitted to them.
     plan = sb.plan_path(sb.scene_description())
     assert plan.kind == "orbit" and props.path_curve[sb.TRAJECTORY_KEY] == "orbit"
+    assert sb.curve_polylines(bpy.context, props.path_curve)[1] == [True]  # one closed spline
     orbit = plan.orbit
     radii = [np.linalg.norm(c.center - orbit.center) for c in before]
     np.testing.assert_allclose(radii, orbit.radius, rtol=1e-3)
@@ -192,7 +193,7 @@ def _panel_labels() -> list[str]:
     return labels
 
 
-def test_strip_flight_path_follows_the_strips(fresh):
+def test_strip_flight_path_follows_the_strips(fresh, tmp_path):
     """A real mapping flight (one photo of each of three strips): the path is the line through the
     training cameras, continued past its ends, with nadir cameras oriented like the photos - not
     a circle fitted through three nearly collinear cameras (views of padding)."""
@@ -218,7 +219,8 @@ def test_strip_flight_path_follows_the_strips(fresh):
         off = cam.center - C[0]
         assert np.linalg.norm(off - (off @ d) * d) < 0.1 * spread  # on the line through the cameras
         nearest = min(train, key=lambda t: np.linalg.norm(t.center - cam.center))
-        assert nearest.view_dir @ cam.view_dir > np.cos(np.radians(5))  # looks as the photos do (nadir)
+        turn = np.degrees(np.arccos(np.clip((np.trace(nearest.R @ cam.R.T) - 1) / 2, -1, 1)))
+        assert turn < 5.0  # oriented as the photos (nadir, same heading)
     # At a training camera the path camera is that camera's pose.
     at = sb.path_mod.path_cameras([C[[0, 1]]], 2, None, props.scene_up, train[0], False, follow=train)
     np.testing.assert_allclose(at[0].w2c, train[0].w2c, atol=1e-9)
@@ -237,6 +239,40 @@ def test_strip_flight_path_follows_the_strips(fresh):
     assert all(b >= a - 1e-9 for a, b in zip(along_fly, along_fly[1:])) or \
         all(b <= a + 1e-9 for a, b in zip(along_fly, along_fly[1:]))  # one way along the line
     props.path_curve.data.splines.remove(sp)
+    # What changes the path's cameras is an edit: the spline's type, the curve's resolution, the
+    # scene's up axis; a bevel is not (the centre line is read), and is not one.
+    for change, undo in ((lambda: setattr(props.path_curve.data.splines[0], "type", "NURBS"),
+                          lambda: setattr(props.path_curve.data.splines[0], "type", "POLY")),
+                         (lambda: setattr(props.path_curve.data, "resolution_u", 5),
+                          lambda: setattr(props.path_curve.data, "resolution_u", 32)),
+                         (lambda: setattr(props, "scene_up", (0.0, 0.0, 1.0)),
+                          lambda: setattr(props, "scene_up", plan_up))):
+        plan_up = tuple(props.scene_up)
+        assert not sb.path_edited(bpy.context)
+        change()
+        assert sb.path_edited(bpy.context)
+        undo()
+    assert not sb.path_edited(bpy.context)
+    props.path_curve.data.bevel_depth = 0.05
+    bevelled, _ = sb.curve_polylines(bpy.context, props.path_curve)
+    assert len(bevelled) == 1 and np.allclose(bevelled[0], polys[0], atol=1e-6)
+    assert props.path_curve.data.bevel_depth == pytest.approx(0.05)  # left as the user set it
+    props.path_curve.data.bevel_depth = 0.0
+    # Far from the origin (map coordinates) a small move is still an edit.
+    props.path_curve.location = (5e6, -3e6, 0.0)
+    bpy.context.view_layer.update()
+    props.path_curve[sb.FINGERPRINT_KEY] = sb.path_fingerprint(props.path_curve, None, props.scene_up)
+    props.path_curve.data.splines[0].points[1].co[0] += 1e-3 * spread
+    assert sb.path_edited(bpy.context)
+    # Resuming a run that started with a path keeps giving it one (runs the add-on began before
+    # it sampled the trajectory itself), an unedited path otherwise gives none.
+    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}
+    work = tmp_path
+    (work / "config.json").write_text(json.dumps({"config": {"pseudo_path": str(work / "pseudo_path.json")}}))
+    assert sb.training_takes_path(bpy.context, work, resume=True)
+    assert not sb.training_takes_path(bpy.context, work, resume=False)
+    (work / "config.json").write_text(json.dumps({"config": {"pseudo_path": None}}))
+    assert not sb.training_takes_path(bpy.context, work, resume=True)
     # Reset Path draws the same path again after an edit; the panel says which path training takes.
     assert not sb.path_edited(bpy.context)
     assert "As drawn: training samples the strips trajectory itself" in _panel_labels()

@@ -162,6 +162,34 @@ def test_chain_polylines_makes_one_route_without_long_jumps():
     np.testing.assert_allclose(closed[[0, -1]], [[0, 0, 0], [0, 0, 0]])  # opened at its first vertex
 
 
+def _angle_deg(R1: np.ndarray, R2: np.ndarray) -> float:
+    return math.degrees(math.acos(np.clip((np.trace(R1 @ R2.T) - 1) / 2, -1, 1)))
+
+
+def test_cameras_following_the_photos_turn_smoothly_along_a_route():
+    """A fly-through along the drawn path of a free flight (five photos, headings up to 120
+    degrees apart) and of a mapping grid flown back and forth (alternate strips 180 degrees
+    apart): no sudden turns between frames; at a photo's place, its rotation."""
+    rng = np.random.default_rng(0)
+
+    def nadir(x, y, yaw):
+        eye = np.array([x, y, 100.0])
+        return Camera(K=_like().K, w2c=look_at(eye, eye - [0, 0, 100.0], [math.cos(math.radians(yaw)),
+                                                                         math.sin(math.radians(yaw)), 0.0]),
+                      width=64, height=60)
+
+    free = [nadir(*rng.uniform(-50, 50, 2), rng.uniform(-60, 60)) for _ in range(5)]
+    serpentine = [nadir(20.0 * c, 30.0 * r, 180.0 * r) for r in range(2) for c in range(4)]
+    for cams in (free, serpentine):
+        plan = path.plan_path(cams, views=cams)
+        route = path.chain_polylines(plan.polylines)
+        fly = path.path_cameras(route, 400, None, plan.up, cams[0], False, follow=cams)
+        steps = [_angle_deg(a.R, b.R) for a, b in zip(fly, fly[1:])]
+        assert max(steps) < 15.0, max(steps)
+        for c in cams:
+            np.testing.assert_allclose(path.follow_rotation(c.center, cams, plan.up), c.R, atol=1e-9)
+
+
 def test_follow_rotation_slerps_between_the_two_nearest_cameras():
     cams = _strip_cams(1, 2, yaw_deg=40.0)  # the second camera turned 40 degrees about the vertical
     up = np.array([0.0, 0, 1])
@@ -431,6 +459,24 @@ def test_model_problem_names_what_the_run_folder_lacks(tmp_path):
     assert "stopped before the end" in jobs.model_problem(tmp_path)  # an interrupted run
     (tmp_path / jobs.MODEL_FILE).write_bytes(b"")
     assert jobs.model_problem(tmp_path) is None
+    from dibrgs_core.training import checkpoint, run_folder
+
+    assert (jobs.MODEL_FILE, jobs.CHECKPOINT_FILE, jobs.CONFIG_FILE) == (checkpoint.MODEL, checkpoint.CHECKPOINT,
+                                                                         run_folder.CONFIG)
+
+
+def test_run_pseudo_path_reads_what_the_run_started_with(tmp_path):
+    assert jobs.run_pseudo_path(tmp_path) is None  # no run
+    (tmp_path / jobs.CONFIG_FILE).write_text("{broken")
+    assert jobs.run_pseudo_path(tmp_path) is None
+    from dibrgs_core.training.config import preset
+
+    cfg = preset("test")
+    (tmp_path / jobs.CONFIG_FILE).write_text(json.dumps({"config": cfg.to_dict()}))
+    assert jobs.run_pseudo_path(tmp_path) is None
+    cfg.pseudo_path = "/somewhere/pseudo_path.json"
+    (tmp_path / jobs.CONFIG_FILE).write_text(json.dumps({"config": cfg.to_dict()}))
+    assert jobs.run_pseudo_path(tmp_path) == "/somewhere/pseudo_path.json"
 
 
 # ---------------------------------------------------------------------------
