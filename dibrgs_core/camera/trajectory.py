@@ -144,10 +144,11 @@ def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # Classification
 # ---------------------------------------------------------------------------
-def _nn_spacing(P: np.ndarray) -> float:
-    """Median distance from a position to its nearest neighbour (0 when they coincide)."""
+def _nn_spacing(P: np.ndarray, same: float = 0.0) -> float:
+    """Median distance from a position to its nearest other position (positions at most ``same``
+    apart count as one: two photos from one place do not make the spacing 0); 0 when all coincide."""
     D = np.linalg.norm(P[:, None] - P[None], axis=-1)
-    np.fill_diagonal(D, np.inf)
+    D[D <= same] = np.inf  # the diagonal too
     s = float(np.median(D.min(1)))
     return s if np.isfinite(s) and s > 0 else 0.0
 
@@ -285,7 +286,7 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
     P = (C @ F.T)[:, :2]
     n = len(cams)
     stand_in = 0.25 * scene_depth if scene_depth and np.isfinite(scene_depth) and scene_depth > 0 else 1.0
-    spacing = _nn_spacing(P) if n > 1 else 0.0
+    spacing = _nn_spacing(P, 1e-9 * float(np.abs(C).max())) if n > 1 else 0.0
     # Positions equal up to rounding (of the coordinates, or against the scene's depth) coincide.
     if spacing <= max(1e-9 * float(np.abs(C).max()), 1e-6 * stand_in if scene_depth else 0.0):
         return Trajectory("free", f"{'a single camera' if n == 1 else 'the cameras share one position'}: "

@@ -131,6 +131,11 @@ def test_scattered_cameras_are_free_and_chords_of_a_circle_are_no_grid():
     assert classify(ring).kind == "orbit"
     # Three nadir cameras off a line: a circle fits any three points, so that is no orbit.
     assert classify(cams[:3]).kind == "free"
+    # Two photos from one place and a third elsewhere: two positions on a line, not "one position"
+    # (the spacing is to the nearest *other* position, not 0).
+    twice = classify([nadir(0, 0), nadir(0, 0), nadir(5.0, 0)])
+    assert twice.kind == "strips" and twice.spacing == pytest.approx(5.0)
+    assert classify([nadir(1, 2), nadir(1, 2)]).reason.startswith("the cameras share one position")
 
 
 @pytest.mark.stability
