@@ -239,6 +239,11 @@ def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequ
     if lines:
         return PathPlan(traj.kind, traj.reason, up, polylines=lines)
     circle = track if len(track) >= 3 else (cams if len(cams) >= 3 else views)
+    C = np.stack([c.center for c in circle])
+    if len(circle) < 2 or np.ptp(C, axis=0).max() <= 1e-9 * max(float(np.abs(C).max()), 1e-300):
+        # One camera position in the whole scene: nothing to go round; the path is that place.
+        return PathPlan(traj.kind, f"{traj.reason}; the path is the camera's position", up,
+                        polylines=[np.stack([C[0], C[0]])])
     reason = traj.reason if traj.kind == "orbit" else f"{traj.reason}; no line to draw, a circle instead"
     return PathPlan(traj.kind, reason, up, orbit=fit_orbit(circle, up=up))
 

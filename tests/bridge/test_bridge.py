@@ -137,6 +137,12 @@ def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
         for c, d in zip(far, cams):
             np.testing.assert_allclose(c.R, d.R, atol=1e-9)
             np.testing.assert_allclose(c.center, s * d.center, rtol=1e-9, atol=1e-9 * s)
+    # one camera (or all at one place): no crash, the path is that place and looks as the camera does
+    for one in ([grid[0]], [grid[0], grid[0]]):
+        lone = path.plan_path(one, views=one)
+        assert lone.orbit is None and np.allclose(lone.polylines[0], grid[0].center)
+        at = path.path_cameras(lone.polylines, 3, None, lone.up, grid[0], False, follow=one)
+        assert all(np.allclose(c.w2c, grid[0].w2c, atol=1e-9) for c in at)
     # cameras on an orbit: a circle fitted to them, looked at from the path
     eyes = [np.array([200 * math.cos(a), 200 * math.sin(a), 150.0]) for a in np.radians([10, 130, 250])]
     ring = [Camera(K=_like().K, w2c=look_at(e, [0, 0, 0], [0, 0, 1]), width=64, height=60) for e in eyes]
