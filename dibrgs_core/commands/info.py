@@ -55,7 +55,7 @@ def summarize(scene) -> dict:
         allz = np.concatenate(depths)
         out["depth_range_maps"] = [float(allz.min()), float(allz.max())]
     train = [scene.views[i].camera for i in scene.train] or cams
-    traj = classify(train, up=up)
+    traj = classify(train)  # as the trainer does: the training cameras' own up axis
     out["trajectory"] = {"kind": traj.kind, "reason": traj.reason,
                          "lines": [[scene.train[i] for i in line] for line in traj.lines] if scene.train else traj.lines}
     orbit = [scene.views[i].camera for i in orbit_ids(list(scene.views))]
