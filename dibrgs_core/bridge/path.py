@@ -22,7 +22,7 @@ from ..camera.frame import estimate_up
 from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
 from ..camera.serialize import camera_to_dict
-from ..camera.trajectory import Segment, TrajectoryKind, classify, slerp
+from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify, slerp
 from ..common.fileio import write_json
 
 
@@ -210,13 +210,14 @@ class PathPlan:
         kind, reason: the training cameras' trajectory as the trainer classifies it
             (:func:`~dibrgs_core.camera.trajectory.classify` with their own up axis).
         up: unit up axis of the scene (world, from all its cameras).
-        orbit: the circle to draw (kind ``orbit``, or when nothing else can be drawn: cameras at
-            one position), fitted to the scene's Track cameras when it has three or more, else
-            to the training cameras; cameras on it look at its target.
+        orbit: the circle to draw (kind ``orbit``, or another kind that gives no line to draw),
+            fitted to the scene's Track cameras when it has three or more, else to the training
+            cameras; cameras on it look at its target.
         polylines: otherwise, the open polylines to draw (world points in order): each fitted
             flight line through its cameras, continued past its end cameras as the command line's
-            sampling is, and each pair of neighbouring cameras not on one line; cameras along
-            them follow the training cameras' orientation.
+            sampling is, and each pair of neighbouring cameras not on one line (all the scene's
+            cameras at one place: a polyline at that place); cameras along them follow the
+            training cameras' orientation.
     """
 
     kind: TrajectoryKind
@@ -248,7 +249,7 @@ def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequ
     return PathPlan(traj.kind, reason, up, orbit=fit_orbit(circle, up=up))
 
 
-def _trajectory_polylines(traj, cams: Sequence[Camera]) -> list[np.ndarray]:
+def _trajectory_polylines(traj: Trajectory, cams: Sequence[Camera]) -> list[np.ndarray]:
     """Open polylines of a ``strips`` or ``free`` trajectory (see :class:`PathPlan`); segments of
     zero length (cameras at one position) are left out."""
     C = np.stack([c.center for c in cams])
