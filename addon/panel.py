@@ -66,10 +66,10 @@ class DIBRGS_PT_main(bpy.types.Panel):
         box.operator("dibrgs.reset_path", icon="FILE_REFRESH")
         if props.path_curve is not None:
             if scene_build.path_edited(context, update=False):
-                box.label(text="Edited: training takes this path's cameras", icon="INFO")
+                box.label(text="Edited: training uses its cameras", icon="INFO")
             else:
                 kind = props.path_curve.get(scene_build.TRAJECTORY_KEY, "")
-                box.label(text=f"As drawn: training samples the {kind} trajectory itself", icon="INFO")
+                box.label(text=f"As drawn: training samples the {kind}", icon="INFO")
 
         box = layout.box()
         box.label(text="Train", icon="SHADERFX")

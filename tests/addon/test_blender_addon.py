@@ -275,10 +275,10 @@ def test_strip_flight_path_follows_the_strips(fresh, tmp_path):
     assert not sb.training_takes_path(bpy.context, work, resume=True)
     # Reset Path draws the same path again after an edit; the panel says which path training takes.
     assert not sb.path_edited(bpy.context)
-    assert "As drawn: training samples the strips trajectory itself" in _panel_labels()
+    assert "As drawn: training samples the strips" in _panel_labels()
     props.path_curve.data.splines[0].points[0].co[2] += 1.0
     assert sb.path_edited(bpy.context)
-    assert "Edited: training takes this path's cameras" in _panel_labels()
+    assert "Edited: training uses its cameras" in _panel_labels()
     assert bpy.ops.dibrgs.reset_path() == {"FINISHED"} and not sb.path_edited(bpy.context)
     again, _ = sb.curve_polylines(bpy.context, props.path_curve)
     np.testing.assert_allclose(again[0], polys[0], atol=1e-6)
