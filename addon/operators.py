@@ -431,7 +431,7 @@ def _result_steps(context, run: Run) -> tuple[list["jobs.Step"], Callable[[bpy.t
     """Render held-out views and the pseudo path, evaluate; and the function that loads them."""
     props = context.scene.dibrgs
     held = scene_build.described_cameras(run.desc, "test")
-    pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count), "pseudo")
+    pseudo = scene_build.path_cameras(context, jobs.result_path_views(props.preset, props.pseudo_count), "pseudo")
     heldout_dir, pseudo_dir = run.blender / "renders" / "heldout", run.blender / "renders" / "pseudo"
     steps = []
     if held:

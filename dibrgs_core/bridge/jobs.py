@@ -33,7 +33,15 @@ from ..training.config import PRESETS
 from .progress import Progress, parse_progress_line
 
 METHODS = choices(MethodName)
+#: Views rendered along the path into the compositor after training: the pseudo-view count, at
+#: most this many, evenly spaced (96 renders of 12-megapixel drone photos would take minutes and
+#: gigabytes in Blender; the fly-through renders as many frames as asked).
+RESULT_PATH_VIEWS = 16
 
+
+def result_path_views(preset: str, requested: int = 0) -> int:
+    """How many views along the path the results step renders (:data:`RESULT_PATH_VIEWS`)."""
+    return min(pseudo_view_count(preset, requested), RESULT_PATH_VIEWS)
 
 
 def pseudo_view_count(preset: str, requested: int = 0) -> int:

@@ -326,6 +326,9 @@ def test_train_command_carries_the_options(tmp_path):
     assert jobs.pseudo_view_count("cpu") == preset("cpu").pseudo.n_views == 96
     assert jobs.pseudo_view_count("test") == preset("test").pseudo.n_views
     assert jobs.pseudo_view_count("cpu", 7) == 7
+    # the results step renders at most RESULT_PATH_VIEWS of them along the path
+    assert jobs.result_path_views("cpu") == jobs.RESULT_PATH_VIEWS == 16
+    assert jobs.result_path_views("cpu", 7) == 7 and jobs.result_path_views("test") == preset("test").pseudo.n_views
 
 
 def _script(tmp_path: Path, name: str, body: str) -> list[str]:
