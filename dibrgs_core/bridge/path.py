@@ -74,10 +74,7 @@ def resample_polylines(polylines: Sequence[np.ndarray], n: int, closed: bool | S
     ``(k + 1/2) L / n`` of their total length ``L``, taken polyline after polyline in order (no
     samples on the jumps between them); ``closed`` is one flag or one per polyline.
     """
-    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in polylines]
-    flags = [bool(closed)] * len(polys) if isinstance(closed, (bool, np.bool_)) else [bool(c) for c in closed]
-    if not polys or len(flags) != len(polys):
-        raise ValueError("resample_polylines: give at least one polyline and one closed flag each")
+    polys, flags = _with_flags(polylines, closed, "resample_polylines")
     if len(polys) == 1:
         return resample_polyline(polys[0], n, flags[0])
     if n < 1:
@@ -86,7 +83,7 @@ def resample_polylines(polylines: Sequence[np.ndarray], n: int, closed: bool | S
     for P, c in zip(polys, flags):
         if len(P) == 0 or not np.isfinite(P).all():
             raise ValueError("resample_polylines: empty polyline or non-finite vertices")
-        Q = np.concatenate([P, P[:1]]) if c else P
+        Q = _closed_up(P, c)
         runs.append((Q, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q, axis=0), axis=1))])))
     lengths = np.array([cum[-1] for _, cum in runs])
     if lengths.sum() <= 0.0:
@@ -104,16 +101,29 @@ def resample_polylines(polylines: Sequence[np.ndarray], n: int, closed: bool | S
     return out
 
 
+def _with_flags(polylines: Sequence[np.ndarray], closed: bool | Sequence[bool],
+                who: str) -> tuple[list[np.ndarray], list[bool]]:
+    """The polylines as (M, 3) float64 arrays and one closed flag each (``closed``: one for all, or
+    one per polyline)."""
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in polylines]
+    flags = [bool(closed)] * len(polys) if isinstance(closed, (bool, np.bool_)) else [bool(c) for c in closed]
+    if not polys or len(flags) != len(polys):
+        raise ValueError(f"{who}: give at least one polyline and one closed flag each")
+    return polys, flags
+
+
+def _closed_up(P: np.ndarray, closed: bool) -> np.ndarray:
+    """A closed polyline with its first vertex repeated at the end (one vertex stays as it is)."""
+    return np.concatenate([P, P[:1]]) if closed and len(P) > 1 else P
+
+
 def chain_polylines(polylines: Sequence[np.ndarray], closed: bool | Sequence[bool] = False) -> np.ndarray:
     """One continuous route through several polylines (a fly-through along a curve of several
     splines): the first as given, then again and again the remaining polyline with an end nearest
     to the route's end, reversed when its last point is the nearer; consecutive polylines are
     joined by the straight step between them. A closed polyline is opened at its first vertex."""
-    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in polylines]
-    flags = [bool(closed)] * len(polys) if isinstance(closed, (bool, np.bool_)) else [bool(c) for c in closed]
-    if not polys or len(flags) != len(polys):
-        raise ValueError("chain_polylines: give at least one polyline and one closed flag each")
-    polys = [np.concatenate([p, p[:1]]) if c and len(p) > 1 else p for p, c in zip(polys, flags)]
+    polys, flags = _with_flags(polylines, closed, "chain_polylines")
+    polys = [_closed_up(p, c) for p, c in zip(polys, flags)]
     route, rest = [polys[0]], list(polys[1:])
     while rest:
         end = route[-1][-1]
@@ -175,9 +185,8 @@ def path_cameras(points: np.ndarray | Sequence[np.ndarray], n: int, target: Sequ
     :func:`follow_rotation` of the cameras ``follow`` (the training cameras). ``like`` gives K,
     image size and depth range. Names are ``f"{prefix}_{k:03d}"``.
     """
-    multi = points.ndim == 3 if isinstance(points, np.ndarray) else len(points) > 0 and np.ndim(points[0]) == 2
-    eyes = (resample_polylines(points, n, closed) if multi else
-            resample_polyline(points, n, bool(closed)))
+    single = points.ndim != 3 if isinstance(points, np.ndarray) else not len(points) or np.ndim(points[0]) != 2
+    eyes = resample_polylines([points] if single else points, n, closed)
     up = np.asarray(up, dtype=np.float64)
     if target is None and not len(follow):
         raise ValueError("path_cameras: give a target to look at or cameras to follow")
