@@ -97,16 +97,18 @@ def test_resample_polylines_spreads_samples_over_splines_by_length():
         path.resample_polylines([a, b], 3, [False])
 
 
+def _nadir(x: float, y: float, yaw_deg: float = 0.0, name: str = "") -> Camera:
+    """A camera 100 units up looking straight down, image up turned ``yaw_deg`` from +x."""
+    eye = np.array([x, y, 100.0])
+    yaw = math.radians(yaw_deg)
+    return Camera(K=_like().K, w2c=look_at(eye, eye - [0, 0, 100.0], [math.cos(yaw), math.sin(yaw), 0.0]),
+                  width=64, height=60, name=name)
+
+
 def _strip_cams(rows: int, cols: int, yaw_deg: float = 0.0) -> list[Camera]:
-    """Nadir cameras 100 units up on a grid (rows = strips 30 apart, cameras 20 apart along them)."""
-    cams = []
-    for r in range(rows):
-        for c in range(cols):
-            eye = np.array([20.0 * c, 30.0 * r, 100.0])
-            cy, sy = math.cos(math.radians(yaw_deg * c)), math.sin(math.radians(yaw_deg * c))
-            w2c = look_at(eye, eye - [0, 0, 100.0], [cy, sy, 0.0])
-            cams.append(Camera(K=_like().K, w2c=w2c, width=64, height=60, name=f"v{r}{c}"))
-    return cams
+    """Nadir cameras on a grid (rows = strips 30 apart, cameras 20 apart along them), camera c of a
+    strip turned c x ``yaw_deg``."""
+    return [_nadir(20.0 * c, 30.0 * r, yaw_deg * c, f"v{r}{c}") for r in range(rows) for c in range(cols)]
 
 
 def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
@@ -178,14 +180,8 @@ def test_cameras_following_the_photos_turn_smoothly_along_a_route():
     apart): no sudden turns between frames; at a photo's place, its rotation."""
     rng = np.random.default_rng(0)
 
-    def nadir(x, y, yaw):
-        eye = np.array([x, y, 100.0])
-        return Camera(K=_like().K, w2c=look_at(eye, eye - [0, 0, 100.0], [math.cos(math.radians(yaw)),
-                                                                         math.sin(math.radians(yaw)), 0.0]),
-                      width=64, height=60)
-
-    free = [nadir(*rng.uniform(-50, 50, 2), rng.uniform(-60, 60)) for _ in range(5)]
-    serpentine = [nadir(20.0 * c, 30.0 * r, 180.0 * r) for r in range(2) for c in range(4)]
+    free = [_nadir(*rng.uniform(-50, 50, 2), rng.uniform(-60, 60)) for _ in range(5)]
+    serpentine = [_nadir(20.0 * c, 30.0 * r, 180.0 * r) for r in range(2) for c in range(4)]
     for cams in (free, serpentine):
         plan = path.plan_path(cams, views=cams)
         route = path.chain_polylines(plan.polylines)
