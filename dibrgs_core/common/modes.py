@@ -25,6 +25,8 @@ Refine = Literal["no-ovlp", "reproject", "none"]
 SweepPlanes = Literal["auto", "height", "fronto"]
 #: Kinds of generated scenes.
 SceneKind = Literal["city", "mountain", "village", "stadium"]
+# How a generated scene is photographed: the LEVIR-like orbit or a nadir mapping grid (synth.layout).
+Flight = Literal["orbit", "grid"]
 
 
 def choices(mode: object) -> tuple[str, ...]:

@@ -1,12 +1,13 @@
 """Procedural aerial scenes rendered headless with Blender (bpy, Cycles on CPU), written in the
 LEVIR-NVS layout with exact cameras and ground-truth depth::
 
-    OUT/Images/NNN.png     8-bit sRGB views 000-020
+    OUT/Images/NNN.png     8-bit sRGB views 000-020 (a grid flight: 000-008, in flight order)
     OUT/Cams/NNN.txt       LEVIR cameras (w2c, K, DEPTH_MIN DEPTH_MAX)
     OUT/Depths/NNN.tiff    float32 z-depth (distance along the camera axis, metres)
     OUT/Depths/NNN.exr     the same depth as a 32-bit EXR (channel "Z")
-    OUT/Track/NNN.txt      60 render-path cameras on the orbit
-    OUT/scene.json         generator settings (kind, seed, resolution, samples, orbit)
+    OUT/Track/NNN.txt      60 render-path cameras on the orbit (a grid flight: along its route)
+    OUT/split.json         a grid flight only: train on the middle photo of each strip
+    OUT/scene.json         generator settings (kind, seed, resolution, samples, flight, orbit or grid)
 
 LEVIR-NVS images cannot be downloaded here, so the project renders its own scenes.
 Scene layout and cameras: :mod:`.layout`; materials: :mod:`.materials`; Blender
@@ -24,14 +25,15 @@ from pathlib import Path
 import numpy as np
 
 from ..common.fileio import write_json
-from .layout import DEFAULT_ORBIT, KINDS, ORBITS, scene_cameras
+from ..common.modes import Flight, choices
+from .layout import DEFAULT_ORBIT, GRID, GRID_CLEARANCE, KINDS, ORBITS, grid_cameras, scene_cameras
 from .render import build_scene, default_samples, depth_mode, linear_to_srgb8, render_rgb, set_camera
 
 log = logging.getLogger("dibrgs.scenegen")
 
 
 def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: int | None = None,
-               orbit: str = DEFAULT_ORBIT) -> Path:
+               orbit: str = DEFAULT_ORBIT, flight: Flight = "orbit") -> Path:
     """Render a procedural aerial scene into ``out`` in LEVIR-NVS layout (see module docstring).
 
     Args:
@@ -40,7 +42,10 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         seed: scene seed; the same seed gives the same scene and images.
         out: output folder (created).
         samples: Cycles samples per pixel (default :func:`default_samples`).
-        orbit: acquisition geometry, a key of :data:`ORBITS` (``levir`` or ``wide``).
+        orbit: the orbit of an ``orbit`` flight, a key of :data:`ORBITS` (``levir`` or ``wide``).
+        flight: ``orbit`` (views 000-020, LEVIR-NVS's protocol) or ``grid`` (a nadir mapping
+            flight, :data:`~.layout.GRID`, with its ``split.json``). The same seed gives the same
+            scene under either flight.
 
     Returns the output folder. Must run in a background Blender/bpy process: it
     resets the current Blender file.
@@ -56,6 +61,8 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         raise ValueError(f"resolution must be >= 8, got {resolution}")
     if orbit not in ORBITS:
         raise ValueError(f"orbit must be one of {sorted(ORBITS)}, got {orbit!r}")
+    if flight not in choices(Flight):
+        raise ValueError(f"flight must be one of {choices(Flight)}, got {flight!r}")
     spec = ORBITS[orbit]
     if not bpy.app.background:
         raise RuntimeError("make_scene resets the Blender file; run it in a background process")
@@ -64,7 +71,13 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     t0 = time.time()
     rng = np.random.default_rng(seed)
     phase = float(rng.uniform(0, 2 * np.pi))
-    views, track = scene_cameras(resolution, phase, spec)
+    split = None
+    if flight == "grid":
+        # Its own noise stream: the scene below draws from rng exactly as for an orbit.
+        views, track, split = grid_cameras(resolution, phase, np.random.default_rng([seed, 1]), GRID,
+                                           ground=GRID_CLEARANCE.get(kind, 0.0))
+    else:
+        views, track = scene_cameras(resolution, phase, spec)
     build_scene(bpy, kind, resolution, rng, samples)
     bpy.context.scene.render.threads_mode = "AUTO"
     log.info("built %s scene (seed %d) in %.1fs; rendering %d views at %dx%d, %d spp", kind, seed,
@@ -92,9 +105,15 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     for cam in track:
         cam.depth_range = (0.95 * dmin_all, 1.05 * dmax_all)
         write_cams_file(out / "Track" / f"{cam.name}.txt", cam)
-    write_json(out / "scene.json", {"generator": "dibrgs_core.synth.writer", "kind": kind, "seed": seed,
-                                    "resolution": resolution, "samples": samples, "orbit_phase_rad": phase,
-                                    "orbit_name": orbit, "orbit": spec.__dict__, "up": [0.0, 0.0, 1.0],
+    meta = {"generator": "dibrgs_core.synth.writer", "kind": kind, "seed": seed, "resolution": resolution,
+            "samples": samples, "flight": flight}
+    if split is not None:
+        write_json(out / "split.json", split)
+        meta.update({"grid_heading_rad": phase, "grid": GRID.__dict__,
+                     "grid_ground": GRID_CLEARANCE.get(kind, 0.0)})
+    else:
+        meta.update({"orbit_phase_rad": phase, "orbit_name": orbit, "orbit": spec.__dict__})
+    write_json(out / "scene.json", {**meta, "up": [0.0, 0.0, 1.0],
                                     "depth": "z-depth along the camera axis, metres; 0 = no surface"})
     log.info("wrote %s in %.1fs", out, time.time() - t0)
     return out

@@ -188,3 +188,60 @@ def test_unknown_orbit_is_refused(tmp_path):
     with pytest.raises(ValueError, match="orbit must be one of"):
         make_scene("city", 16, 0, tmp_path / "x", orbit="spiral")
     assert not (tmp_path / "x").exists()
+
+
+def test_grid_flight_layout():
+    """The mapping flight: nine near-nadir photos on three strips with the spec's overlaps, flown
+    back and forth, the split on the middle photo of each strip, and a Track along the route."""
+    from dibrgs_core.camera.trajectory import classify
+    from dibrgs_core.synth.layout import GRID, N_TRACK, grid_cameras
+
+    heading = 0.6
+    views, track, split = grid_cameras(32, heading, np.random.default_rng(0))
+    assert [v.name for v in views] == [f"{i:03d}" for i in range(9)]
+    assert split == {"train": ["001", "004", "007"], "test": ["000", "002", "003", "005", "006", "008"]}
+    up = np.array([0.0, 0.0, 1.0])
+    tilt = [math.degrees(math.acos(-v.c2w[:3, 2] @ up)) for v in views]
+    assert 0.1 < max(tilt) < 6.0  # a few degrees off nadir, as a real gimbal
+    along = np.array([math.cos(heading), math.sin(heading), 0.0])
+    C = np.stack([v.center for v in views])
+    assert np.allclose(C[:, 2], GRID.height, rtol=0.1)
+    da, dc = GRID.spacing()
+    # Neighbours on a strip are one forward step apart; strips one side step apart.
+    assert np.allclose(np.abs((C[1] - C[0]) @ along), da, rtol=0.15)
+    assert np.allclose(np.abs((C[3] - C[2]) @ np.cross(up, along)), dc, rtol=0.15)
+    # Flown back and forth: the second strip runs against the first.
+    assert ((C[2] - C[0]) @ along) * ((C[5] - C[3]) @ along) < 0
+    # The footprints overlap as specified: 63 % forward, about 1 - 0.37 * 2 at two steps.
+    assert 1.0 - da / GRID.footprint() == pytest.approx(GRID.forward_overlap)
+    # Image up follows the strips on every strip (the gimbal holds its heading).
+    assert all((-v.c2w[:3, 1]) @ along > 0.99 for v in views)
+    t = classify([views[i] for i in (1, 4, 7)], up)
+    assert t.kind == "strips", t.why
+    assert classify(views, up).kind == "strips"
+    assert len(track) == N_TRACK
+    T = np.stack([c.center for c in track])
+    assert np.allclose(T[0], C[0], atol=0.2 * da) and np.allclose(T[-1], C[-1], atol=0.2 * da)
+    steps = np.linalg.norm(np.diff(T, axis=0), axis=1)
+    # Evenly spread along the route (a step across a turn cuts the corner: shorter, never longer).
+    assert steps.max() == pytest.approx(np.median(steps), rel=1e-6) and steps.min() > 0.5 * steps.max()
+
+
+def test_grid_flight_scene(tmp_path):
+    """A rendered grid flight: nine photos, its split.json honoured by the reader, depth everywhere."""
+    from dibrgs_core.synth.writer import make_scene
+
+    out = make_scene("village", 24, 2, tmp_path / "grid", samples=4, flight="grid")
+    s = read_scene(out)
+    assert sorted(s.views) == [f"{i:03d}" for i in range(9)]
+    assert s.train == ["001", "004", "007"] and s.split_source.endswith("split.json")
+    assert s.test == ["000", "002", "003", "005", "006", "008"]
+    assert all((v.depth > 0).all() for v in s.views.values())
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["flight"] == "grid" and "orbit_name" not in meta
+    # Nadir photos 160 m above flat ground: the ground's depth is close to the flight height.
+    d = np.concatenate([v.depth.ravel() for v in s.views.values()])
+    assert 140 < np.median(d) < 175
+    with pytest.raises(ValueError, match="flight must be one of"):
+        make_scene("city", 16, 0, tmp_path / "y", flight="spiral")
+    assert not (tmp_path / "y").exists()
