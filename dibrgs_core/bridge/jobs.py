@@ -318,10 +318,11 @@ class JobRunner:
 
     def _read(self, proc: subprocess.Popen, log) -> None:
         assert proc.stdout is not None
-        for line in proc.stdout:
-            log.write(line)
-            log.flush()
-            self._lines.put(line)
+        with proc.stdout:  # the pipe is done with at EOF (left open, it outlives the job)
+            for line in proc.stdout:
+                log.write(line)
+                log.flush()
+                self._lines.put(line)
         self._lines.put(None)
 
     def _handle_line(self, line: str) -> None:

@@ -352,6 +352,7 @@ def test_runner_reads_progress_and_runs_steps_in_order(tmp_path):
     assert lines == ["a log line on stdout"]
     log = (tmp_path / "logs" / "t.log").read_text()
     assert "to stderr" in log and '"iteration": 20' in log and log.startswith("$ ")
+    assert r._proc.stdout.closed and r._log.closed  # nothing of the job stays open after it
 
 
 def test_runner_failure_names_the_log(tmp_path):
