@@ -73,13 +73,6 @@ def plane_depth(cam, normal: np.ndarray, offset: float) -> np.ndarray:
     return t.reshape(cam.height, cam.width)
 
 
-def seen_psnr(acc) -> float | None:
-    """PSNR of the pooled squared error of a ``SplitError`` over the pixels one or more training
-    photos see (None when there are none)."""
-    n = acc.n["one"] + acc.n["two_plus"]
-    return None if n == 0 else float(-10.0 * np.log10(max((acc.sse["one"] + acc.sse["two_plus"]) / n, 1e-20)))
-
-
 def run_frames(scene_dir: Path, w: Path, t) -> tuple[list, list]:
     """Training and held-out frames of run ``w`` (trained model ``t``): its split, its resolution."""
     from dibrgs_core.data.load import read_any_scene
@@ -119,7 +112,7 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
             images[cam.name].setdefault("key", {})[str(w)] = key
         p = acc.psnr()
         n_seen = acc.n["one"] + acc.n["two_plus"]
-        seen = seen_psnr(acc)
+        seen = acc.seen_psnr()
         runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": [test[0].cam.cam.width,
                      test[0].cam.cam.height] if test else None, "psnr": float(np.mean(list(per_view.values()))),
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
@@ -166,8 +159,8 @@ def warp_baselines(res: dict) -> list[dict]:
 
         n_seen = r["seen_fraction"] * warp.n["all"]
         rows.append({"work": str(w), "covered_seen": (warp.n["one"] + warp.n["two_plus"]) / max(n_seen, 1),
-                     "warp": {"seen": seen_psnr(warp), **warp.psnr()},
-                     "model": {"seen": seen_psnr(model), **model.psnr()}})
+                     "warp": {"seen": warp.seen_psnr(), **warp.psnr()},
+                     "model": {"seen": model.seen_psnr(), **model.psnr()}})
     return rows
 
 

@@ -98,6 +98,12 @@ class SplitError:
                 out[k] = float(-10.0 * np.log10(max(s / self.n[k], 1e-20)))
         return out
 
+    def seen_psnr(self) -> float | None:
+        """PSNR of the pooled squared error over the pixels one or more sources see (None when
+        there are none): the figure a sparse-view method is judged by where it had photos."""
+        n = self.n["one"] + self.n["two_plus"]
+        return None if n == 0 else float(-10.0 * np.log10(max((self.sse["one"] + self.sse["two_plus"]) / n, 1e-20)))
+
     def fractions(self) -> dict[str, float]:
         """Share of pixels in each group (the ``all`` total is 1)."""
         tot = max(self.n["all"], 1)

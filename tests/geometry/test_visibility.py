@@ -60,4 +60,6 @@ def test_split_error_gives_exact_psnr_per_group():
     assert p["unseen"] > 150  # exact: finite despite zero error
     assert p["all"] == pytest.approx(-10 * np.log10((5 * 0.01 + 5 * 1e-4) / 20))
     assert acc.fractions() == {"all": 1.0, "unseen": 0.25, "one": 0.25, "two_plus": 0.5}
-    assert SplitError.empty().psnr()["one"] is None
+    # Seen pixels pool rows 1-3 (the unseen row 0 is exact too, so it would not move "all"'s sum).
+    assert acc.seen_psnr() == pytest.approx(-10 * np.log10((5 * 0.01 + 5 * 1e-4) / 15))
+    assert SplitError.empty().psnr()["one"] is None and SplitError.empty().seen_psnr() is None

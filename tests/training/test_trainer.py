@@ -293,6 +293,9 @@ def test_cli_train_eval_render_export_on_tiny_scene(tiny_scene, tmp_path):
     assert abs(p["all"] - m["psnr"]) < 1.5, (p, m["psnr"])
     # Pixels more training views see are reconstructed better.
     assert p["two_plus"] > p["unseen"], p
+    # "whole image" is dibrgs eval's mean of per-view PSNRs; "seen" pools the two seen groups.
+    assert split["runs"][0]["whole_image"] == pytest.approx(m["psnr"], abs=0.05)
+    assert min(p["one"], p["two_plus"]) <= split["runs"][0]["seen"] <= max(p["one"], p["two_plus"])
     assert (tmp_path / "v.png").stat().st_size > 0 and "seen by none" in r.stdout
     no_depth = tmp_path / "nodepth"
     shutil.copytree(tiny_scene, no_depth, ignore=shutil.ignore_patterns("Depths"))
