@@ -4,8 +4,11 @@
 A real scene has no true depth, so which held-out pixels a training photo sees is decided on the
 ground plane fitted to the scene's reference points (EVALUATION ONLY: the all-photo reconstruction's
 points in ``reference_points.txt``, never an input of the pipeline): a held-out pixel's ray meets
-the plane, and the point counts as seen by every training photo it projects into. Each run is
-rendered at its held-out cameras at its own resolution and scored:
+the plane, and the point counts as seen by every training photo it projects into. A scene without
+reference points but with depth maps for every view (a generated one, ``make_scene.py --flight
+grid``) is scored the same way with its true depth instead (occlusion-tested, as
+``scripts/error_by_visibility.py``). Each run is rendered at its held-out cameras at its own
+resolution and scored:
 
 * ``psnr``: mean of the per-view PSNRs over whole images (what ``dibrgs eval`` reports);
 * ``seen``: PSNR of the pooled squared error over the pixels at least one training photo sees;
@@ -73,35 +76,63 @@ def plane_depth(cam, normal: np.ndarray, offset: float) -> np.ndarray:
     return t.reshape(cam.height, cam.width)
 
 
-def run_frames(scene_dir: Path, w: Path, t) -> tuple[list, list]:
-    """Training and held-out frames of run ``w`` (trained model ``t``): its split, its resolution."""
+def resized_depth(depth: np.ndarray, cam) -> np.ndarray:
+    """``depth`` (H0, W0) sampled at ``cam``'s (H, W) pixel centres, nearest neighbour (no blending
+    across depth edges)."""
+    H0, W0 = depth.shape
+    ys = np.minimum(((np.arange(cam.height) + 0.5) * H0 / cam.height).astype(np.int64), H0 - 1)
+    xs = np.minimum(((np.arange(cam.width) + 0.5) * W0 / cam.width).astype(np.int64), W0 - 1)
+    return depth[ys[:, None], xs[None, :]]
+
+
+def run_frames(scene_dir: Path, w: Path, t, depth: bool = False) -> tuple[list, list, dict]:
+    """Training and held-out frames of run ``w`` (trained model ``t``): its split, its resolution;
+    with ``depth``, also the scene's depth map of each (name -> (H, W) at the frame's size)."""
+    from dibrgs_core.common.errors import InputError
     from dibrgs_core.data.load import read_any_scene
     from dibrgs_core.evaluation.evaluate import run_scale
     from dibrgs_core.training.frames import views_to_frames
 
     rep = json.loads((w / "report.json").read_text())["values"]["scene"]
-    scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=False)
+    scene = read_any_scene(scene_dir, train_ids=rep["train"], test_ids=rep["test"], load_depth=depth)
     s = run_scale(w, t, scene)
-    return views_to_frames(scene.train_views(), s), views_to_frames(scene.test_views(), s)
+    train, test = views_to_frames(scene.train_views(), s), views_to_frames(scene.test_views(), s)
+    depths = {}
+    if depth:
+        for v, f in zip(scene.train_views() + scene.test_views(), train + test):
+            if v.depth is None or not (v.depth > 0).any():
+                raise InputError(scene_dir, f"view {v.name} has no depth map and there are no reference points: "
+                                            "cannot tell which pixels a training photo sees")
+            depths[v.name] = resized_depth(v.depth, f.cam.cam)
+    return train, test, depths
 
 
-def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
+def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) -> dict:
+    """Score ``works`` on ``scene_dir``; visibility on the plane of ``reference``'s points, or with
+    the scene's true depth when ``reference`` is None."""
     from dibrgs_core.evaluation.evaluate import load_trained
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
-    normal, offset = fit_plane(read_reference_points(reference))
+    if reference is not None:
+        normal, offset = fit_plane(read_reference_points(reference))
     runs, counts_of, images, loaded = [], {}, {}, {}
     for w in works:
         t = load_trained(w)
-        train, test = run_frames(scene_dir, w, t)
+        train, test, depths = run_frames(scene_dir, w, t, depth=reference is None)
         loaded[str(w)] = (t, train, test)
-        sources = [(f.cam.cam, plane_depth(f.cam.cam, normal, offset)) for f in train]
+
+        def surface(cam):
+            return plane_depth(cam, normal, offset) if reference is not None else depths[cam.name]
+
+        sources = [(f.cam.cam, surface(f.cam.cam)) for f in train]
         acc, per_view = SplitError.empty(), {}
         for f in test:
             cam = f.cam.cam
             key = (cam.name, cam.width, cam.height)
             if key not in counts_of:
-                counts_of[key] = visibility_count(cam, plane_depth(cam, normal, offset), sources, rel_tol=0.05)
+                # The plane stands in for the surface: a looser occlusion test than with true depth.
+                counts_of[key] = visibility_count(cam, surface(cam), sources,
+                                                  rel_tol=0.05 if reference is not None else 0.01)
             count = counts_of[key]
             img, _ = t.render(cam)
             gt = f.image.numpy()
@@ -117,8 +148,10 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path) -> dict:
                      test[0].cam.cam.height] if test else None, "psnr": float(np.mean(list(per_view.values()))),
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
                      "seen_fraction": n_seen / max(acc.n["all"], 1)})
-    return {"scene": str(scene_dir), "reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset},
-            "runs": runs, "_images": images, "_counts": counts_of, "_loaded": loaded}
+    vis = ({"reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset}}
+           if reference is not None else {"reference": None, "visibility": "true depth"})
+    return {"scene": str(scene_dir), **vis, "runs": runs, "_images": images, "_counts": counts_of,
+            "_loaded": loaded}
 
 
 def warp_baselines(res: dict) -> list[dict]:
@@ -263,7 +296,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene", type=Path)
     ap.add_argument("works", type=Path, nargs="+", help="trained run folders (dibrgs train --out)")
-    ap.add_argument("--reference", type=Path, default=None, help="reference points (default SCENE/reference_points.txt)")
+    ap.add_argument("--reference", type=Path, default=None,
+                    help="reference points (default SCENE/reference_points.txt; without them, the scene's depth maps)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--md", type=Path, help="write the table here")
     ap.add_argument("--png", type=Path, help="side-by-side of two held-out photos")
@@ -274,8 +308,10 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     ref = a.reference or a.scene / "reference_points.txt"
     if not ref.is_file():
-        print(f"error: {ref}: reference points not found", file=sys.stderr)
-        return 2
+        if a.reference is not None:
+            print(f"error: {ref}: reference points not found", file=sys.stderr)
+            return 2
+        ref = None  # a generated scene: its true depth decides what a training photo sees
     try:
         res = evaluate_runs(a.scene, a.works, ref)
     except (InputError, ValueError) as e:
