@@ -17,7 +17,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dibrgs_core.common.modes import Flight, choices  # noqa: E402
-from dibrgs_core.synth.layout import DEFAULT_ORBIT, KINDS, ORBITS  # noqa: E402
+from dibrgs_core.synth.flights import DEFAULT_ORBIT, ORBITS  # noqa: E402
+from dibrgs_core.synth.layout import KINDS  # noqa: E402
 from dibrgs_core.synth.writer import make_scene  # noqa: E402
 
 

@@ -2,7 +2,7 @@
 
 Geometry: a coloured ground plane of Gaussians (a street grid pattern) with a few
 box "buildings" on it, in metres with z up, seen from the generated-scene camera
-layout of ``synth.layout.scene_cameras`` (near-nadir view 000, orbit views 001-020,
+layout of ``synth.flights.scene_cameras`` (near-nadir view 000, orbit views 001-020,
 60 track poses). Used by the training tests that need many short runs; the
 Blender-rendered ``tiny_scene`` fixture is used for the end-to-end test.
 """
@@ -43,7 +43,7 @@ def make_synth_scene(root: Path, resolution: int = 48, seed: int = 0) -> Path:
     from dibrgs_core.data.scene import View
     from dibrgs_core.data.levir import write_scene
     from dibrgs_core.render import rasterize
-    from dibrgs_core.synth.layout import OrbitSpec, scene_cameras
+    from dibrgs_core.synth.flights import OrbitSpec, scene_cameras
 
     pts, cols = _cloud(seed)
     spec = OrbitSpec()

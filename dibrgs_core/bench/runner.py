@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from ..common.fileio import write_json
-from ..synth.layout import DEFAULT_ORBIT
+from ..synth.flights import DEFAULT_ORBIT
 
 log = logging.getLogger("dibrgs.benchmark")
 
@@ -63,7 +63,7 @@ class RunSpec:
     seed: int = 0
     preset: str = "cpu"
     iterations: int | None = None
-    orbit: str = DEFAULT_ORBIT  # a synth.layout.ORBITS key
+    orbit: str = DEFAULT_ORBIT  # a synth.flights.ORBITS key
 
     @property
     def scene(self) -> str:

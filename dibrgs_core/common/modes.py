@@ -25,7 +25,7 @@ Refine = Literal["no-ovlp", "reproject", "none"]
 SweepPlanes = Literal["auto", "height", "fronto"]
 #: Kinds of generated scenes.
 SceneKind = Literal["city", "mountain", "village", "stadium"]
-# How a generated scene is photographed: the LEVIR-like orbit or a nadir mapping grid (synth.layout).
+# How a generated scene is photographed: the LEVIR-like orbit or a nadir mapping grid (synth.flights).
 Flight = Literal["orbit", "grid"]
 
 

@@ -10,7 +10,7 @@ LEVIR-NVS layout with exact cameras and ground-truth depth::
     OUT/scene.json         generator settings (kind, seed, resolution, samples, flight, orbit or grid)
 
 LEVIR-NVS images cannot be downloaded here, so the project renders its own scenes.
-Scene layout and cameras: :mod:`.layout`; materials: :mod:`.materials`; Blender
+Scene geometry: :mod:`.layout`; flights and cameras: :mod:`.flights`; materials: :mod:`.materials`; Blender
 scene set-up and rendering: :mod:`.render`. Everything is seeded: the geometry comes
 from ``numpy.random.default_rng(seed)`` and Cycles uses a fixed sampling seed, so the
 same seed gives the same images.
@@ -26,7 +26,8 @@ import numpy as np
 
 from ..common.fileio import write_json
 from ..common.modes import Flight, choices
-from .layout import DEFAULT_ORBIT, GRID, GRID_CLEARANCE, KINDS, ORBITS, grid_cameras, scene_cameras
+from .flights import DEFAULT_ORBIT, GRID, GRID_CLEARANCE, ORBITS, grid_cameras, scene_cameras
+from .layout import KINDS
 from .render import build_scene, default_samples, depth_mode, linear_to_srgb8, render_rgb, set_camera
 
 log = logging.getLogger("dibrgs.scenegen")
@@ -44,7 +45,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         samples: Cycles samples per pixel (default :func:`default_samples`).
         orbit: the orbit of an ``orbit`` flight, a key of :data:`ORBITS` (``levir`` or ``wide``).
         flight: ``orbit`` (views 000-020, LEVIR-NVS's protocol) or ``grid`` (a nadir mapping
-            flight, :data:`~.layout.GRID`, with its ``split.json``). The same seed gives the same
+            flight, :data:`~.flights.GRID`, with its ``split.json``). The same seed gives the same
             scene under either flight.
 
     Returns the output folder. Must run in a background Blender/bpy process: it

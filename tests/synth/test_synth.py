@@ -13,7 +13,7 @@ from dibrgs_core.camera.frame import estimate_up, nadir_angle_deg
 from dibrgs_core.camera.orbit import fit_orbit
 from dibrgs_core.data.images import read_depth
 from dibrgs_core.data.levir import read_scene
-from dibrgs_core.synth.layout import DEFAULT_ORBIT, ORBITS, scene_cameras
+from dibrgs_core.synth.flights import DEFAULT_ORBIT, ORBITS, scene_cameras
 
 pytest.importorskip("bpy")
 
@@ -194,7 +194,7 @@ def test_grid_flight_layout():
     """The mapping flight: nine near-nadir photos on three strips with the spec's overlaps, flown
     back and forth, the split on the middle photo of each strip, and a Track along the route."""
     from dibrgs_core.camera.trajectory import classify
-    from dibrgs_core.synth.layout import GRID, N_TRACK, grid_cameras
+    from dibrgs_core.synth.flights import GRID, N_TRACK, grid_cameras
 
     heading = 0.6
     views, track, split = grid_cameras(32, heading, np.random.default_rng(0))
@@ -228,10 +228,22 @@ def test_grid_flight_layout():
 
 
 def test_grid_flight_scene(tmp_path):
-    """A rendered grid flight: nine photos, its split.json honoured by the reader, depth everywhere."""
+    """A rendered grid flight: nine photos, its split.json honoured by the reader, depth everywhere,
+    and the same seed's geometry as under the orbit."""
+    import bpy
+
     from dibrgs_core.synth.writer import make_scene
 
+    def vertices():  # the scene make_scene left in the Blender file
+        me = bpy.data.objects["objects"].data
+        v = np.empty(3 * len(me.vertices))
+        me.vertices.foreach_get("co", v)
+        return v
+
+    make_scene("village", 16, 2, tmp_path / "orbit", samples=2)
+    orbit_geometry = vertices()
     out = make_scene("village", 24, 2, tmp_path / "grid", samples=4, flight="grid")
+    assert np.array_equal(vertices(), orbit_geometry) and len(orbit_geometry) > 1000
     s = read_scene(out)
     assert sorted(s.views) == [f"{i:03d}" for i in range(9)]
     assert s.train == ["001", "004", "007"] and s.split_source.endswith("split.json")
