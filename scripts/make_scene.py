@@ -16,8 +16,7 @@ from pathlib import Path
 # Inside Blender the repository is not installed: import dibrgs_core from the checkout.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dibrgs_core.common.modes import Flight, choices  # noqa: E402
-from dibrgs_core.synth.flights import DEFAULT_ORBIT, ORBITS  # noqa: E402
+from dibrgs_core.synth.flights import DEFAULT_ORBIT, FLIGHTS, ORBITS  # noqa: E402
 from dibrgs_core.synth.layout import KINDS  # noqa: E402
 from dibrgs_core.synth.writer import make_scene  # noqa: E402
 
@@ -35,9 +34,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
     p.add_argument("--orbit", choices=sorted(ORBITS), default=DEFAULT_ORBIT,
                    help="acquisition orbit: levir (15 deg off nadir) or wide (35.5 deg, heavy occlusion)")
-    p.add_argument("--flight", choices=choices(Flight), default="orbit",
-                   help="orbit (21 views, LEVIR-NVS protocol) or grid (a nadir mapping flight: three strips "
-                        "of three photos with a split.json training on the middle photo of each strip)")
+    p.add_argument("--flight", choices=FLIGHTS, default="orbit",
+                   help="orbit (21 views, LEVIR-NVS protocol); grid (a nadir mapping flight: three strips "
+                        "of three photos, split.json training on the middle photo of each strip); corridor (one "
+                        "strip of five, training on every other); oblique (grid's block, camera pitched 35 deg "
+                        "forward)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")

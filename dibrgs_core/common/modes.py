@@ -25,8 +25,6 @@ Refine = Literal["no-ovlp", "reproject", "none"]
 SweepPlanes = Literal["auto", "height", "fronto"]
 #: Kinds of generated scenes.
 SceneKind = Literal["city", "mountain", "village", "stadium"]
-# How a generated scene is photographed: the LEVIR-like orbit or a nadir mapping grid (synth.flights).
-Flight = Literal["orbit", "grid"]
 
 
 def choices(mode: object) -> tuple[str, ...]:

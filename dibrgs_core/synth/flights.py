@@ -7,7 +7,8 @@ only* (the library estimates up from the cameras). OpenCV cameras, world-to-came
 * ``orbit`` flights: view 000 looks down near nadir; views 001-020 sit on a horizontal circular
   orbit looking at the scene centre: 15 degrees off nadir by default (orbit ``levir``), or 35.5
   degrees (orbit ``wide``, a stiffer case with heavy occlusion between views 126 degrees apart).
-* ``grid`` flights: a nadir mapping flight, photos on parallel strips (:class:`GridSpec`).
+* mapping flights (:data:`GRIDS`): photos on parallel strips (:class:`GridSpec`): ``grid``
+  (nadir, the real flight's block), ``corridor`` (one strip), ``oblique`` (pitched forward).
 """
 from __future__ import annotations
 
@@ -83,19 +84,21 @@ def scene_cameras(resolution: int, phase: float, spec: OrbitSpec = ORBITS[DEFAUL
 
 @dataclass(frozen=True)
 class GridSpec:
-    """A nadir mapping flight over a generated scene (metres, degrees): ``strips`` parallel
-    strips of ``per_strip`` photos flown back and forth, the camera's yaw fixed (image up
-    along the strips on every strip, as a gimbal holding its heading does).
+    """A mapping flight over a generated scene (metres, degrees): ``strips`` parallel strips of
+    ``per_strip`` photos flown back and forth, the camera's yaw fixed (image up along the strips on
+    every strip, as a gimbal holding its heading does), pitched ``pitch_deg`` forward off nadir.
 
     The defaults copy ``brighton_north``'s northern block: three strips of three photos,
-    63 % forward and 62 % side overlap, the attitude a few degrees off nadir.
+    63 % forward and 62 % side overlap (of a nadir photo's footprint), the attitude a few
+    degrees off nadir.
     """
 
     strips: int = 3
     per_strip: int = 3
     height: float = 160.0          # above the ground plane z = 0
-    forward_overlap: float = 0.63  # along a strip, as a share of the footprint
+    forward_overlap: float = 0.63  # along a strip, as a share of a nadir footprint
     side_overlap: float = 0.62     # between strips
+    pitch_deg: float = 0.0         # optical axis tilted forward along the strips (0: nadir)
     tilt_deg: float = 1.5          # attitude noise (standard deviation of each tilt axis)
     jitter: float = 0.03           # position noise, as a share of the photo spacing
     lens_mm: float = 35.0
@@ -110,9 +113,26 @@ class GridSpec:
         f = self.footprint()
         return (1.0 - self.forward_overlap) * f, (1.0 - self.side_overlap) * f
 
+    def train_indices(self) -> list[int]:
+        """Training photos of the sparse-view split, by flight-order index: the middle photo of each
+        strip (as ``brighton_north``), or every other photo of a single strip."""
+        if self.strips == 1:
+            return list(range(0, self.per_strip, 2))
+        return [i * self.per_strip + self.per_strip // 2 for i in range(self.strips)]
 
-GRID = GridSpec()
-# The mountain's terrain reaches about 230 m; a grid flight keeps its height above that.
+
+#: Mapping flights by name (``make_scene(flight=...)``; ``orbit`` is the other flight): the real
+#: flight's block; one strip of five photos (a corridor: a road, a river, a power line); the
+#: block flown with the camera pitched 35 degrees forward (oblique photos).
+GRIDS: dict[str, GridSpec] = {
+    "grid": GridSpec(),
+    "corridor": GridSpec(strips=1, per_strip=5),
+    "oblique": GridSpec(pitch_deg=35.0),
+}
+#: Every flight ``make_scene`` flies.
+FLIGHTS: tuple[str, ...] = ("orbit", *GRIDS)
+GRID = GRIDS["grid"]
+# The mountain's terrain reaches about 230 m; a mapping flight keeps its height above that.
 GRID_CLEARANCE = {"mountain": 230.0}
 
 
@@ -134,40 +154,44 @@ def grid_cameras(resolution: int, heading: float, rng: np.random.Generator, spec
 
     ``heading`` (radians from +X) is the strips' direction; ``rng`` draws the attitude and
     position noise of the photos (the Track is noise-free); ``ground``: height added to the
-    flight's (terrain). Photos are named ``000``, ``001``, ... in flight order (strip by strip,
-    every other strip flown backwards); the split trains on the middle photo of each strip
-    and tests on the others (as ``brighton_north``). The Track follows the flight's route,
-    N_TRACK cameras evenly spread along it.
+    flight's (terrain). A pitched camera flies ``height x tan(pitch)`` behind its nadir position,
+    so that it looks at the same ground. Photos are named ``000``, ``001``, ... in flight order
+    (strip by strip, every other strip flown backwards); the split is
+    :meth:`GridSpec.train_indices` for training, the other photos for testing. The Track follows
+    the flight's route, N_TRACK cameras evenly spread along it.
     """
     W = H = int(resolution)
     f = spec.lens_mm / spec.sensor_mm * W
     K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
     along = np.array([math.cos(heading), math.sin(heading), 0.0])
     across = np.array([-along[1], along[0], 0.0])
+    up = np.array([0.0, 0.0, 1.0])
     da, dc = spec.spacing()
     z = spec.height + ground
+    pitch = math.radians(spec.pitch_deg)
+    back = -spec.height * math.tan(pitch) * along
     route = []
     for i in range(spec.strips):
         js = range(spec.per_strip) if i % 2 == 0 else reversed(range(spec.per_strip))
         for j in js:
             route.append((i - (spec.strips - 1) / 2) * dc * across + (j - (spec.per_strip - 1) / 2) * da * along
-                         + np.array([0.0, 0.0, z]))
+                         + back + z * up)
     route = np.array(route)
+    look = -math.cos(pitch) * up + math.sin(pitch) * along
 
-    def nadir(eye: np.ndarray, name: str) -> Camera:
-        return Camera(K=K, w2c=look_at(eye, eye - [0.0, 0.0, 1.0], along), width=W, height=H, name=name)
+    def camera(eye: np.ndarray, name: str) -> Camera:
+        return Camera(K=K, w2c=look_at(eye, eye + look, along if pitch == 0.0 else up), width=W, height=H,
+                      name=name)
 
     views = []
     for n, eye in enumerate(route):
-        e = eye + rng.normal(0.0, spec.jitter, 3) * np.array([da, dc, da])
-        cam = nadir(e, f"{n:03d}")
+        cam = camera(eye + rng.normal(0.0, spec.jitter, 3) * np.array([da, dc, da]), f"{n:03d}")
         views.append(Camera(K=K, w2c=_tilted(cam.w2c, rng, spec.tilt_deg), width=W, height=H, name=cam.name))
-    mid = spec.per_strip // 2
-    train = [views[i * spec.per_strip + mid].name for i in range(spec.strips)]
+    train = [views[i].name for i in spec.train_indices()]
     split = {"train": train, "test": [v.name for v in views if v.name not in train]}
     seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     at = np.linspace(0.0, s[-1], N_TRACK)
     pos = np.stack([np.interp(at, s, route[:, k]) for k in range(3)], 1)
-    track = [nadir(p, f"{i:03d}") for i, p in enumerate(pos)]
+    track = [camera(p, f"{i:03d}") for i, p in enumerate(pos)]
     return views, track, split

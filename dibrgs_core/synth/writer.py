@@ -1,12 +1,12 @@
 """Procedural aerial scenes rendered headless with Blender (bpy, Cycles on CPU), written in the
 LEVIR-NVS layout with exact cameras and ground-truth depth::
 
-    OUT/Images/NNN.png     8-bit sRGB views 000-020 (a grid flight: 000-008, in flight order)
+    OUT/Images/NNN.png     8-bit sRGB views 000-020 (a mapping flight: 000-..., in flight order)
     OUT/Cams/NNN.txt       LEVIR cameras (w2c, K, DEPTH_MIN DEPTH_MAX)
     OUT/Depths/NNN.tiff    float32 z-depth (distance along the camera axis, metres)
     OUT/Depths/NNN.exr     the same depth as a 32-bit EXR (channel "Z")
-    OUT/Track/NNN.txt      60 render-path cameras on the orbit (a grid flight: along its route)
-    OUT/split.json         a grid flight only: train on the middle photo of each strip
+    OUT/Track/NNN.txt      60 render-path cameras on the orbit (a mapping flight: along its route)
+    OUT/split.json         a mapping flight only: its sparse-view split (GridSpec.train_indices)
     OUT/scene.json         generator settings (kind, seed, resolution, samples, flight, orbit or grid)
 
 LEVIR-NVS images cannot be downloaded here, so the project renders its own scenes.
@@ -25,8 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.fileio import write_json
-from ..common.modes import Flight, choices
-from .flights import DEFAULT_ORBIT, GRID, GRID_CLEARANCE, ORBITS, grid_cameras, scene_cameras
+from .flights import DEFAULT_ORBIT, FLIGHTS, GRID_CLEARANCE, GRIDS, ORBITS, grid_cameras, scene_cameras
 from .layout import KINDS
 from .render import build_scene, default_samples, depth_mode, linear_to_srgb8, render_rgb, set_camera
 
@@ -34,7 +33,7 @@ log = logging.getLogger("dibrgs.scenegen")
 
 
 def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: int | None = None,
-               orbit: str = DEFAULT_ORBIT, flight: Flight = "orbit") -> Path:
+               orbit: str = DEFAULT_ORBIT, flight: str = "orbit") -> Path:
     """Render a procedural aerial scene into ``out`` in LEVIR-NVS layout (see module docstring).
 
     Args:
@@ -44,9 +43,9 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         out: output folder (created).
         samples: Cycles samples per pixel (default :func:`default_samples`).
         orbit: the orbit of an ``orbit`` flight, a key of :data:`ORBITS` (``levir`` or ``wide``).
-        flight: ``orbit`` (views 000-020, LEVIR-NVS's protocol) or ``grid`` (a nadir mapping
-            flight, :data:`~.flights.GRID`, with its ``split.json``). The same seed gives the same
-            scene under either flight.
+        flight: ``orbit`` (views 000-020, LEVIR-NVS's protocol) or a mapping flight, a key of
+            :data:`~.flights.GRIDS` (``grid``, ``corridor``, ``oblique``), with its ``split.json``.
+            The same seed gives the same scene under every flight.
 
     Returns the output folder. Must run in a background Blender/bpy process: it
     resets the current Blender file.
@@ -62,8 +61,8 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         raise ValueError(f"resolution must be >= 8, got {resolution}")
     if orbit not in ORBITS:
         raise ValueError(f"orbit must be one of {sorted(ORBITS)}, got {orbit!r}")
-    if flight not in choices(Flight):
-        raise ValueError(f"flight must be one of {choices(Flight)}, got {flight!r}")
+    if flight not in FLIGHTS:
+        raise ValueError(f"flight must be one of {FLIGHTS}, got {flight!r}")
     spec = ORBITS[orbit]
     if not bpy.app.background:
         raise RuntimeError("make_scene resets the Blender file; run it in a background process")
@@ -73,9 +72,9 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     rng = np.random.default_rng(seed)
     phase = float(rng.uniform(0, 2 * np.pi))
     split = None
-    if flight == "grid":
+    if flight in GRIDS:
         # Its own noise stream: the scene below draws from rng exactly as for an orbit.
-        views, track, split = grid_cameras(resolution, phase, np.random.default_rng([seed, 1]), GRID,
+        views, track, split = grid_cameras(resolution, phase, np.random.default_rng([seed, 1]), GRIDS[flight],
                                            ground=GRID_CLEARANCE.get(kind, 0.0))
     else:
         views, track = scene_cameras(resolution, phase, spec)
@@ -110,7 +109,7 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
             "samples": samples, "flight": flight}
     if split is not None:
         write_json(out / "split.json", split)
-        meta.update({"grid_heading_rad": phase, "grid": GRID.__dict__,
+        meta.update({"grid_heading_rad": phase, "grid": GRIDS[flight].__dict__,
                      "grid_ground": GRID_CLEARANCE.get(kind, 0.0)})
     else:
         meta.update({"orbit_phase_rad": phase, "orbit_name": orbit, "orbit": spec.__dict__})

@@ -227,6 +227,37 @@ def test_grid_flight_layout():
     assert steps.max() == pytest.approx(np.median(steps), rel=1e-6) and steps.min() > 0.5 * steps.max()
 
 
+def test_corridor_and_oblique_flights():
+    """The other mapping flights: a corridor (one strip of five, training on every other photo) and
+    the block flown with the camera pitched forward (looking at the same ground as the nadir block)."""
+    from dibrgs_core.camera.trajectory import classify
+    from dibrgs_core.synth.flights import FLIGHTS, GRIDS, grid_cameras
+
+    assert FLIGHTS == ("orbit", "grid", "corridor", "oblique")
+    up = np.array([0.0, 0.0, 1.0])
+    views, track, split = grid_cameras(32, 0.0, np.random.default_rng(0), GRIDS["corridor"])
+    assert [v.name for v in views] == [f"{i:03d}" for i in range(5)]
+    assert split == {"train": ["000", "002", "004"], "test": ["001", "003"]}
+    assert classify(views, up).kind == "strips" and len(classify(views, up).lines) == 1
+    C = np.stack([v.center for v in views])
+    assert np.ptp(C[:, 1]) < 0.2 * np.ptp(C[:, 0])  # one line along the heading (+X)
+
+    spec = GRIDS["oblique"]
+    heading = 1.1
+    along = np.array([math.cos(heading), math.sin(heading), 0.0])
+    obl, otrack, osplit = grid_cameras(32, heading, np.random.default_rng(0), spec)
+    nad, _, nsplit = grid_cameras(32, heading, np.random.default_rng(0), GRIDS["grid"])
+    assert osplit == nsplit
+    for o, n in zip(obl, nad):
+        d = o.view_dir
+        assert math.degrees(math.acos(-d @ up)) == pytest.approx(spec.pitch_deg, abs=6.0)
+        assert d @ along > 0.4  # pitched forward along the strips
+        # Where the optical axis meets the ground: near the nadir photo's footprint centre.
+        hit = o.center + d * (-o.center[2] / d[2])
+        assert np.linalg.norm(hit[:2] - n.center[:2]) < 0.15 * spec.footprint()
+    assert all(abs(math.degrees(math.acos(-c.view_dir @ up)) - spec.pitch_deg) < 1e-6 for c in otrack)
+
+
 def test_grid_flight_scene(tmp_path):
     """A rendered grid flight: nine photos, its split.json honoured by the reader, depth everywhere,
     and the same seed's geometry as under the orbit."""
