@@ -1,8 +1,8 @@
 """The scene frame a set of cameras implies: up axis, nadir angle, horizontal frame, look-at point.
 
-Aerial views are not assumed to use +Z as up: up is the opposite of the mean
-viewing direction. OpenCV cameras (:mod:`.pinhole`), world units.
-NumPy only.
+Aerial views are not assumed to use +Z as up: up comes from the cameras themselves (the
+opposite of their mean viewing direction, refined where they are held level; see
+:func:`estimate_up`). OpenCV cameras (:mod:`.pinhole`), world units. NumPy only.
 """
 from __future__ import annotations
 
@@ -13,20 +13,48 @@ import numpy as np
 from .pinhole import Camera
 
 
-def estimate_up(cams: Iterable[Camera]) -> tuple[np.ndarray, float]:
-    """Scene up axis from the cameras: opposite to the mean viewing direction.
+#: Cameras count as held level (no roll) when their image x axes leave a common plane by at most
+#: this RMS angle (degrees): gimbals and survey mounts keep the image's x axis horizontal.
+LEVEL_ROLL_DEG = 5.0
+#: The x axes fix up on their own when they spread this far out of one direction (RMS angle,
+#: degrees): the cameras face different headings (an orbit, a free flight).
+HEADING_SPREAD_DEG = 10.0
 
-    Returns ``(up (3,), confidence)`` where confidence is the length of the
-    mean unit viewing direction in [0, 1]; near 0 means the cameras look in
-    all directions and the up axis is ambiguous. Aerial views are not assumed
-    to use +Z as up.
+
+def estimate_up(cams: Iterable[Camera]) -> tuple[np.ndarray, float]:
+    """Scene up axis from the cameras, and how much their viewing directions agree.
+
+    The first estimate is the opposite of the mean viewing direction. Where the cameras are held
+    level (image x axes horizontal within :data:`LEVEL_ROLL_DEG`) and face different headings, up
+    is the axis perpendicular to every x axis instead (exact for an orbit, where a few cameras'
+    mean direction leans towards their side of the circle). Level cameras that all face one
+    heading leave up free to turn about that axis: the first estimate is kept, less any part of
+    it along the axis (roll noise). So a camera pitched forward on a grid or a corridor flown at one heading
+    reads as a nadir camera: from the poses alone that flight cannot be told from a nadir camera
+    climbing a slope at the pitch angle, and nadir photos are what mapping flights take.
+
+    Returns ``(up (3,), confidence)``: confidence is the length of the mean unit viewing
+    direction in [0, 1]; near 0 means the cameras look in all directions and the up axis is
+    ambiguous.
     """
+    cams = list(cams)
     dirs = np.stack([c.view_dir for c in cams])
     m = dirs.mean(axis=0)
     n = float(np.linalg.norm(m))
     if n < 1e-12:
         return np.array([0.0, 0.0, 1.0]), 0.0
-    return -m / n, n
+    u_view = -m / n
+    X = np.stack([c.R[0] / np.linalg.norm(c.R[0]) for c in cams])  # image x axes in world
+    w, V = np.linalg.eigh(X.T @ X / len(X))  # ascending: V[:, 0] the axis the x axes avoid most
+    if w[0] > np.sin(np.radians(LEVEL_ROLL_DEG)) ** 2:
+        return u_view, n  # not held level: the x axes say nothing about up
+    if w[1] > np.sin(np.radians(HEADING_SPREAD_DEG)) ** 2:
+        up = V[:, 0]
+    else:  # one heading: up lies across the common x axis
+        P = V[:, :2]
+        up = P @ (P.T @ u_view)
+    up = up / max(float(np.linalg.norm(up)), 1e-300)
+    return (up if up @ u_view >= 0 else -up), n
 
 
 def nadir_angle_deg(cams: Sequence[Camera], up: np.ndarray | None = None) -> float:
