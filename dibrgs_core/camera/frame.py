@@ -29,9 +29,10 @@ def estimate_up(cams: Iterable[Camera]) -> tuple[np.ndarray, float]:
     is the axis perpendicular to every x axis instead (exact for an orbit, where a few cameras'
     mean direction leans towards their side of the circle). Level cameras that all face one
     heading leave up free to turn about that axis: the first estimate is kept, less any part of
-    it along the axis (roll noise). So a camera pitched forward on a grid or a corridor flown at one heading
-    reads as a nadir camera: from the poses alone that flight cannot be told from a nadir camera
-    climbing a slope at the pitch angle, and nadir photos are what mapping flights take.
+    it along the axis (roll noise). So a camera pitched forward on a grid or a corridor flown at
+    one heading reads as a nadir camera: from the poses alone that flight cannot be told from a
+    nadir camera climbing a slope at the pitch angle, and nadir photos are what mapping flights
+    take.
 
     Returns ``(up (3,), confidence)``: confidence is the length of the mean unit viewing
     direction in [0, 1]; near 0 means the cameras look in all directions and the up axis is
