@@ -6,7 +6,8 @@ views ... between existing cameras". Real acquisitions are not all circles:
 * ``orbit``: the cameras lie on a circle and look towards its axis (LEVIR-NVS,
   the generated scenes; an oblique orbit round a site);
 * ``strips``: the camera centres lie on one straight line (a corridor, or one
-  photo from each strip of a mapping flight) or on parallel straight lines
+  photo from each strip of a mapping flight: then the cameras face across the
+  line, and the strips run along their headings) or on parallel straight lines
   with at least two cameras each (a mapping grid);
 * ``free``: anything else.
 
@@ -14,7 +15,8 @@ views ... between existing cameras". Real acquisitions are not all circles:
 cameras on the trajectory: on the circle for an orbit, along the fitted
 lines (continued half a camera spacing past their end cameras) and between
 neighbouring cameras of adjacent lines for strips, between neighbouring
-cameras otherwise. Positions are interpolated, rotations slerped, and each
+cameras otherwise; for one photo a strip also along each camera's heading (half
+the image's ground extent either way; half the draws). Positions are interpolated, rotations slerped, and each
 pose is jittered a little in position (a fraction of the camera spacing)
 and look direction (degrees), so nothing depends on the scene's units.
 
@@ -53,12 +55,27 @@ ORBIT_RMS_TOL = 0.1
 class Segment:
     """Poses between camera ``a`` and camera ``b``: position ``C_a + t (C_b - C_a)`` for ``t`` in
     ``[t0, t1]`` (beyond [0, 1] continues the line past an end camera), rotation slerped at
-    ``clip(t, 0, 1)``."""
+    ``clip(t, 0, 1)``. With ``direction`` (world vector; then ``b == a``): position
+    ``C_a + t direction``, camera ``a``'s rotation. ``weight`` scales the segment's share of the
+    sampled poses (its length times the weight)."""
 
     a: int
     b: int
     t0: float = 0.0
     t1: float = 1.0
+    direction: np.ndarray | None = None
+    weight: float = 1.0
+
+    def point(self, C: np.ndarray, t: float) -> np.ndarray:
+        """Position at ``t`` (``C``: the cameras' centres)."""
+        if self.direction is not None:
+            return C[self.a] + t * self.direction
+        return C[self.a] + t * (C[self.b] - C[self.a])
+
+    def length(self, C: np.ndarray) -> float:
+        """Length of the segment from ``t0`` to ``t1`` (world units)."""
+        step = self.direction if self.direction is not None else C[self.b] - C[self.a]
+        return float(np.linalg.norm(step)) * (self.t1 - self.t0)
 
 
 @dataclass
@@ -263,6 +280,26 @@ def _neighbour_pairs(P: np.ndarray) -> list[tuple[int, int]]:
     return sorted(pairs)
 
 
+def _headings_across(cams: Sequence[Camera], F: np.ndarray, d: np.ndarray,
+                     scene_depth: float | None) -> list[np.ndarray] | None:
+    """For cameras on one line (horizontal direction ``d`` in frame ``F``): when every camera's
+    heading (its image up, horizontal) is within 30 degrees of square to the line, the world vector
+    from each camera to half its image's ground extent ahead (``scene_depth`` x half the image
+    height over the focal length); else None (no depth known either)."""
+    if not scene_depth or not np.isfinite(scene_depth) or scene_depth <= 0:
+        return None
+    out = []
+    for c in cams:
+        h = (-c.R[1]) @ F.T  # image up in (e1, e2, up)
+        hh = h[:2]
+        norm = float(np.linalg.norm(hh))
+        if norm < 0.5 or abs(float(hh @ d)) / norm > np.sin(np.radians(30.0)):
+            return None
+        reach = 0.5 * c.height / float(c.K[1, 1]) * scene_depth
+        out.append((np.array([hh[0], hh[1], 0.0]) / norm) @ F * reach)
+    return out
+
+
 def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float = 0.5,
              scene_depth: float | None = None) -> Trajectory:
     """The kind of trajectory the camera centres follow, and why.
@@ -297,9 +334,20 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
     d, along, across = _line_fit(P)
     if across <= LINE_TOL * along:
         line = sorted(range(n), key=lambda k: float(P[k] @ d))
-        return Trajectory("strips", f"the {n} camera centres lie on one straight line (RMS offset "
-                          f"{across:.3g}, {100 * across / max(along, 1e-300):.1f}% of their spread {along:.3g} "
-                          f"along it)", up, spacing, lines=[line], segments=_segments_along([line], P, extend))
+        why = (f"the {n} camera centres lie on one straight line (RMS offset {across:.3g}, "
+               f"{100 * across / max(along, 1e-300):.1f}% of their spread {along:.3g} along it)")
+        segs = _segments_along([line], P, extend)
+        across_strips = _headings_across(cams, F, d, scene_depth)
+        if across_strips is not None:
+            # One photo from each strip of a mapping flight: the strips run along the cameras'
+            # heading, across this line; poses along them get as many draws as those across.
+            total = sum(sg.length(C) for sg in segs)
+            heads = [Segment(i, i, -1.0, 1.0, direction=v) for i, v in enumerate(across_strips)]
+            w = total / max(sum(sg.length(C) for sg in heads), 1e-300)
+            segs += [Segment(sg.a, sg.b, sg.t0, sg.t1, sg.direction, w) for sg in heads]
+            why += ("; each camera faces across it (image up within 30 deg of square to it): one photo a "
+                    "strip, poses also along each camera's heading")
+        return Trajectory("strips", why, up, spacing, lines=[line], segments=segs)
     orbit = fit_orbit(cams, up)
     is_orbit, why_orbit = _orbit_evidence(cams, orbit, F, P)
     if is_orbit:
@@ -377,15 +425,16 @@ def sample_poses(traj: Trajectory, cams: Sequence[Camera], n: int, seed: int, ji
         return out
     segs = traj.segments or [Segment(0, 0)]
     C = np.stack([c.center for c in cams])
-    lens = np.array([max(np.linalg.norm(C[s.b] - C[s.a]) * (s.t1 - s.t0), 1e-12) for s in segs])
+    lens = np.array([max(s.length(C) * s.weight, 1e-12) for s in segs])
     prob = lens / lens.sum()
     for i in range(n):
         s = segs[int(rng.choice(len(segs), p=prob))]
         t = float(rng.uniform(s.t0, s.t1))
-        eye = C[s.a] + t * (C[s.b] - C[s.a])
+        eye = s.point(C, t)
         tc = min(max(t, 0.0), 1.0)
         R = slerp(cams[s.a].R, cams[s.b].R, tc)
-        seg_len = float(np.linalg.norm(C[s.b] - C[s.a]))
+        seg_len = s.length(C) / max(s.t1 - s.t0, 1e-300) if s.direction is not None else \
+            float(np.linalg.norm(C[s.b] - C[s.a]))
         sigma = jitter * (seg_len if seg_len > 0 else traj.spacing)
         eye, R = _jitter(eye, R, rng, sigma, F, look_deg)
         like = cams[s.a] if tc < 0.5 else cams[s.b]

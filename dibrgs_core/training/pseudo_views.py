@@ -51,7 +51,7 @@ from .pseudo_warp import PADDED, RTOL, Projector, disagreement, fill_progressive
 
 log = logging.getLogger("dibrgs.pseudo_views")
 
-_CACHE_VERSION = "pseudo-v4"
+_CACHE_VERSION = "pseudo-v5"  # v5: poses along the headings of one-photo-a-strip splits
 
 
 @dataclass

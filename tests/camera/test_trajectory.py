@@ -101,6 +101,30 @@ def test_one_photo_per_strip_is_a_straight_line_and_poses_stay_on_it():
     assert 0.05 < np.std(dy) < 0.6
 
 
+def test_one_photo_per_strip_also_samples_along_the_strips():
+    """The cameras face across their line (image up along the strips, as a mapping flight flies):
+    with the scene's depth known, poses also run along each camera's heading, half the image's
+    ground extent either way, and take half the draws; a corridor (cameras facing along their
+    line) and an unknown depth add none."""
+    cams = [nadir(-3.08, 2.17, name="a"), nadir(-0.13, 2.50, name="b"), nadir(2.81, 2.42, name="c")]
+    t = classify(cams, scene_depth=5.3)
+    assert t.kind == "strips" and "one photo a strip" in t.reason
+    heads = [sg for sg in t.segments if sg.direction is not None]
+    reach = 0.5 * 180 / 300.0 * 5.3
+    assert len(heads) == 3 and all(np.allclose(sg.direction, [0.0, reach, 0.0]) for sg in heads)
+    poses = sample_poses(t, cams, 400, seed=0, jitter=0.0, look_deg=0.0)
+    C = np.stack([c.center for c in cams])
+    off_line = [p for p in poses if np.min(np.abs(p.center[0] - C[:, 0])) < 1e-9
+                and np.min(np.linalg.norm(p.center - C, axis=1)) > 1e-6]
+    assert 0.4 < len(off_line) / len(poses) < 0.6
+    for p in off_line:  # along a camera's heading, within reach, with that camera's rotation
+        k = int(np.argmin(np.abs(p.center[0] - C[:, 0])))
+        assert abs(p.center[1] - C[k, 1]) <= reach + 1e-9 and np.allclose(p.R, cams[k].R)
+    corridor = [nadir(0.0, y) for y in (0.0, 1.6, 3.2)]
+    assert all(sg.direction is None for sg in classify(corridor, scene_depth=5.3).segments)
+    assert all(sg.direction is None for sg in classify(cams).segments)
+
+
 def test_a_mapping_grid_is_parallel_strips():
     cams = [nadir(x, y, name=f"{x}{y}") for x in (-3.0, 0.0, 3.0) for y in (0.6, 2.2, 3.8)]
     t = classify(cams)
@@ -144,7 +168,7 @@ def test_classes_and_poses_do_not_depend_on_units_or_origin(scale, offset):
     sets = [orbit_cams(), [nadir(-3.08, 2.17), nadir(-0.13, 2.50), nadir(2.81, 2.42)],
             [nadir(x, y) for x in (-3.0, 0.0, 3.0) for y in (0.6, 2.2, 3.8)]]
     for cams in sets:
-        a, b = classify(cams), classify(transformed(cams, scale, offset))
+        a, b = classify(cams, scene_depth=5.3), classify(transformed(cams, scale, offset), scene_depth=5.3 * scale)
         assert a.kind == b.kind and a.lines == b.lines
         assert b.spacing == pytest.approx(scale * a.spacing, rel=1e-6)
         pa, pb = sample_poses(a, cams, 20, 5), sample_poses(b, transformed(cams, scale, offset), 20, 5)
