@@ -22,7 +22,8 @@ from ..camera.frame import estimate_up
 from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
 from ..camera.serialize import camera_to_dict
-from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify, slerp
+from ..camera.rotations import slerp
+from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify
 from ..common.fileio import write_json
 
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from dibrgs_core.camera.pinhole import Camera, look_at
-from dibrgs_core.camera.trajectory import axis_angle, classify, quat_of, rot_of, sample_poses, slerp
+from dibrgs_core.camera.rotations import axis_angle, quat_of, rot_of, slerp
+from dibrgs_core.camera.trajectory import classify, sample_poses
 
 K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
 
