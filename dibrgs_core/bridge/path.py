@@ -239,7 +239,9 @@ class PathPlan:
 
 def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequence[Camera] = ()) -> PathPlan:
     """The pseudo-view path along the acquisition trajectory of the training cameras ``train``
-    (``views``: all the scene's cameras, for the up axis; ``track``: a LEVIR-NVS Track)."""
+    (``views``: all the scene's cameras, for the up axis; ``track``: a LEVIR-NVS Track). Drawn
+    without the scene's depth, so one photo a strip gives the line across the strips only (the
+    trainer, which knows the depth, also samples along the cameras' headings)."""
     train, track, views = list(train), list(track), list(views)
     cams = train or views
     if not cams:
@@ -267,7 +269,7 @@ def _trajectory_polylines(traj: Trajectory, cams: Sequence[Camera]) -> list[np.n
     out = []
     ends = {}
     for s in traj.segments:
-        if s.direction is None and s.t1 > 1.0:  # a line continued past its end camera s.b
+        if s.t1 > 1.0:  # a line continued past its end camera s.b
             ends[s.b] = C[s.a] + s.t1 * (C[s.b] - C[s.a])
     for line in traj.lines:
         if len(line) < 2:
@@ -277,9 +279,7 @@ def _trajectory_polylines(traj: Trajectory, cams: Sequence[Camera]) -> list[np.n
         out.append(np.stack(pts))
         on_line.update(zip(line[:-1], line[1:]))
     for s in traj.segments:
-        if s.direction is not None:  # along a camera's heading (one photo a strip)
-            out.append(np.stack([s.point(C, s.t0), s.point(C, s.t1)]))
-        elif s.t1 <= 1.0 and (s.a, s.b) not in on_line and (s.b, s.a) not in on_line and s.a != s.b:
+        if s.t1 <= 1.0 and (s.a, s.b) not in on_line and (s.b, s.a) not in on_line and s.a != s.b:
             out.append(np.stack([C[s.a], C[s.b]]))
     scale = max(float(np.abs(C).max()), 1e-300)
     return [p for p in out if np.linalg.norm(np.diff(p, axis=0), axis=1).sum() > 1e-9 * scale]
