@@ -67,16 +67,17 @@ class Segment:
     direction: np.ndarray | None = None
     weight: float = 1.0
 
+    def step(self, C: np.ndarray) -> np.ndarray:
+        """Displacement for ``t`` from 0 to 1 (``C``: the cameras' centres)."""
+        return self.direction if self.direction is not None else C[self.b] - C[self.a]
+
     def point(self, C: np.ndarray, t: float) -> np.ndarray:
-        """Position at ``t`` (``C``: the cameras' centres)."""
-        if self.direction is not None:
-            return C[self.a] + t * self.direction
-        return C[self.a] + t * (C[self.b] - C[self.a])
+        """Position at ``t``."""
+        return C[self.a] + t * self.step(C)
 
     def length(self, C: np.ndarray) -> float:
         """Length of the segment from ``t0`` to ``t1`` (world units)."""
-        step = self.direction if self.direction is not None else C[self.b] - C[self.a]
-        return float(np.linalg.norm(step)) * (self.t1 - self.t0)
+        return float(np.linalg.norm(self.step(C))) * (self.t1 - self.t0)
 
 
 @dataclass
@@ -290,10 +291,9 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
         if across_strips is not None:
             # One photo from each strip of a mapping flight: the strips run along the cameras'
             # heading, across this line; poses along them get as many draws as those across.
-            total = sum(sg.length(C) for sg in segs)
-            heads = [Segment(i, i, -1.0, 1.0, direction=v) for i, v in enumerate(across_strips)]
-            w = total / max(sum(sg.length(C) for sg in heads), 1e-300)
-            segs += [Segment(sg.a, sg.b, sg.t0, sg.t1, sg.direction, w) for sg in heads]
+            heads_len = sum(2.0 * float(np.linalg.norm(v)) for v in across_strips)  # t from -1 to 1
+            w = sum(sg.length(C) for sg in segs) / max(heads_len, 1e-300)
+            segs += [Segment(i, i, -1.0, 1.0, direction=v, weight=w) for i, v in enumerate(across_strips)]
             why += ("; each camera faces across it (image up within 30 deg of square to it): one photo a "
                     "strip, poses also along each camera's heading")
         return Trajectory("strips", why, up, spacing, lines=[line], segments=segs)
@@ -382,8 +382,7 @@ def sample_poses(traj: Trajectory, cams: Sequence[Camera], n: int, seed: int, ji
         eye = s.point(C, t)
         tc = min(max(t, 0.0), 1.0)
         R = slerp(cams[s.a].R, cams[s.b].R, tc)
-        seg_len = s.length(C) / max(s.t1 - s.t0, 1e-300) if s.direction is not None else \
-            float(np.linalg.norm(C[s.b] - C[s.a]))
+        seg_len = float(np.linalg.norm(s.step(C)))
         sigma = jitter * (seg_len if seg_len > 0 else traj.spacing)
         eye, R = _jitter(eye, R, rng, sigma, F, look_deg)
         like = cams[s.a] if tc < 0.5 else cams[s.b]

@@ -90,21 +90,19 @@ class SplitError:
 
     def psnr(self) -> dict[str, float | None]:
         """PSNR (dB, peak 1) of each group over all accumulated pixels; None for an empty group."""
-        out: dict[str, float | None] = {}
-        for k, s in self.sse.items():
-            if self.n[k] == 0:
-                out[k] = None
-            else:
-                out[k] = float(-10.0 * np.log10(max(s / self.n[k], 1e-20)))
-        return out
+        return {k: _pooled_psnr(s, self.n[k]) for k, s in self.sse.items()}
 
     def seen_psnr(self) -> float | None:
         """PSNR of the pooled squared error over the pixels one or more sources see (None when
         there are none): the figure a sparse-view method is judged by where it had photos."""
-        n = self.n["one"] + self.n["two_plus"]
-        return None if n == 0 else float(-10.0 * np.log10(max((self.sse["one"] + self.sse["two_plus"]) / n, 1e-20)))
+        return _pooled_psnr(self.sse["one"] + self.sse["two_plus"], self.n["one"] + self.n["two_plus"])
 
     def fractions(self) -> dict[str, float]:
         """Share of pixels in each group (the ``all`` total is 1)."""
         tot = max(self.n["all"], 1)
         return {k: v / tot for k, v in self.n.items()}
+
+
+def _pooled_psnr(sse: float, n: int) -> float | None:
+    """PSNR (dB, peak 1) of ``sse`` summed over ``n`` pixels; None for none."""
+    return None if n == 0 else float(-10.0 * np.log10(max(sse / n, 1e-20)))
