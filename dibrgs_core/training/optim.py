@@ -21,6 +21,10 @@ import torch
 from ..render import uses_fast
 
 
+# Group options torch's step handles and the one loop does not.
+_TORCH_ONLY = ("amsgrad", "maximize", "differentiable", "capturable", "fused")
+
+
 class Adam(torch.optim.Adam):
     """:class:`torch.optim.Adam` (``decoupled_weight_decay=True`` is AdamW) with a one-loop step."""
 
@@ -34,30 +38,37 @@ class Adam(torch.optim.Adam):
         exp_avg_sqs: list[torch.Tensor] = []
         steps: list[torch.Tensor] = []
         hyper: list[tuple[float, ...]] = []
+        state = self.state
+        # A lean gather (a step of a small model is mostly this loop): the tensors' types and
+        # layouts are checked by the extension, which changes nothing and returns False when one
+        # is not plain float32 CPU data.
         for group in self.param_groups:
-            if (group["amsgrad"] or group["maximize"] or group["differentiable"] or group["capturable"]
-                    or group["fused"] or torch.is_tensor(group["lr"])):
+            if any(group[k] for k in _TORCH_ONLY) or torch.is_tensor(group["lr"]):
                 return super().step()
-            n = len(params)
-            # torch's own lazy state initialisation and gathering (parameters with a gradient).
-            self._init_group(group, params, grads, exp_avgs, exp_avg_sqs, [], steps)
             beta1, beta2 = group["betas"]
-            hyper += [(group["lr"], float(beta1), float(beta2), group["eps"], group["weight_decay"],
-                       float(bool(group.get("decoupled_weight_decay", False))))] * (len(params) - n)
-        if not all(map(_plain, params + grads + exp_avgs + exp_avg_sqs)) or not all(
-                st.numel() == 1 and st.dtype == torch.float32 for st in steps):
-            return super().step()
+            row = (group["lr"], float(beta1), float(beta2), group["eps"], group["weight_decay"],
+                   float(bool(group.get("decoupled_weight_decay", False))))
+            for p in group["params"]:
+                g = p.grad
+                if g is None:
+                    continue
+                st = state.get(p)
+                if not st:  # torch's own lazy state initialisation, for the whole group
+                    self._init_group(group, [], [], [], [], [], [])
+                    st = state[p]
+                params.append(p)
+                grads.append(g)
+                exp_avgs.append(st["exp_avg"])
+                exp_avg_sqs.append(st["exp_avg_sq"])
+                steps.append(st["step"])
+                hyper.append(row)
         if not params:
             return None
         if not uses_fast(None, params[0]):
             return super().step()
         from ..render.fast import extension
 
-        extension().adam_step(params, grads, exp_avgs, exp_avg_sqs, steps,
-                              torch.tensor(hyper, dtype=torch.float64))
+        if not extension().adam_step(params, grads, exp_avgs, exp_avg_sqs, steps,
+                                     torch.tensor(hyper, dtype=torch.float64)):
+            return super().step()
         return None
-
-
-def _plain(t: torch.Tensor) -> bool:
-    return (t.dtype == torch.float32 and t.device.type == "cpu" and t.layout == torch.strided
-            and t.is_contiguous())

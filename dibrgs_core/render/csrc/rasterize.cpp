@@ -725,8 +725,10 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
 
 // One Adam step (adam.h) over float32 CPU tensors: params, grads, exp_avgs and exp_avg_sqs
 // (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (n x 6 float64:
-// lr, beta1, beta2, eps, weight_decay, decoupled 0/1).
-void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> grads, std::vector<torch::Tensor> exp_avgs,
+// lr, beta1, beta2, eps, weight_decay, decoupled 0/1). Returns false, with nothing changed, when
+// any tensor is not a plain contiguous float32 CPU tensor of its parameter's size (the caller then
+// takes torch's step): the caller's Python checks cost more than the step on a small model.
+bool adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> grads, std::vector<torch::Tensor> exp_avgs,
                std::vector<torch::Tensor> exp_avg_sqs, std::vector<torch::Tensor> steps, torch::Tensor hyper) {
   const size_t n = params.size();
   TORCH_CHECK(grads.size() == n && exp_avgs.size() == n && exp_avg_sqs.size() == n && steps.size() == n,
@@ -734,14 +736,18 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
   TORCH_CHECK(hyper.dim() == 2 && hyper.size(0) == static_cast<int64_t>(n) && hyper.size(1) == 6 &&
                   hyper.scalar_type() == torch::kFloat64 && hyper.is_contiguous(),
               "adam_step: hyper must be (n, 6) float64");
+  for (size_t i = 0; i < n; ++i) {
+    for (const auto* t : {&params[i], &grads[i], &exp_avgs[i], &exp_avg_sqs[i]})
+      if (!(t->defined() && t->layout() == torch::kStrided && t->scalar_type() == torch::kFloat32 &&
+            t->is_contiguous() && t->device().is_cpu() && t->numel() == params[i].numel()))
+        return false;
+    if (!(steps[i].defined() && steps[i].numel() == 1 && steps[i].scalar_type() == torch::kFloat32 &&
+          steps[i].device().is_cpu() && !steps[i].requires_grad()))
+      return false;
+  }
   const double* h = hyper.data_ptr<double>();
   std::vector<dibrgs::adam::Slot> slots(n);
   for (size_t i = 0; i < n; ++i) {
-    for (const auto* t : {&params[i], &grads[i], &exp_avgs[i], &exp_avg_sqs[i]})
-      TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous() && t->device().is_cpu() &&
-                      t->numel() == params[i].numel(),
-                  "adam_step: tensors must be contiguous float32 CPU tensors of the parameter's size");
-    TORCH_CHECK(steps[i].numel() == 1 && steps[i].scalar_type() == torch::kFloat32, "adam_step: step must be a float32 scalar");
     float* st = steps[i].data_ptr<float>();
     *st += 1.0f;
     const double t = *st, lr = h[6 * i], b1 = h[6 * i + 1], b2 = h[6 * i + 2], eps = h[6 * i + 3],
@@ -767,6 +773,7 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
   // do, so that caches keyed on a parameter's version (the IBR features) see the change.
   for (size_t i = 0; i < n; ++i)
     for (auto* t : {&params[i], &exp_avgs[i], &exp_avg_sqs[i], &steps[i]}) torch::autograd::impl::bump_version(*t);
+  return true;
 }
 
 // Neural Gaussians of the visible anchors (spawn.h): nop (M k), color (M, 3 k), cov (M, 7 k),
