@@ -99,6 +99,10 @@ def load_init(context: bpy.types.Context, init: Path) -> int:
     if hm.is_file():  # absent when the init report decided the scene needs none
         scene_build.import_height_map(context, hm)
     load_decisions(context.scene, init / "init_report.json")
+    # The points give the scene's depth: an unedited path is drawn again as the trainer now sees
+    # the trajectory (one photo a strip: also along each camera's heading); an edited one is kept.
+    if not scene_build.path_edited(context):
+        scene_build.create_path(context, scene_build.plan_path(scene_build.scene_description()))
     return len(obj.data.vertices)
 
 

@@ -183,10 +183,22 @@ def reference_camera(desc: dict[str, Any], name: str = "") -> "pinhole.Camera":
 # pseudo-view path
 # ---------------------------------------------------------------------------
 def plan_path(desc: dict[str, Any]) -> "path_mod.PathPlan":
-    """The pseudo-view path along the training cameras' acquisition trajectory (``path.plan_path``)."""
+    """The pseudo-view path along the training cameras' acquisition trajectory (``path.plan_path``),
+    with the scene's depth from the dense points when they were imported."""
     track = [serialize.camera_from_dict(c, source=desc["root"]) for c in desc.get("track", [])]
     train = described_cameras(desc, "train")
-    return path_mod.plan_path(train, track, train + described_cameras(desc, "test"))
+    return path_mod.plan_path(train, track, train + described_cameras(desc, "test"), points=dense_points())
+
+
+def dense_points() -> np.ndarray | None:
+    """(N, 3) world positions of the imported dense points (None before initialisation)."""
+    obj = bpy.data.objects.get(POINTS_NAME)
+    if obj is None or obj.type != "MESH" or not obj.data.vertices:
+        return None
+    co = np.empty(3 * len(obj.data.vertices), np.float64)
+    obj.data.vertices.foreach_get("co", co)
+    M = np.array(obj.matrix_world, np.float64)
+    return co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
 
 
 def create_path(context: bpy.types.Context, plan: "path_mod.PathPlan", n_ctrl: int = 8) -> bpy.types.Object:

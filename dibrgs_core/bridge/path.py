@@ -3,7 +3,8 @@
 :func:`plan_path` lays the path along the acquisition trajectory the command line samples its
 pseudo views from (:func:`dibrgs_core.camera.trajectory.classify` of the training cameras): a
 closed circle round an orbit, else open polylines along the flight lines and between neighbouring
-cameras. The add-on draws it as a curve object; when it trains, it evaluates the curve in world
+cameras (with the dense cloud, also along each camera's heading where the trainer samples there).
+The add-on draws it as a curve object; when it trains, it evaluates the curve in world
 space (Blender does the spline maths, whatever the spline type) and hands the polylines of its
 splines to :func:`path_cameras`, which spaces cameras uniformly by arc length. Each looks at the
 target (an orbit's look-at Empty) or, without one, takes the orientation of the training cameras
@@ -23,7 +24,7 @@ from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
 from ..camera.serialize import camera_to_dict
 from ..camera.rotations import slerp
-from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify
+from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify, scene_depth
 from ..common.fileio import write_json
 
 
@@ -225,9 +226,10 @@ class PathPlan:
             cameras; cameras on it look at its target.
         polylines: otherwise, the open polylines to draw (world points in order): each fitted
             flight line through its cameras, continued past its end cameras as the command line's
-            sampling is, and each pair of neighbouring cameras not on one line (all the scene's
-            cameras at one place: a polyline at that place); cameras along them follow the
-            training cameras' orientation.
+            sampling is, each pair of neighbouring cameras not on one line, and the line along
+            each camera's heading where the trainer samples one (all the scene's cameras at one
+            place: a polyline at that place); cameras along them follow the training cameras'
+            orientation.
     """
 
     kind: TrajectoryKind
@@ -237,17 +239,21 @@ class PathPlan:
     polylines: list[np.ndarray] | None = None
 
 
-def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequence[Camera] = ()) -> PathPlan:
+def plan_path(train: Sequence[Camera], track: Sequence[Camera] = (), views: Sequence[Camera] = (),
+              points: np.ndarray | None = None) -> PathPlan:
     """The pseudo-view path along the acquisition trajectory of the training cameras ``train``
-    (``views``: all the scene's cameras, for the up axis; ``track``: a LEVIR-NVS Track). Drawn
-    without the scene's depth, so one photo a strip gives the line across the strips only (the
-    trainer, which knows the depth, also samples along the cameras' headings)."""
+    (``views``: all the scene's cameras, for the up axis; ``track``: a LEVIR-NVS Track;
+    ``points``: the dense cloud (N, 3, world), when there is one). With the cloud, the scene's
+    depth is known and one photo a strip also gives a line along each camera's heading, as the
+    trainer samples it; without, the line across the strips only."""
     train, track, views = list(train), list(track), list(views)
     cams = train or views
     if not cams:
         raise ValueError("plan_path needs at least one camera")
     up, _ = estimate_up(views or cams)
-    traj = classify(cams)  # as the trainer does: the training cameras' own up axis
+    # as the trainer does: the training cameras' own up axis, the cloud's depth
+    depth = scene_depth(points, cams) if points is not None else None
+    traj = classify(cams, scene_depth=depth)
     lines = [] if traj.kind == "orbit" else _trajectory_polylines(traj, cams)
     if lines:
         return PathPlan(traj.kind, traj.reason, up, polylines=lines)
@@ -279,7 +285,9 @@ def _trajectory_polylines(traj: Trajectory, cams: Sequence[Camera]) -> list[np.n
         out.append(np.stack(pts))
         on_line.update(zip(line[:-1], line[1:]))
     for s in traj.segments:
-        if s.t1 <= 1.0 and (s.a, s.b) not in on_line and (s.b, s.a) not in on_line and s.a != s.b:
+        if s.direction is not None:  # along camera s.a's heading
+            out.append(np.stack([s.point(C, s.t0), s.point(C, s.t1)]))
+        elif s.t1 <= 1.0 and (s.a, s.b) not in on_line and (s.b, s.a) not in on_line and s.a != s.b:
             out.append(np.stack([C[s.a], C[s.b]]))
     scale = max(float(np.abs(C).max()), 1e-300)
     return [p for p in out if np.linalg.norm(np.diff(p, axis=0), axis=1).sum() > 1e-9 * scale]

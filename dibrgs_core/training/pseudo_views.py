@@ -43,7 +43,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..camera.pinhole import Camera
-from ..camera.trajectory import Trajectory, classify, sample_poses
+from ..camera.trajectory import Trajectory, classify, sample_poses, scene_depth
 from ..common.fileio import atomic_path, write_json
 from ..geometry.pointcloud import point_spacing
 from .pseudo_depth import complete_depth, zbuffer_depth
@@ -188,14 +188,6 @@ def _load_cache(cache_dir: Path, key: str) -> tuple[list[PseudoView], dict] | No
         return None
 
 
-def _scene_depth(points: np.ndarray, cams: Sequence[Camera]) -> float | None:
-    """Median z-depth of the cloud in front of the cameras (world units), or None."""
-    zs = [c.world_to_cam(points[:: max(1, len(points) // 5000)])[:, 2] for c in cams] if len(points) else []
-    z = np.concatenate(zs) if zs else np.zeros(0)
-    z = z[np.isfinite(z) & (z > 0)]
-    return float(np.median(z)) if len(z) else None
-
-
 def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: int, cache_dir: str | Path,
                        path: Sequence[Camera] | None = None, max_gap_px: float = 4.0,
                        surface: bool = False, consistency_tol: float = 0.0,
@@ -249,7 +241,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
                "jitter": jitter, "look_jitter_deg": look_jitter_deg, "candidates": CANDIDATES_PER_VIEW}
     key = _hash_inputs(train_views, pts, options, path)
     train_cams = [v.camera for v in train_views]
-    traj = None if path is not None else classify(train_cams, scene_depth=_scene_depth(pts, train_cams))
+    traj = None if path is not None else classify(train_cams, scene_depth=scene_depth(pts, train_cams))
     cached = _load_cache(cache_dir, key)
     if cached is not None:
         views, stats = cached

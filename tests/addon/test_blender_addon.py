@@ -330,6 +330,47 @@ out.write_text(json.dumps(res))
 """
 
 
+def test_strip_flight_path_gains_the_headings_when_the_dense_points_arrive(fresh, tmp_path):
+    """One photo a strip: once initialisation brings the dense points (here a ground plane written
+    as the init folder's points.ply), the unedited path is drawn again with a line along each
+    camera's heading, as long as the image's ground extent; a path the user edited is kept."""
+    scene = shared_file("data/brighton_north")
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene)) == {"FINISHED"}
+    sb, results = _mod("scene_build"), _mod("results")
+    props = fresh.dibrgs
+    train = sb.described_cameras(sb.scene_description(), "train")
+    depth = 5.0
+    pts = []
+    for c in train:  # the ground each training photo sees, `depth` in front of it
+        for u in np.linspace(0, c.width, 7):
+            for v in np.linspace(0, c.height, 5):
+                ray = c.R.T @ np.linalg.solve(c.K, [u, v, 1.0])
+                pts.append(c.center + depth / ray @ c.R.T[:, 2] * ray)
+    init = tmp_path / "init"
+    init.mkdir()
+    (init / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+                                     "property float z\nend_header\n" % len(pts)
+                                     + "".join("%.6f %.6f %.6f\n" % tuple(p) for p in pts))
+    assert len(sb.curve_polylines(bpy.context, props.path_curve)[0]) == 1
+    assert results.load_init(bpy.context, init) == len(pts)
+    polys, _ = sb.curve_polylines(bpy.context, props.path_curve)
+    assert len(polys) == 1 + len(train) and not sb.path_edited(bpy.context)
+    C = np.stack([c.center for c in train])
+    for c in train:
+        head = min(polys, key=lambda p: np.linalg.norm(p.mean(0) - c.center))
+        length = np.linalg.norm(head[-1] - head[0])
+        assert length == pytest.approx(c.height / c.K[1, 1] * depth, rel=0.05)  # median depth of all photos
+        up = -c.R[1] / np.linalg.norm(c.R[1])
+        assert abs((head[-1] - head[0]) @ up) / length > 0.99  # along the photo's image up
+    # edited by the user: loading the points again keeps the user's path
+    sp = props.path_curve.data.splines[0]
+    sp.points[0].co = (*(C[0] + [0.1, 0.1, 0.0]), 1.0)
+    assert sb.path_edited(bpy.context)
+    results.load_init(bpy.context, init)
+    assert len(sb.curve_polylines(bpy.context, props.path_curve)[0]) == 1 + len(train)
+    assert sb.path_edited(bpy.context)
+
+
 def test_import_and_results_need_no_torch_pil_or_pycolmap(scene64, tmp_path):
     """Scene import (LEVIR and COLMAP), path, compositor and initialisation outputs in a Python
     whose imports of torch, Pillow, pycolmap, scipy, ... fail, as in Blender's."""

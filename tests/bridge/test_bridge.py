@@ -111,6 +111,39 @@ def _strip_cams(rows: int, cols: int, yaw_deg: float = 0.0) -> list[Camera]:
     return [_nadir(20.0 * c, 30.0 * r, yaw_deg * c, f"v{r}{c}") for r in range(rows) for c in range(cols)]
 
 
+def test_path_plan_with_the_cloud_adds_each_cameras_heading():
+    """One photo a strip (three strips, image up along the strips): with the dense cloud the path
+    also runs along each camera's heading, half the image's ground extent either side, as the
+    trainer samples it; cameras there take that photo's pose. Without the cloud: the line only."""
+    cams = _strip_cams(3, 1)  # at (0, 0), (0, 30), (0, 60), 100 up; image up along +x
+    xs, ys = np.meshgrid(np.linspace(-40, 40, 9), np.linspace(-20, 80, 11))
+    ground = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)  # 100 below the cameras
+    bare = path.plan_path(cams, views=cams)
+    assert bare.kind == "strips" and len(bare.polylines) == 1
+    plan = path.plan_path(cams, views=cams, points=ground)
+    assert plan.kind == "strips" and "heading" in plan.reason
+    lines = [p for p in plan.polylines if np.ptp(p[:, 1]) > 1.0]
+    heads = [p for p in plan.polylines if np.ptp(p[:, 1]) <= 1e-9]
+    assert len(lines) == 1 and len(heads) == 3
+    reach = 0.5 * 60 / 55.0 * 100.0  # half the image height / fy x the depth
+    for c, h in zip(cams, sorted(heads, key=lambda p: p[0, 1])):
+        np.testing.assert_allclose(sorted(h[:, 0]), [-reach, reach], atol=1e-9)
+        np.testing.assert_allclose(h[:, 1:], np.tile(c.center[1:], (2, 1)), atol=1e-9)
+        on = path.path_cameras([h], 5, None, plan.up, cams[0], False, follow=cams)
+        for q in on:
+            np.testing.assert_allclose(q.R, c.R, atol=1e-9)
+    # millimetres or kilometres: the same path, scaled
+    for s in (1e-3, 1e4):
+        scaled = [Camera(K=c.K, w2c=np.block([[c.R, s * c.t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]),
+                         width=c.width, height=c.height) for c in cams]
+        other = path.plan_path(scaled, views=scaled, points=s * ground)
+        assert len(other.polylines) == len(plan.polylines)
+        for a, b in zip(other.polylines, plan.polylines):
+            np.testing.assert_allclose(a, s * b, rtol=1e-9, atol=1e-9 * s)
+    # a cloud behind every camera gives no depth: the line only
+    assert len(path.plan_path(cams, views=cams, points=ground + [0, 0, 200.0]).polylines) == 1
+
+
 def test_path_plan_follows_strips_and_falls_back_to_the_orbit():
     grid = _strip_cams(2, 3)
     plan = path.plan_path(grid, views=grid)
