@@ -19,12 +19,12 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera.frame import estimate_up
+from ..camera.frame import estimate_up, scene_depth
 from ..camera.orbit import Orbit, fit_orbit
 from ..camera.pinhole import Camera, look_at
 from ..camera.serialize import camera_to_dict
 from ..camera.rotations import slerp
-from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify, scene_depth
+from ..camera.trajectory import Segment, Trajectory, TrajectoryKind, classify
 from ..common.fileio import write_json
 
 

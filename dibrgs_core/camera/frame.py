@@ -1,4 +1,5 @@
-"""The scene frame a set of cameras implies: up axis, nadir angle, horizontal frame, look-at point.
+"""The scene frame a set of cameras implies: up axis, nadir angle, horizontal frame, look-at point,
+and the depth of a cloud in front of them.
 
 Aerial views are not assumed to use +Z as up: up comes from the cameras themselves (the
 opposite of their mean viewing direction, refined where they are held level; see
@@ -118,3 +119,14 @@ def central_camera(cams: Sequence[Camera]) -> Camera:
     """The camera nearest to the mean camera centre (a representative viewpoint of a set)."""
     c = np.mean([x.center for x in cams], 0)
     return min(cams, key=lambda x: float(np.linalg.norm(x.center - c)))
+
+
+def scene_depth(points: np.ndarray, cams: Sequence[Camera]) -> float | None:
+    """Median z-depth (world units) of ``points`` (N, 3, world) in front of the cameras ``cams``
+    (at most about 5,000 points a camera), or None when none is in front: the ``scene_depth``
+    of :func:`~.trajectory.classify`."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    zs = [c.world_to_cam(pts[:: max(1, len(pts) // 5000)])[:, 2] for c in cams] if len(pts) else []
+    z = np.concatenate(zs) if zs else np.zeros(0)
+    z = z[np.isfinite(z) & (z > 0)]
+    return float(np.median(z)) if len(z) else None

@@ -250,17 +250,6 @@ def _headings_across(cams: Sequence[Camera], F: np.ndarray, d: np.ndarray,
     return out
 
 
-def scene_depth(points: np.ndarray, cams: Sequence[Camera]) -> float | None:
-    """Median z-depth (world units) of ``points`` (N, 3, world) in front of the cameras ``cams``
-    (at most about 5,000 points a camera), or None when none is in front: the ``scene_depth``
-    of :func:`classify`."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    zs = [c.world_to_cam(pts[:: max(1, len(pts) // 5000)])[:, 2] for c in cams] if len(pts) else []
-    z = np.concatenate(zs) if zs else np.zeros(0)
-    z = z[np.isfinite(z) & (z > 0)]
-    return float(np.median(z)) if len(z) else None
-
-
 def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float = 0.5,
              scene_depth: float | None = None) -> Trajectory:
     """The kind of trajectory the camera centres follow, and why.

@@ -43,7 +43,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..camera.pinhole import Camera
-from ..camera.trajectory import Trajectory, classify, sample_poses, scene_depth
+from ..camera.frame import scene_depth
+from ..camera.trajectory import Trajectory, classify, sample_poses
 from ..common.fileio import atomic_path, write_json
 from ..geometry.pointcloud import point_spacing
 from .pseudo_depth import complete_depth, zbuffer_depth
