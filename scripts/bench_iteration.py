@@ -27,7 +27,7 @@ alternately, R rounds in the same process, and reports each round's ratio (two-t
 one-thread wall time): separate processes differ by the machine's drift between them.
 
 Run it from the repository root (or with the package on ``PYTHONPATH``); prints a table
-and writes JSON with the sizes, the load average, the OpenMP wait policy chosen at start
+and writes JSON with the machine (CPU model, vector extensions, cores), the sizes, the load average, the OpenMP wait policy chosen at start
 (:mod:`dibrgs_core.common.openmp`, as the ``dibrgs`` command chooses it) and the torch
 configuration.
 """
@@ -51,6 +51,7 @@ keep_freed_memory()
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from dibrgs_core.bench.machine import cpu  # noqa: E402
 from dibrgs_core.common.report import Report  # noqa: E402
 from dibrgs_core.models.base import render_model  # noqa: E402
 from dibrgs_core.render import composite, project_gaussians, rasterize  # noqa: E402
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)  # set-up and warm-up as training does by default
     from dibrgs_core.render import fast
 
-    out = {"date": time.strftime("%Y-%m-%d %H:%M"), "loadavg_start": os.getloadavg(),
+    out = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": cpu(), "loadavg_start": os.getloadavg(),
            "threads": args.threads, "openmp_wait": wait_policy(), "allocator": allocator_policy(),
            "preset": args.preset, "warmup": args.warmup,
            "repeats": args.repeats,
@@ -292,7 +293,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{q['median_one_ms']:.2f} and {q['median_many_ms']:.2f} ms wall (medians), ratio per round "
                   f"{min(q['ratios']):.3f}-{max(q['ratios']):.3f}, median {q['median_ratio']:.3f}")
     out["loadavg_end"] = os.getloadavg()
-    print(f"\nload average {out['loadavg_start']} -> {out['loadavg_end']}; OpenMP wait: {out['openmp_wait']}")
+    m = out["machine"]
+    print(f"\nmachine: {m['model']}, {m['cores']} cores, vector extensions: {m['vector']}")
+    print(f"load average {out['loadavg_start']} -> {out['loadavg_end']}; OpenMP wait: {out['openmp_wait']}")
     if args.out:
         args.out.write_text(json.dumps(out, indent=1))
     return 0

@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import resource
 import shutil
@@ -46,6 +45,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # benchmark this checkout's package, not an installed one
+from dibrgs_core.bench.machine import cpu  # noqa: E402
 
 
 def flops_per_lane(C: int) -> tuple[int, int]:
@@ -124,22 +124,6 @@ def fma_peak() -> tuple[float, int] | None:
             return None
         out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()
     return float(out[0]), int(out[1])
-
-
-def machine() -> dict:
-    """CPU model, its vector extensions, the build's vector path and the load."""
-    model, flags = "", []
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and not model:
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags") and not flags:
-                flags = line.split(":", 1)[1].split()
-    except OSError:
-        pass
-    model = model or platform.processor() or platform.machine()
-    vec = [f for f in flags if re.fullmatch(r"sse4_2|avx|avx2|fma|avx512\w*", f)]
-    return {"model": model, "cores": os.cpu_count(), "vector": " ".join(vec), "load": os.getloadavg()}
 
 
 def garden(size: int):
@@ -303,7 +287,7 @@ def main() -> int:
         print(json.dumps(kernel_worker(*map(int, args.kernel_worker))))
         return 0
 
-    m = machine()
+    m = cpu()
     print(f"machine: {m['model']}, {m['cores']} cores, vector extensions: {m['vector']}")
     print(f"load average before: {m['load'][0]:.2f} {m['load'][1]:.2f} {m['load'][2]:.2f}")
     rows = []

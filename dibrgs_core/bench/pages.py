@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import platform
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from ..common.fileio import atomic_path, write_text
+from .machine import cpu
 from .runner import ABLATION_LABELS, ABLATIONS, RESULT_COLUMNS, RunSpec, Suite, plateau_seconds
 
 
@@ -156,18 +156,12 @@ def markdown_tables(res: list[dict[str, Any]]) -> str:
 
 
 def machine_description() -> str:
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    """One line for a suite's page: cores, CPU model and vector extensions, OS, Python, torch."""
     import torch
 
-    return (f"{os.cpu_count()} CPU cores ({model}), {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, torch {torch.__version__}; each run is a `dibrgs train` "
+    c = cpu()
+    return (f"{c['cores']} CPU cores ({c['model']}; {c['vector'] or 'no x86 vector flags'}), "
+            f"{platform.system()} {platform.release()}, Python {platform.python_version()}, torch {torch.__version__}; each run is a `dibrgs train` "
             f"child process with its default of 1 torch thread")
 
 
