@@ -27,9 +27,9 @@ alternately, R rounds in the same process, and reports each round's ratio (two-t
 one-thread wall time): separate processes differ by the machine's drift between them.
 
 Run it from the repository root (or with the package on ``PYTHONPATH``); prints a table
-and writes JSON with the machine (CPU model, vector extensions, cores), the sizes, the load average, the OpenMP wait policy chosen at start
-(:mod:`dibrgs_core.common.openmp`, as the ``dibrgs`` command chooses it) and the torch
-configuration.
+and writes JSON with the machine (CPU model, vector extensions, cores), the sizes, the load
+average, the OpenMP wait policy chosen at start (:mod:`dibrgs_core.common.openmp`, as the
+``dibrgs`` command chooses it) and the torch configuration.
 """
 from __future__ import annotations
 

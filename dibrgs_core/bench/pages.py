@@ -161,8 +161,9 @@ def machine_description() -> str:
 
     c = cpu()
     return (f"{c['cores']} CPU cores ({c['model']}; {c['vector'] or 'no x86 vector flags'}), "
-            f"{platform.system()} {platform.release()}, Python {platform.python_version()}, torch {torch.__version__}; each run is a `dibrgs train` "
-            f"child process with its default of 1 torch thread")
+            f"{platform.system()} {platform.release()}, Python {platform.python_version()}, "
+            f"torch {torch.__version__}; each run is a `dibrgs train` child process with its default "
+            f"of 1 torch thread")
 
 
 def update_benchmarks_md(md_path: Path, suite: str, command: str, body: str, figure_rel: str) -> None:
