@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera.pinhole import Camera, look_at
+from ..camera.rotations import axis_angle
 
 N_ORBIT = 20
 N_TRACK = 60
@@ -139,11 +140,9 @@ GRID_CLEARANCE = {"mountain": 230.0}
 def _tilted(w2c: np.ndarray, rng: np.random.Generator, sigma_deg: float) -> np.ndarray:
     """``w2c`` with the camera turned by small random angles about its own x and y axes."""
     a, b = np.radians(rng.normal(0.0, sigma_deg, 2))
-    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
     out = w2c.copy()
     centre = -w2c[:3, :3].T @ w2c[:3, 3]
-    out[:3, :3] = rx @ ry @ w2c[:3, :3]
+    out[:3, :3] = axis_angle([1.0, 0.0, 0.0], a) @ axis_angle([0.0, 1.0, 0.0], b) @ w2c[:3, :3]
     out[:3, 3] = -out[:3, :3] @ centre
     return out
 
