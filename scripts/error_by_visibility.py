@@ -49,8 +49,7 @@ def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
         acc, per_view = SplitError.empty(), []
         for v in scene.test_views():
             img, _ = t.render(v.camera)
-            acc.add(img, v.image, counts[v.name])
-            per_view.append(-10.0 * np.log10(max(float(((img - v.image[..., :3]) ** 2).mean()), 1e-20)))
+            per_view.append(acc.add(img, v.image, counts[v.name]))
         runs.append({"work": str(w), "method": t.method, "psnr": acc.psnr(), "seen": acc.seen_psnr(),
                      "whole_image": float(np.mean(per_view))})
     return {"scene": str(scene_dir), "tol": tol, "views": len(counts), "fractions": pixels.fractions(),

@@ -136,9 +136,7 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
             count = counts_of[key]
             img, _ = t.render(cam)
             gt = f.image.numpy()
-            acc.add(img, gt, count)
-            mse = float(((img - gt) ** 2).mean())
-            per_view[cam.name] = -10.0 * np.log10(max(mse, 1e-20))
+            per_view[cam.name] = acc.add(img, gt, count)
             images.setdefault(cam.name, {"gt": gt, "count": count})[str(w)] = img
             images[cam.name].setdefault("key", {})[str(w)] = key
         p = acc.psnr()

@@ -78,15 +78,18 @@ class SplitError:
         names = ["all"] + [g[0] for g in GROUPS]
         return SplitError({k: 0.0 for k in names}, {k: 0 for k in names})
 
-    def add(self, render: np.ndarray, gt: np.ndarray, count: np.ndarray) -> None:
-        """Accumulate one view: images (H, W, 3) in [0, 1], ``count`` from :func:`visibility_count`."""
+    def add(self, render: np.ndarray, gt: np.ndarray, count: np.ndarray) -> float:
+        """Accumulate one view: images (H, W, 3) in [0, 1], ``count`` from :func:`visibility_count`.
+        Returns the view's own PSNR over all its pixels (the whole-image figure of ``dibrgs eval``)."""
         se = ((np.asarray(render, np.float64) - np.asarray(gt, np.float64)[..., :3]) ** 2).mean(-1)
-        self.sse["all"] += float(se.sum())
+        total = float(se.sum())
+        self.sse["all"] += total
         self.n["all"] += se.size
         for name, lo, hi in GROUPS:
             m = (count >= lo) if hi is None else ((count >= lo) & (count <= hi))
             self.sse[name] += float(se[m].sum())
             self.n[name] += int(m.sum())
+        return _pooled_psnr(total, se.size)
 
     def psnr(self) -> dict[str, float | None]:
         """PSNR (dB, peak 1) of each group over all accumulated pixels; None for an empty group."""

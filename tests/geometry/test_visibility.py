@@ -53,7 +53,8 @@ def test_split_error_gives_exact_psnr_per_group():
     render[1] += 0.1          # only the "one" group is off, by 0.1 -> 20 dB
     render[3] -= 0.01         # three views: 40 dB; pooled with row 2 (exact) -> 43.01 dB
     acc = SplitError.empty()
-    acc.add(render, gt, count)
+    view = acc.add(render, gt, count)
+    assert view == pytest.approx(-10 * np.log10((5 * 0.01 + 5 * 1e-4) / 20))  # this view, whole image
     p = acc.psnr()
     assert p["one"] == pytest.approx(20.0)
     assert p["two_plus"] == pytest.approx(40.0 + 10 * np.log10(2))
