@@ -52,9 +52,6 @@ def run(args: argparse.Namespace) -> int:
         from ..training.run_folder import replace_earlier_run
 
         replace_earlier_run(args.out, scene.digest(), (scene.train, scene.test), "init")
-        import pycolmap
-
-        pycolmap.logging.minloglevel = 1  # COLMAP progress lines would drown the decisions
         cfg = InitConfig(depth_prior=args.depth_prior, depth_model=args.depth_model, depth_map=args.depth_map,
                          refine=args.refine, scale=args.scale)
         if args.voxel is not None:

@@ -10,12 +10,13 @@ millimetres or kilometres triangulated differently), and moved back afterwards.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -24,6 +25,21 @@ from ..data.images import to_uint8
 from .config import SfmConfig
 
 log = logging.getLogger("dibrgs.sfm")
+
+
+@contextlib.contextmanager
+def colmap_logging() -> Iterator[None]:
+    """COLMAP's own INFO lines (some sixty a reconstruction, written to stderr by its logger) only
+    when this package logs at DEBUG (``dibrgs -v``): otherwise they drown the stages' decisions.
+    Its warnings and errors always show; the previous level is restored afterwards."""
+    import pycolmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = pycolmap.logging.INFO if log.isEnabledFor(logging.DEBUG) else pycolmap.logging.WARNING
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
 
 
 @dataclass
@@ -50,6 +66,7 @@ class SparseCloud:
         return len(self.points)
 
 
+@colmap_logging()
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
                             config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
     """Sparse points from images with known cameras.

@@ -63,3 +63,32 @@ def test_triangulation_does_not_depend_on_units():
     for f in (1e-3, 1e3):
         assert len(clouds[f]) == len(ref)
         assert np.abs(clouds[f].points / f - ref).max() < 1e-6 * 110  # the strip flies 110 units high
+
+
+def test_colmap_progress_lines_only_when_debugging(capfd):
+    """COLMAP writes some sixty INFO lines a reconstruction straight to stderr; they show only when
+    the package logs at DEBUG (`dibrgs -v`), and COLMAP's own level is left as it was."""
+    import logging
+
+    import pycolmap
+
+    scene, _ = make_synthetic_scene(64)
+    vs = scene.train_views()
+    logger = logging.getLogger("dibrgs.sfm")
+    old_level = logger.level
+    before = pycolmap.logging.minloglevel
+    try:
+        logger.setLevel(logging.INFO)
+        capfd.readouterr()
+        quiet = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs])
+        quiet_err = capfd.readouterr().err
+        assert pycolmap.logging.minloglevel == before
+        logger.setLevel(logging.DEBUG)
+        loud = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs])
+        loud_err = capfd.readouterr().err
+    finally:
+        logger.setLevel(old_level)
+    assert pycolmap.logging.minloglevel == before
+    assert "feature_extraction" not in quiet_err and "Feature extraction" not in quiet_err
+    assert "Feature extraction" in loud_err
+    np.testing.assert_array_equal(quiet.points, loud.points)
