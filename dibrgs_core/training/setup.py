@@ -305,11 +305,11 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
             continue
         frames.append(Frame(CameraTensors.of(pv.camera), torch.from_numpy(
             np.ascontiguousarray(np.clip(pv.image[..., :3], 0, 1), dtype=np.float32)), torch.from_numpy(weight)))
-    dropped = built.dropped_cloud + built.dropped_warped
+    why_dropped = [f"{n} {what}" for n, what in ((built.dropped_cloud, "where the cloud covered too little"),
+                                                 (built.dropped_warped, "with too little warped")) if n]
     rep.decide("train", "pseudo_views", bool(frames),
                f"{len(frames)} progressive-DIBR pseudo views{where}"
-               + (f" ({dropped} sampled poses dropped: the cloud covered too little of {built.dropped_cloud}, "
-                  f"too little of {built.dropped_warped} was warped)" if dropped else "")
+               + (f" (sampled poses dropped: {', '.join(why_dropped)})" if why_dropped else "")
                + (f" ({empty} without any filled pixel left out)" if empty else ""))
     return frames
 

@@ -370,10 +370,10 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
     cfg = preset("test")
     cfg.pseudo.n_views = 5
 
-    def run(work, cfg):
+    def run(work, cfg, points=scene_points(step=0.06)):
         rep = Report()
         ctx = SetupContext(cfg, work, None, views_to_frames(views, 1.0), rep, np.random.default_rng(0), None)
-        return pseudo_frames(ctx, scene_points(step=0.06)), rep
+        return pseudo_frames(ctx, points), rep
 
     frames, rep = run(tmp_path / "a", cfg)
     d = {x.step: x for x in rep.decisions}
@@ -383,6 +383,19 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
     assert v["kept"] == len(frames) == 5 and v["wanted"] == 5 and v["tried"] >= 5 and not v["cached"]
     assert 0.3 < v["mean_warped"] <= 1 and 0 <= v["mean_padded"] < 1 and 0 <= v["mean_rejected"] < 0.5
     assert "along the orbit trajectory" in d["pseudo_views"].reason
+    # Dropped poses are counted by reason, and a reason that dropped none is not named (a strip of
+    # ground at one side of the scene: most sampled views see too little of it).
+    strip = scene_points(step=0.06)
+    _, rep_strip = run(tmp_path / "strip", cfg, strip[strip[:, 0] > 2.5])
+    for r in (rep, rep_strip):
+        v, reason = r.values["pseudo_views"], {x.step: x for x in r.decisions}["pseudo_views"].reason
+        counts = {"where the cloud covered too little": v["dropped_no_cloud"],
+                  "with too little warped": v["dropped_few_warped"]}
+        for what, n in counts.items():
+            assert (f"{n} {what}" in reason) == (n > 0), reason
+        assert ("sampled poses dropped" in reason) == (sum(counts.values()) > 0), reason
+    assert rep_strip.values["pseudo_views"]["dropped_no_cloud"] > 0
+    v = rep.values["pseudo_views"]
     for f in frames:
         assert f.mask.shape == (40, 40) and float(f.mask.max()) == 1.0
     _, rep2 = run(tmp_path / "a", cfg)
