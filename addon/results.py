@@ -94,11 +94,14 @@ def load_init(context: bpy.types.Context, init: Path) -> int:
     ply = init / "points.ply"
     if not ply.is_file():
         raise FileNotFoundError(f"initialisation wrote no point cloud: {ply}")
-    obj = scene_build.import_points(context, ply)
+    rep = init / "init_report.json"
+    # The run's positions are relative to the scene's origin when it lies far from its files' own.
+    origin = reports.scene_origin(reports.read_json(rep)) if rep.is_file() else (0.0, 0.0, 0.0)
+    obj = scene_build.import_points(context, ply, origin)
     hm = init / "height_map.npz"
     if hm.is_file():  # absent when the init report decided the scene needs none
-        scene_build.import_height_map(context, hm)
-    load_decisions(context.scene, init / "init_report.json")
+        scene_build.import_height_map(context, hm, origin)
+    load_decisions(context.scene, rep)
     # The points give the scene's depth: an unedited path is drawn again as the trainer now sees
     # the trajectory (one photo a strip: also along each camera's heading); an edited one is kept.
     if not scene_build.path_edited(context):

@@ -364,8 +364,10 @@ def path_cameras(context: bpy.types.Context, n: int, prefix: str, route: bool = 
 # ---------------------------------------------------------------------------
 # initialisation outputs
 # ---------------------------------------------------------------------------
-def import_points(context: bpy.types.Context, ply: Path) -> bpy.types.Object:
-    """The dense point cloud as a vertex-only mesh with its colour attribute (Blender's PLY importer)."""
+def import_points(context: bpy.types.Context, ply: Path,
+                  origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> bpy.types.Object:
+    """The dense point cloud as a vertex-only mesh with its colour attribute (Blender's PLY importer),
+    placed at ``origin`` (the run's positions are relative to it; the scene's ``Scene.origin``)."""
     if POINTS_NAME in bpy.data.objects:
         remove_object(bpy.data.objects[POINTS_NAME])
     before = set(bpy.data.objects)
@@ -382,11 +384,15 @@ def import_points(context: bpy.types.Context, ply: Path) -> bpy.types.Object:
             coll.objects.unlink(obj)
     if obj.name not in root.objects:
         root.objects.link(obj)
+    obj.location = origin
+    context.view_layer.update()  # matrix_world now includes it (dense_points reads it at once)
     return obj
 
 
-def import_height_map(context: bpy.types.Context, npz: Path) -> bpy.types.Object:
-    """The height map (``height_map.npz``) as a wireframe grid mesh: a vertex per cell at its bound."""
+def import_height_map(context: bpy.types.Context, npz: Path,
+                      origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> bpy.types.Object:
+    """The height map (``height_map.npz``) as a wireframe grid mesh: a vertex per cell at its bound,
+    placed at ``origin`` as :func:`import_points`."""
     if HEIGHT_NAME in bpy.data.objects:
         remove_object(bpy.data.objects[HEIGHT_NAME])
     verts, quads = geometry.height_map_mesh(height_map.HeightMap.load(npz))
@@ -395,5 +401,6 @@ def import_height_map(context: bpy.types.Context, npz: Path) -> bpy.types.Object
     me.update()
     obj = bpy.data.objects.new(HEIGHT_NAME, me)
     obj.display_type = "WIRE"
+    obj.location = origin
     _root(context.scene).objects.link(obj)
     return obj

@@ -209,8 +209,9 @@ def run(scene_dir: Path, train: list[str] | None, long_side: int | None, scale: 
     if not train:
         raise ValueError(f"{scene_dir}: no training views (give --train or a split.json)")
     scene = read_any_scene(scene_dir, train_ids=train, load_depth=False)
+    # in the scene's frame (its origin subtracted, as from its cameras), then its units
+    reference = (read_reference_points(scene_dir / "reference_points.txt") - scene.origin) * scale
     scene = resized_scene(scene, long_side, scale)
-    reference = read_reference_points(scene_dir / "reference_points.txt") * scale
     cfg = config or InitConfig()
     with tempfile.TemporaryDirectory() as tmp:
         t = time.time()

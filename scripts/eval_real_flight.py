@@ -113,11 +113,12 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
     from dibrgs_core.evaluation.evaluate import load_trained
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
-    if reference is not None:
-        normal, offset = fit_plane(read_reference_points(reference))
+    points = read_reference_points(reference) if reference is not None else None
     runs, counts_of, images, loaded = [], {}, {}, {}
     for w in works:
         t = load_trained(w)
+        if points is not None:  # in the run's frame (the scene's origin subtracted, as its cameras)
+            normal, offset = fit_plane(points - t.origin)
         train, test, depths = run_frames(scene_dir, w, t, depth=reference is None)
         loaded[str(w)] = (t, train, test)
 

@@ -30,6 +30,17 @@ def decisions(report: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
+def scene_origin(report: dict[str, Any]) -> tuple[float, float, float]:
+    """Where a run's positions have their (0, 0, 0) in the world frame of the scene's files
+    (``scene_origin`` of ``init_report.json`` / ``report.json``; the origin itself when absent)."""
+    v = report.get("values", {}).get("scene_origin") if isinstance(report, dict) else None
+    try:
+        o = tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        return (0.0, 0.0, 0.0)
+    return o if len(o) == 3 and all(math.isfinite(x) for x in o) else (0.0, 0.0, 0.0)
+
+
 def summary_metrics(metrics: Any, prefix: str = "", depth: int = 2) -> dict[str, float]:
     """Finite scalar metrics of ``metrics.json``: top-level numbers and numbers in nested dicts.
 

@@ -91,6 +91,13 @@ class Camera:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
+    def translated(self, d: Sequence[float] | np.ndarray) -> "Camera":
+        """The same camera in a world moved by ``d`` (world units): a point ``X`` there is
+        ``X + d``, the centre becomes ``center + d`` and the rotation is unchanged."""
+        w2c = self.w2c.copy()
+        w2c[:3, 3] = self.t - self.R @ np.asarray(d, np.float64).reshape(3)
+        return replace(self, w2c=w2c)
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (pixel-centre exact)."""
         K = self.K.copy()

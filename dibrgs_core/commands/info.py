@@ -5,7 +5,10 @@ Prints the number of views, resolution, train/test split and where it came from
 up axis estimated from the cameras (with its confidence), the mean angle off
 nadir, the training cameras' acquisition trajectory (orbit, strips or free, and
 why: what pseudo views are sampled along) and, for an orbit, the circle fitted
-through the orbit views. Bad input exits with code 2 and a message naming the file.
+through the orbit views. ``origin``: where the scene's own frame has its (0, 0, 0) in the files'
+coordinates (non-zero for a scene far from its coordinate origin, e.g. georeferenced; positions
+printed here, like the orbit's centre, are relative to it). Bad input exits with code 2 and a
+message naming the file.
 """
 from __future__ import annotations
 
@@ -43,6 +46,7 @@ def summarize(scene) -> dict:
         "test": scene.test,
         "split_source": scene.split_source,
         "track_cameras": len(scene.track),
+        "origin": [float(v) for v in scene.origin],
         "up": np.round(up, 6).tolist(),
         "up_confidence": round(float(conf), 6),
         "nadir_angle_deg": round(nadir_angle_deg(cams, up), 3),

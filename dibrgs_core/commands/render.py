@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation.evaluate import load_trained
 
         tr = load_trained(args.work)
-        cams = read_cameras(args.cameras)
+        cams = [tr.from_files(c) for c in read_cameras(args.cameras)]  # given in the scene's files' frame
         if not cams:
             raise InputError(args.cameras, "no cameras found")
         names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]

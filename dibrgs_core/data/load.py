@@ -11,16 +11,18 @@ from .scene import Scene
 
 def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
                    test_ids: Iterable[str] | None = None) -> Scene:
-    """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder itself)."""
+    """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder
+    itself), in a frame of its own when it lies far from its coordinate origin (``Scene.origin``,
+    :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
     if (root / "Cams").is_dir():
-        return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids)
+        return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids).recentred()
     from .colmap import find_colmap_model, read_colmap_scene
 
     if find_colmap_model(root) is not None:
-        return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids)
+        return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
     raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
                            "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
 

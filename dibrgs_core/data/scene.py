@@ -8,7 +8,7 @@ images float32 RGB in [0, 1]; depth z-depth in world units (0 = unknown).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -49,6 +49,10 @@ class Scene:
         track: render-path cameras (may be empty).
         train, test: view ids of the split.
         split_source: where the split came from (``--train``/``--test``, ``split.json``, the default).
+        origin: (3,) float64, the point of the files' world frame the cameras (and everything
+            computed from them) are expressed from: a position ``X`` here is ``X + origin`` in the
+            scene's files. Zeros unless the scene lies far from its coordinate origin
+            (:func:`local_origin`; :meth:`recentred`).
     """
 
     root: Path
@@ -57,6 +61,7 @@ class Scene:
     train: list[str] = field(default_factory=list)
     test: list[str] = field(default_factory=list)
     split_source: str = "default"
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def train_views(self) -> list[View]:
         return [self.views[i] for i in self.train]
@@ -79,6 +84,49 @@ class Scene:
         """Digest of the scene's content (every view's name, camera and image; not its path):
         two runs of the same digest are runs of the same scene."""
         return views_digest(self.views.values())
+
+    def recentred(self) -> "Scene":
+        """This scene with its cameras expressed from :func:`local_origin` (itself when that is
+        the files' own origin); depth maps are unchanged (z-depth does not move with the frame)."""
+        o = local_origin(self.cameras)
+        if not o.any():
+            return self
+        views = {k: View(v.camera.translated(-o), v.image, v.depth) for k, v in self.views.items()}
+        return replace(self, views=views, track=[c.translated(-o) for c in self.track], origin=self.origin + o)
+
+
+#: Camera centres farther from the coordinate origin than this many times their spread put a scene
+#: in a frame of its own: the model and the rasterizer hold positions in float32 (about seven
+#: digits), so a georeferenced model (UTM or ECEF coordinates, 1e5-1e7 times a flight's extent)
+#: would be quantised by pixels (brighton_north moved 5e6 units off: 12.4 against 17.6 dB).
+FAR_FROM_ORIGIN = 100.0
+
+
+def local_origin(cameras: Sequence[Camera]) -> np.ndarray:
+    """(3,) world point to express a scene's positions from: zeros when the mean camera centre
+    lies within ``FAR_FROM_ORIGIN`` times the centres' RMS spread of the origin (or the cameras
+    have no spread), else that mean rounded to the spread's power of ten."""
+    C = np.stack([np.asarray(c.center, np.float64) for c in cameras]) if len(cameras) else np.zeros((0, 3))
+    if len(C) < 2 or not np.isfinite(C).all():
+        return np.zeros(3)
+    mean = C.mean(axis=0)
+    spread = float(np.sqrt(((C - mean) ** 2).sum(axis=1).mean()))
+    if not spread > 0 or float(np.linalg.norm(mean)) <= FAR_FROM_ORIGIN * spread:
+        return np.zeros(3)
+    q = 10.0 ** math.floor(math.log10(spread))
+    return np.round(mean / q) * q
+
+
+def origin_decision(scene: Scene) -> tuple[bool, str]:
+    """Whether ``scene`` works in a frame of its own, and why (the ``recentre`` decision)."""
+    o = np.asarray(scene.origin, np.float64)
+    C = np.stack([c.center for c in scene.cameras])
+    spread = float(np.sqrt(((C - C.mean(axis=0)) ** 2).sum(axis=1).mean())) if len(C) > 1 else 0.0
+    if o.any():
+        return True, (f"the cameras lie {np.linalg.norm(o):.4g} from the files' coordinate origin, more than "
+                      f"{FAR_FROM_ORIGIN:g} x their spread ({spread:.4g}): positions are kept relative to "
+                      f"({o[0]:.10g}, {o[1]:.10g}, {o[2]:.10g}) so that float32 keeps their detail")
+    return False, f"the cameras lie within {FAR_FROM_ORIGIN:g} x their spread of the coordinate origin"
 
 
 def views_digest(views: Iterable[View], depth: bool = False) -> str:

@@ -19,7 +19,7 @@ import logging
 import math
 import resource
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,12 +39,22 @@ log = logging.getLogger("dibrgs.evaluate")
 
 @dataclass
 class Trained:
-    """A trained model ready to render any camera (see :func:`load_trained`)."""
+    """A trained model ready to render any camera (see :func:`load_trained`).
+
+    Cameras given to its methods are in the scene's own frame (``Scene.origin`` subtracted, as
+    :func:`~dibrgs_core.data.load.load_scene` gives them); :meth:`from_files` turns a camera of the
+    scene's files into one.
+    """
 
     model: GaussianModel
     cfg: TrainConfig
     scene: str
     train_cameras: list[Camera]
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def from_files(self, cam: Camera) -> Camera:
+        """``cam``, given in the world frame of the scene's files, in the frame the model is in."""
+        return cam.translated(-self.origin) if np.any(self.origin) else cam
 
     @property
     def method(self) -> str:
@@ -75,7 +85,7 @@ class Trained:
 def load_trained(work: str | Path) -> Trained:
     """Load ``WORK/model.pt`` (``InputError`` when the run has not finished)."""
     st = load_model(work)
-    return Trained(st.model, st.cfg, st.scene, st.train_cameras)
+    return Trained(st.model, st.cfg, st.scene, st.train_cameras, st.origin)
 
 
 def avge(psnr: float, ssim: float, lpips: float) -> float:

@@ -15,12 +15,15 @@ writes its SH coefficients as they are.
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..common.fileio import atomic_path
+
+log = logging.getLogger("dibrgs.export")
 
 SH_C0 = 0.28209479177387814
 
@@ -67,6 +70,10 @@ def export_ply(work: str | Path, path: str | Path) -> int:
     from .evaluate import load_trained
 
     tr = load_trained(work)
+    if np.any(tr.origin):  # float32 positions of a georeferenced scene would lose its detail
+        o = tr.origin
+        log.info("positions in %s are relative to (%.10g, %.10g, %.10g) of the scene's files (the scene lies far "
+                 "from their coordinate origin): add it to place them in that frame", path, *o)
     g = tr.all_gaussians()
     if "sh_dc" in g:  # spherical harmonics as they are
         dc, rest = g["sh_dc"].numpy(), g["sh_rest"].numpy()

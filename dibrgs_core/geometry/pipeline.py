@@ -19,6 +19,7 @@ from ..camera.frame import near_nadir
 from ..common.errors import InputError
 from ..common.report import Report
 from ..data.ply import read_ply, write_ply
+from ..data.scene import Scene, origin_decision
 from .completion import complete_depths, measured_confidence
 from .config import STAGE, InitConfig
 from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_disparity
@@ -182,7 +183,11 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     t0 = time.time()
     geo = scene_geometry(scene, cfg)
     report.values.update(up=geo.up, up_confidence=geo.up_confidence, nadir_deg=geo.nadir_deg, config=_config_dict(cfg),
-                         inputs=init_inputs(scene, cfg), train=[c.name for c in geo.cameras])
+                         inputs=init_inputs(scene, cfg), train=[c.name for c in geo.cameras],
+                         # where the files' frame has the points' (0, 0, 0) (Scene.origin; the add-on places them)
+                         scene_origin=[float(v) for v in getattr(scene, "origin", (0.0, 0.0, 0.0))])
+    if isinstance(scene, Scene):
+        report.decide(STAGE, "recentre", *origin_decision(scene))
     sparse = run_sparse(geo, cfg, report)
     sfm_reference(geo, sparse, cfg, report)
     report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)

@@ -159,7 +159,9 @@ class HeightField:
         f = 0.5 * (cam.fx + cam.fy)
         above = cl[2] - top
         if above > 0:  # cells far smaller than a pixel at the nearest surface: pool them
-            k = int(np.floor(above / max(f, 1e-12) / cell))
+            # No coarser than the whole field: a camera far above (a satellite, a pose off in
+            # another frame) would otherwise pad the field to k x k cells (12 GiB at 4e6 units).
+            k = int(min(np.floor(above / max(f, 1e-12) / cell), max(heights.shape)))
             if k >= 2:
                 heights, cell = _max_pool(heights, k), cell * k
         n1, n2 = heights.shape

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..camera.pinhole import Camera
@@ -63,11 +64,13 @@ class _Writes:
 
 
 def save_model(path: Path, method: TrainingMethod, cfg: TrainConfig, scene_root: Path,
-               train_cameras: list[Camera]) -> Path:
-    """Write ``model.pt`` for a trained method."""
+               train_cameras: list[Camera], origin: np.ndarray | None = None) -> Path:
+    """Write ``model.pt`` for a trained method (``origin``: the scene's ``Scene.origin``, from which
+    the model's positions and ``train_cameras`` are expressed)."""
     save_torch(path, {"method": cfg.method, "config": cfg.to_dict(), "scene": str(scene_root.resolve()),
                       **method.model.state(), **method.model_file_extras(),
-                      "train_cameras": [camera_to_dict(c) for c in train_cameras]})
+                      "train_cameras": [camera_to_dict(c) for c in train_cameras],
+                      "scene_origin": [0.0, 0.0, 0.0] if origin is None else [float(v) for v in origin]})
     return path
 
 
@@ -80,6 +83,7 @@ class StoredModel:
     cfg: TrainConfig
     scene: str
     train_cameras: list[Camera]
+    origin: np.ndarray  # the scene's Scene.origin (zeros for model files from before it was stored)
 
 
 def _read(path: Path, what: str, todo: str) -> dict[str, Any]:
@@ -132,7 +136,8 @@ def load_model(work: str | Path) -> StoredModel:
             model.set_ibr(st["ibr_feats"])
         cams = [camera_from_dict(d, str(path)) for d in st["train_cameras"]]
         scene = str(st["scene"])
+        origin = np.asarray(st.get("scene_origin", (0.0, 0.0, 0.0)), np.float64).reshape(3)
     except Exception as e:  # a foreign or damaged file
         raise InputError(path, f"cannot read the trained model ({type(e).__name__}: {e}); {todo}") from None
     model.eval()
-    return StoredModel(model, cfg, scene, cams)
+    return StoredModel(model, cfg, scene, cams, origin)

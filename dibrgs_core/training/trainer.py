@@ -45,7 +45,7 @@ from ..common.lock import run_folder_lock
 from ..common.openmp import wait_policy
 from ..common.report import Report
 from ..data.load import load_scene
-from ..data.scene import Scene, require_train_views
+from ..data.scene import Scene, origin_decision, require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig, resolve_resolution
@@ -78,6 +78,7 @@ class Trainer:
                  stream: Any = None, train_ids: list[str] | None = None, test_ids: list[str] | None = None,
                  force_config: bool = False) -> None:
         self.scene_root = Path(scene_root)
+        self.scene_origin = np.zeros(3)  # the scene's Scene.origin, once it is read
         self.work = Path(work)
         self.cfg = cfg
         self.resume = resume
@@ -154,6 +155,9 @@ class Trainer:
         self.report.values["scene"] = {"root": str(self.scene_root), **run, "resolution": [w, h]}
         log.info("scene %s (digest %s): train %s, %d test views; split from %s", self.scene_root, digest,
                  ", ".join(scene.train), len(scene.test), scene.split_source)
+        self.scene_origin = np.asarray(scene.origin, np.float64)
+        self.report.values["scene_origin"] = self.scene_origin.tolist()
+        self.report.decide("train", "recentre", *origin_decision(scene))
         write_json(self.work / CONFIG, {"scene": str(self.scene_root.resolve()), "run": run,
                                         "config": cfg.to_dict(),
                                         "forced_config": self.report.values.get("forced_config", [])})
@@ -211,7 +215,7 @@ class Trainer:
 
     def save_model(self) -> Path:
         return save_model(self.work / MODEL, self.method, self.cfg, self.scene_root,
-                          [f.cam.cam for f in self.train_frames])
+                          [f.cam.cam for f in self.train_frames], self.scene_origin)
 
     def request_stop(self) -> None:
         self._stop = True

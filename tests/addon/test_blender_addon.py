@@ -371,6 +371,35 @@ def test_strip_flight_path_gains_the_headings_when_the_dense_points_arrive(fresh
     assert sb.path_edited(bpy.context)
 
 
+def test_init_points_of_a_far_scene_land_where_its_cameras_are(fresh, tmp_path):
+    """A scene far from its coordinate origin trains in a frame of its own (``scene_origin`` of
+    init_report.json): its points and height map are placed at that origin, so that they lie
+    under the cameras the add-on imported from the scene's files."""
+    import json
+
+    from dibrgs_core.geometry.height_map import HeightMap
+
+    scene = shared_file("data/brighton_north")
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene)) == {"FINISHED"}
+    sb, results = _mod("scene_build"), _mod("results")
+    train = sb.described_cameras(sb.scene_description(), "train")
+    world = np.array([c.center - 5.0 * c.R[2] for c in train])  # 5 units in front of each photo
+    origin = np.array([-2.0, 3.0, 1.0])  # as if the run's frame were moved (exact in float32 here)
+    init = tmp_path / "init"
+    init.mkdir()
+    local = world - origin
+    (init / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+                                     "property float z\nend_header\n" % len(local)
+                                     + "".join("%.6f %.6f %.6f\n" % tuple(p) for p in local))
+    (init / "init_report.json").write_text(json.dumps({"decisions": [], "values": {"scene_origin": origin.tolist()}}))
+    HeightMap(up_frame=np.eye(3), origin=np.zeros(3), cell=1.0, x0=-1.0, y0=-1.0,
+              bounds=np.ones((2, 2))).save(init / "height_map.npz")
+    assert results.load_init(bpy.context, init) == len(world)
+    assert np.allclose(sb.dense_points(), world, atol=1e-5)
+    hm = bpy.data.objects[sb.HEIGHT_NAME]
+    assert tuple(hm.location) == pytest.approx(tuple(origin))
+
+
 def test_import_and_results_need_no_torch_pil_or_pycolmap(scene64, tmp_path):
     """Scene import (LEVIR and COLMAP), path, compositor and initialisation outputs in a Python
     whose imports of torch, Pillow, pycolmap, scipy, ... fail, as in Blender's."""

@@ -158,6 +158,27 @@ def test_scaled_keeps_pixel_centres():
     assert np.allclose(half.project(X)[0], cam.project(X)[0] * 0.5)
 
 
+def test_translated_sees_the_moved_world_alike():
+    """``translated(d)``: the camera of a world moved by ``d`` sees ``X + d`` where it saw ``X``;
+    ``translated(-d)`` takes it back; local_origin moves only scenes far from their origin."""
+    from dibrgs_core.data.scene import local_origin
+
+    rng = np.random.default_rng(7)
+    cam = random_camera(rng)
+    d = np.array([3.0e6, -2.0e6, 5.0e6])
+    moved = cam.translated(d)
+    X = cam.backproject(rng.uniform(1, 300, (cam.height, cam.width)))[:50]
+    assert np.allclose(moved.center, cam.center + d) and np.array_equal(moved.R, cam.R)
+    assert np.allclose(moved.project(X + d)[0], cam.project(X)[0], atol=1e-6)
+    assert np.allclose(moved.translated(-d).w2c, cam.w2c, atol=1e-6)
+    cams = [random_camera(rng) for _ in range(4)]
+    assert not local_origin(cams).any()  # centres within 100 x their spread of the origin
+    far = local_origin([c.translated(d) for c in cams])
+    C = np.stack([c.center for c in cams])
+    assert np.linalg.norm(far - (d + C.mean(axis=0))) <= np.sqrt(((C - C.mean(axis=0)) ** 2).sum(1).mean())
+    assert not local_origin([cams[0], cams[0]]).any()  # no spread: nothing to measure "far" against
+
+
 def test_camera_dict_round_trip_and_errors():
     rng = np.random.default_rng(5)
     cam = random_camera(rng, "v7")

@@ -167,6 +167,18 @@ def test_stray_points_kilometres_away_do_not_blow_up_the_field():
 
 
 @pytest.mark.stability
+def test_a_camera_far_above_the_field_sees_the_ground_plane_without_blowing_up():
+    """A camera 4e6 units above an 80-unit field (a satellite, or a pose given in another frame): the
+    cells it pools are capped at the whole field (it used to pad the field to 40,000^2 cells, 12 GiB),
+    and its rays meet the ground at the camera's height above it."""
+    field = HeightField.build(box_points(step=2.0), CAMS)
+    high = cam(0, 0.0, size=32, dist=4.0e6)
+    d = field.depth(high)
+    assert np.isfinite(d).all() and (d > 0).all()
+    assert np.allclose(d, 4.0e6 - field.heights.max(), rtol=1e-4)
+
+
+@pytest.mark.stability
 def test_rays_that_do_not_descend_get_no_depth():
     """Height-field depth from a camera looking horizontally: the sky above the field gets depth 0, no Inf;
     rows below the horizon meet the ground."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -417,6 +418,33 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
     for f, full in zip(small, frames):
         assert f.image.shape == (20, 20, 3) and f.mask.shape == (20, 20)
         np.testing.assert_allclose(f.cam.cam.K[:2], full.cam.cam.K[:2] * 0.5)
+
+
+def test_a_user_path_is_read_in_the_world_frame_of_the_scenes_files(tmp_path):
+    """A scene far from its coordinate origin trains in a frame of its own (``Scene.origin``); a
+    pseudo path drawn in the files' frame (as the add-on draws it) gives the pseudo views of the
+    same path in the scene's frame."""
+    from dibrgs_core.camera.serialize import camera_to_dict
+    from dibrgs_core.common.report import Report
+    from dibrgs_core.data.scene import Scene
+    from dibrgs_core.training.config import preset
+    from dibrgs_core.training.frames import views_to_frames
+    from dibrgs_core.training.setup import SetupContext, pseudo_frames
+
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
+    origin = np.array([4.0e6, -3.0e6, 2.0e5])
+    path_cams = [cam_at(a, 40) for a in (30, 60)]
+    cfg = preset("test")
+    cfg.pseudo_path = str(tmp_path / "path.json")
+    Path(cfg.pseudo_path).write_text(json.dumps([camera_to_dict(c.translated(origin)) for c in path_cams]))
+    scene = Scene(root=tmp_path, views={v.name: v for v in views}, origin=origin)
+    ctx = SetupContext(cfg, tmp_path / "w", scene, views_to_frames(views, 1.0), Report(), np.random.default_rng(0),
+                       None)
+    frames = pseudo_frames(ctx, scene_points(step=0.06))
+    assert len(frames) == 2
+    for f, c in zip(frames, path_cams):
+        np.testing.assert_allclose(f.cam.cam.center, c.center, atol=1e-6)
+        assert float(f.mask.mean()) > 0.5  # the views warp the scene, not empty space 4e6 away
 
 
 def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(tiny_scene, tmp_path):

@@ -1,6 +1,7 @@
-"""Scene units do not matter: the same generated scene in millimetres-like, metre and kilometre-like
-units (every camera translation, depth range and depth map scaled by 1e-3, 1 or 1e3) trains to
-the same held-out PSNR."""
+"""Scene units and placement do not matter: the same generated scene in millimetres-like, metre and
+kilometre-like units (every camera translation, depth range and depth map scaled by 1e-3, 1 or
+1e3), or moved 1e8 units off its coordinate origin (as georeferenced models are), trains to the
+same held-out PSNR."""
 from __future__ import annotations
 
 import shutil
@@ -16,9 +17,14 @@ from dibrgs_core.training.trainer import train
 torch.set_num_threads(1)
 
 
-def scaled_scene(src: Path, dst: Path, factor: float) -> Path:
-    """A copy of the LEVIR scene ``src`` whose world is scaled by ``factor``: camera translations,
-    depth ranges, track cameras and depth maps; images and intrinsics unchanged."""
+#: Far enough that float32 positions are quantised by about three of the 64 px scene's pixels.
+FAR = np.array([1.0e8, -0.6e8, 0.3e8])
+
+
+def scaled_scene(src: Path, dst: Path, factor: float, offset: np.ndarray | None = None) -> Path:
+    """A copy of the LEVIR scene ``src`` whose world is scaled by ``factor`` and then moved by
+    ``offset`` (a point ``X`` becomes ``factor X + offset``): camera poses, depth ranges, track
+    cameras and depth maps (scaled only); images and intrinsics unchanged."""
     from dibrgs_core.camera.pinhole import Camera
     from dibrgs_core.data.images import read_depth, write_depth_tiff
     from dibrgs_core.data.levir import read_cams_file, write_cams_file
@@ -30,7 +36,8 @@ def scaled_scene(src: Path, dst: Path, factor: float) -> Path:
             w2c = c.w2c.copy()
             w2c[:3, 3] *= factor
             dr = None if c.depth_range is None else (c.depth_range[0] * factor, c.depth_range[1] * factor)
-            write_cams_file(f, Camera(K=c.K, w2c=w2c, width=c.width, height=c.height, name=c.name, depth_range=dr))
+            moved = Camera(K=c.K, w2c=w2c, width=c.width, height=c.height, name=c.name, depth_range=dr)
+            write_cams_file(f, moved if offset is None else moved.translated(offset))
     for f in sorted((dst / "Depths").glob("*.tiff")) if (dst / "Depths").is_dir() else []:
         write_depth_tiff(f, (read_depth(f) * factor).astype(np.float32))
     return dst
@@ -54,15 +61,53 @@ def test_scaled_copy_scales_the_world_only(tiny_scene, tmp_path):
         assert np.array_equal(b.views[k].image, a.views[k].image)
 
 
+def test_a_far_copy_is_read_back_in_a_frame_of_its_own(tiny_scene, tmp_path):
+    """Moved 1e8 off the origin, the scene is read relative to a rounded point near its cameras
+    (``Scene.origin``): the cameras are the original ones up to that shift, images and depth maps
+    unchanged; the scene as written (near its origin) is read as it is."""
+    from dibrgs_core.data.load import read_any_scene
+
+    a = read_any_scene(tiny_scene)
+    b = read_any_scene(scaled_scene(tiny_scene, tmp_path / "far", 1.0, FAR))
+    assert not a.origin.any()
+    assert np.linalg.norm(b.origin - FAR) < 1e-3 * np.linalg.norm(FAR)
+    shift = FAR - b.origin  # the cameras' mean centre moves to about (0, 0, 0): rounded to their spread
+    centres = np.stack([c.center for c in a.cameras])
+    spread = float(np.sqrt(((centres - centres.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    assert np.linalg.norm(shift + centres.mean(axis=0)) < spread
+    for k in a.views:
+        ca, cb = a.views[k].camera, b.views[k].camera
+        assert np.allclose(cb.center, ca.center + shift, atol=1e-6 * spread) and np.allclose(cb.R, ca.R)
+        assert np.array_equal(b.views[k].depth, a.views[k].depth)
+        assert np.array_equal(b.views[k].image, a.views[k].image)
+    for ta, tb in zip(a.track, b.track):
+        assert np.allclose(tb.center, ta.center + shift, atol=1e-6 * spread)
+
+
 @pytest.mark.slow
-def test_held_out_psnr_does_not_depend_on_the_scene_units(tiny_scene, tmp_path):
+def test_held_out_psnr_does_not_depend_on_the_scene_units_or_placement(tiny_scene, tmp_path):
     psnr = {}
-    for factor in (1e-3, 1.0, 1e3):
-        scene = scaled_scene(tiny_scene, tmp_path / f"scene{factor:g}", factor)
+    for name, factor, offset in (("x0.001", 1e-3, None), ("x1", 1.0, None), ("x1000", 1e3, None),
+                                 ("far", 1.0, FAR)):
+        scene = scaled_scene(tiny_scene, tmp_path / f"scene_{name}", factor, offset)
         cfg = preset("test")
         cfg.curve_every_s = 1e9
-        work = tmp_path / f"work{factor:g}"
+        work = tmp_path / f"work_{name}"
         assert train(scene, work, cfg).status == "done"
-        psnr[factor] = _heldout_psnr(work)
+        psnr[name] = _heldout_psnr(work)
     spread = max(psnr.values()) - min(psnr.values())
     assert spread <= 0.3, psnr
+    # `dibrgs render` takes cameras in the files' frame: the far run renders a held-out camera of its
+    # Cams file as it renders that view of the scene it read (in the scene's own frame).
+    from dibrgs_core.cli import main
+    from dibrgs_core.data.images import read_image
+    from dibrgs_core.data.load import read_any_scene
+    from dibrgs_core.evaluation.evaluate import load_trained
+
+    scene, work = tmp_path / "scene_far", tmp_path / "work_far"
+    view = read_any_scene(scene).test_views()[0]
+    assert main(["render", str(work), "--cameras", str(scene / "Cams" / f"{view.name}.txt"),
+                 "--out", str(tmp_path / "renders"), "--no-depth"]) == 0
+    expected, _ = load_trained(work).render(view.camera)
+    got = read_image(tmp_path / "renders" / f"{view.name}.png")
+    assert np.abs(got - expected).max() <= 1.0 / 255 + 1e-6
