@@ -29,10 +29,10 @@ def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
 
     from dibrgs_core.common.errors import InputError
     from dibrgs_core.evaluation.evaluate import load_trained
-    from dibrgs_core.data.levir import read_scene
+    from dibrgs_core.data.load import read_any_scene
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
-    scene = read_scene(scene_dir)
+    scene = read_any_scene(scene_dir)  # in the frame the runs trained in (Scene.origin)
     views = scene.train_views() + scene.test_views()
     missing = [v.name for v in views if v.depth is None or not (v.depth > 0).any()]
     if missing:
