@@ -102,16 +102,20 @@ class Scene:
 FAR_FROM_ORIGIN = 100.0
 
 
+def _centres(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
+    """The cameras' mean centre (3,) and the RMS distance of their centres from it (world units)."""
+    C = np.stack([np.asarray(c.center, np.float64) for c in cameras]) if len(cameras) else np.zeros((1, 3))
+    mean = C.mean(axis=0)
+    return mean, float(np.sqrt(((C - mean) ** 2).sum(axis=1).mean()))
+
+
 def local_origin(cameras: Sequence[Camera]) -> np.ndarray:
     """(3,) world point to express a scene's positions from: zeros when the mean camera centre
     lies within ``FAR_FROM_ORIGIN`` times the centres' RMS spread of the origin (or the cameras
     have no spread), else that mean rounded to the spread's power of ten."""
-    C = np.stack([np.asarray(c.center, np.float64) for c in cameras]) if len(cameras) else np.zeros((0, 3))
-    if len(C) < 2 or not np.isfinite(C).all():
-        return np.zeros(3)
-    mean = C.mean(axis=0)
-    spread = float(np.sqrt(((C - mean) ** 2).sum(axis=1).mean()))
-    if not spread > 0 or float(np.linalg.norm(mean)) <= FAR_FROM_ORIGIN * spread:
+    mean, spread = _centres(cameras)
+    if not (np.isfinite(mean).all() and spread > 0 and math.isfinite(spread)) \
+            or float(np.linalg.norm(mean)) <= FAR_FROM_ORIGIN * spread:
         return np.zeros(3)
     q = 10.0 ** math.floor(math.log10(spread))
     return np.round(mean / q) * q
@@ -120,8 +124,7 @@ def local_origin(cameras: Sequence[Camera]) -> np.ndarray:
 def origin_decision(scene: Scene) -> tuple[bool, str]:
     """Whether ``scene`` works in a frame of its own, and why (the ``recentre`` decision)."""
     o = np.asarray(scene.origin, np.float64)
-    C = np.stack([c.center for c in scene.cameras])
-    spread = float(np.sqrt(((C - C.mean(axis=0)) ** 2).sum(axis=1).mean())) if len(C) > 1 else 0.0
+    _, spread = _centres(scene.cameras)
     if o.any():
         return True, (f"the cameras lie {np.linalg.norm(o):.4g} from the files' coordinate origin, more than "
                       f"{FAR_FROM_ORIGIN:g} x their spread ({spread:.4g}): positions are kept relative to "

@@ -267,8 +267,8 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
         # preset's budget on a 953 px photo). Their poses are in the world frame of the scene's
         # files, where the add-on draws them: moved into the scene's own frame (Scene.origin).
         origin = ctx.scene.origin if ctx.scene is not None else np.zeros(3)
-        path = [c.scaled(ctx.resolution_scale) if ctx.resolution_scale != 1.0 else c
-                for c in (c.translated(-origin) for c in read_cameras(cfg.pseudo_path))]
+        given = [c.translated(-origin) for c in read_cameras(cfg.pseudo_path)]
+        path = [c.scaled(ctx.resolution_scale) if ctx.resolution_scale != 1.0 else c for c in given]
         rep.values[PSEUDO_PATH_DIGEST] = file_digest(cfg.pseudo_path)
     cams = [f.cam.cam for f in ctx.train_frames]
     train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
