@@ -145,6 +145,12 @@ class InitConfig:
         completion_voxel: completed points are voxel-downsampled this many
             times coarser than measured ones (fewer anchors where the geometry
             is a guess).
+        max_side: long side (pixels) the stage works at: larger training photos
+            are area-averaged down to it with their cameras (0: as they are). A
+            drone's 8-20 MP photos back-project to tens of millions of points
+            (16 GB, 3.4 min for three 8 MP photos) that the voxel grid then
+            thins to a few tens of thousands; at 1,024 px a pixel is still
+            finer than the voxel.
     """
 
     depth_prior: DepthPrior = "auto"
@@ -170,5 +176,6 @@ class InitConfig:
     completion_confidence: float = 0.25
     completion_cell_px: float = 4.0
     completion_voxel: float = 2.0
+    max_side: int = 1024
     sfm: SfmConfig = field(default_factory=SfmConfig)
     mvs: MvsConfig = field(default_factory=MvsConfig)

@@ -199,7 +199,7 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     longest = max(max(c.width, c.height) for c in full)
     f = cfg.max_size / longest if cfg.max_size and longest > cfg.max_size else 1.0
     if f < 1.0:
-        images = [_resize(im, c.scaled(f)) for im, c in zip(images, full)]
+        images = [area_resize(im, c.scaled(f)) for im, c in zip(images, full)]
         cameras = [c.scaled(f) for c in full]
     cams = [_recentred(c, np.mean([c.center for c in cameras], axis=0)) for c in cameras]
     pts = None
@@ -231,7 +231,7 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     return out
 
 
-def _resize(img: np.ndarray, cam: Camera) -> np.ndarray:
+def area_resize(img: np.ndarray, cam: Camera) -> np.ndarray:
     """Area-average an HxWxC image to the size of ``cam``."""
     import torch
     import torch.nn.functional as F

@@ -14,6 +14,7 @@ from ..common.errors import InputError
 from ..common.report import Report
 from .config import LEVIR_REFERENCE_DEPTH, STAGE, InitConfig
 from .sfm import SparseCloud
+from .mvs import area_resize
 from .sweep_range import converging_target
 
 
@@ -32,6 +33,7 @@ class SceneGeometry:
     scale: float
     ref_distance: float
     ref_source: str = "look-at"
+    resize: float = 1.0  # the training photos' size factor here (InitConfig.max_side)
 
     @property
     def n_pixels(self) -> int:
@@ -52,7 +54,9 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
     views = list(scene.train_views())
     if not views:
         raise InputError(getattr(scene, "root", None), "the scene has no training views")
-    cams = [v.camera for v in views]
+    side = max(max(v.camera.width, v.camera.height) for v in views)
+    resize = config.max_side / side if 0 < config.max_side < side else 1.0
+    cams = [v.camera.scaled(resize) if resize != 1.0 else v.camera for v in views]
     up, conf = estimate_up(cams)
     centers = np.stack([c.center for c in cams])
     target = converging_target(cams)
@@ -68,8 +72,18 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
         # A point ``ref`` in front of the cameras' centroid: the ground below them, roughly.
         origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
     scale = float(config.scale) if config.scale else ref / LEVIR_REFERENCE_DEPTH
-    return SceneGeometry(cams, [np.asarray(v.image, np.float32) for v in views], [v.depth for v in views],
-                         up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale, ref, source)
+    images = [np.asarray(v.image, np.float32) if resize == 1.0 else area_resize(v.image, c) for v, c in zip(views, cams)]
+    depths = [v.depth if resize == 1.0 or v.depth is None else _nearest(v.depth, c) for v, c in zip(views, cams)]
+    return SceneGeometry(cams, images, depths, up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale,
+                         ref, source, resize)
+
+
+def _nearest(depth: np.ndarray, cam: Camera) -> np.ndarray:
+    """``depth`` (H, W) sampled at the pixel centres of the smaller ``cam`` (no mixing across edges)."""
+    H, W = depth.shape
+    rows = np.minimum(((np.arange(cam.height) + 0.5) * H / cam.height).astype(np.int64), H - 1)
+    cols = np.minimum(((np.arange(cam.width) + 0.5) * W / cam.width).astype(np.int64), W - 1)
+    return np.ascontiguousarray(depth[rows][:, cols])
 
 
 def _overlap_distance(cams: Sequence[Camera]) -> float:
