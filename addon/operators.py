@@ -27,7 +27,7 @@ from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, StringProperty
 
 from . import results, scene_build, setup
-from ._core import describe, errors, jobs, path as path_mod
+from ._core import describe, errors, jobs, path as path_mod, pinhole
 from .preferences import settings
 
 TIMER_S = 0.25
@@ -259,6 +259,11 @@ class Run:
     def blender(self) -> Path:
         return self.work / "blender"
 
+    def write_cameras(self, name: str, cams: list["pinhole.Camera"]) -> Path:
+        """``cams`` (Blender's, relative to the description's origin) as ``blender/NAME`` for the
+        command line, in the scene files' frame."""
+        return path_mod.write_camera_list(self.blender / name, cams, self.desc.get("origin"))
+
     def step(self, label: str, cmd: list[str], progress: bool = False) -> "jobs.Step":
         log = self.blender / "logs" / f"{label.lower().replace(' ', '_').replace('-', '_')}.log"
         return jobs.Step(label=label, cmd=cmd, log_path=log, progress=progress)
@@ -435,9 +440,9 @@ def _result_steps(context, run: Run) -> tuple[list["jobs.Step"], Callable[[bpy.t
     heldout_dir, pseudo_dir = run.blender / "renders" / "heldout", run.blender / "renders" / "pseudo"
     steps = []
     if held:
-        cams = path_mod.write_camera_list(run.blender / "heldout_cameras.json", held)
+        cams = run.write_cameras("heldout_cameras.json", held)
         steps.append(run.step("Render held-out", jobs.render_command(run.python, run.work, cams, heldout_dir)))
-    cams = path_mod.write_camera_list(run.blender / "pseudo_render_cameras.json", pseudo)
+    cams = run.write_cameras("pseudo_render_cameras.json", pseudo)
     steps.append(run.step("Render pseudo path", jobs.render_command(run.python, run.work, cams, pseudo_dir)))
     if held:
         steps.append(run.step("Evaluate", jobs.eval_command(run.python, run.work, settings(context).weights)))
@@ -491,7 +496,7 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
         if scene_build.training_takes_path(context, run.work, props.resume):
             pseudo = scene_build.path_cameras(context, jobs.pseudo_view_count(props.preset, props.pseudo_count),
                                               "pseudo")
-            pseudo_json = path_mod.write_camera_list(run.blender / "pseudo_path.json", pseudo)
+            pseudo_json = run.write_cameras("pseudo_path.json", pseudo)
         opts = jobs.TrainOptions(preset=props.preset, method=props.method, iterations=props.iterations or None,
                                  pseudo_views=props.pseudo_count or None, pseudo_path=pseudo_json,
                                  resume=props.resume, weights=settings(context).weights)
@@ -538,7 +543,7 @@ class DIBRGS_OT_flythrough(_JobOperator, bpy.types.Operator):
         for k, c in enumerate(cams):  # frame numbers in the names: Blender reads them as a sequence
             c.name = f"fly_{k + 1:04d}"
         out = run.blender / "renders" / "flythrough"
-        cams_json = path_mod.write_camera_list(run.blender / "flythrough_cameras.json", cams)
+        cams_json = run.write_cameras("flythrough_cameras.json", cams)
         step = run.step("Fly-through", jobs.render_command(run.python, run.work, cams_json, out))
 
         def finish(ctx) -> str:
@@ -566,7 +571,7 @@ class DIBRGS_OT_render_active_camera(_JobOperator, bpy.types.Operator):
         cam = scene_build.camera_from_object(obj, context.scene)
         cam.name = "active_" + bpy.path.clean_name(obj.name)
         out = run.blender / "renders" / "active"
-        cams_json = path_mod.write_camera_list(run.blender / "active_camera.json", [cam])
+        cams_json = run.write_cameras("active_camera.json", [cam])
         step = run.step("Render camera", jobs.render_command(run.python, run.work, cams_json, out))
         obj_name = obj.name
 

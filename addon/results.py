@@ -95,8 +95,10 @@ def load_init(context: bpy.types.Context, init: Path) -> int:
     if not ply.is_file():
         raise FileNotFoundError(f"initialisation wrote no point cloud: {ply}")
     rep = init / "init_report.json"
-    # The run's positions are relative to the scene's origin when it lies far from its files' own.
-    origin = reports.scene_origin(reports.read_json(rep)) if rep.is_file() else (0.0, 0.0, 0.0)
+    # The run's positions and Blender's are each relative to a point near the cameras when the
+    # scene lies far from its files' origin (float32): the points go where the run's (0, 0, 0) is.
+    run_origin = reports.scene_origin(reports.read_json(rep)) if rep.is_file() else (0.0, 0.0, 0.0)
+    origin = tuple(float(a - b) for a, b in zip(run_origin, scene_build.scene_origin()))
     obj = scene_build.import_points(context, ply, origin)
     hm = init / "height_map.npz"
     if hm.is_file():  # absent when the init report decided the scene needs none

@@ -167,6 +167,15 @@ def scene_description() -> dict[str, Any]:
     return json.loads(text.as_string())
 
 
+def scene_origin() -> tuple[float, float, float]:
+    """Where the imported scene's Blender frame has its (0, 0, 0) in the scene's files (non-zero for
+    a scene far from its coordinate origin; :func:`~dibrgs_core.bridge.describe.describe_scene`);
+    the origin itself before any import."""
+    text = bpy.data.texts.get(SCENE_TEXT)
+    o = json.loads(text.as_string()).get("origin") if text is not None else None
+    return tuple(float(v) for v in o) if o and len(o) == 3 else (0.0, 0.0, 0.0)
+
+
 def described_cameras(desc: dict[str, Any], split: str) -> list["pinhole.Camera"]:
     return [serialize.camera_from_dict(v["camera"], source=desc["root"]) for v in desc["views"]
             if v["split"] == split]
@@ -367,7 +376,8 @@ def path_cameras(context: bpy.types.Context, n: int, prefix: str, route: bool = 
 def import_points(context: bpy.types.Context, ply: Path,
                   origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> bpy.types.Object:
     """The dense point cloud as a vertex-only mesh with its colour attribute (Blender's PLY importer),
-    placed at ``origin`` (the run's positions are relative to it; the scene's ``Scene.origin``)."""
+    placed at ``origin``: where the run's (0, 0, 0) lies in Blender's frame (both are relative to a
+    point near the cameras for a scene far from its coordinate origin; :func:`scene_origin`)."""
     if POINTS_NAME in bpy.data.objects:
         remove_object(bpy.data.objects[POINTS_NAME])
     before = set(bpy.data.objects)

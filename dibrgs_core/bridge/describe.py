@@ -11,7 +11,12 @@ on LEVIR and COLMAP (text and binary) scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path}],
-     "train": [names], "test": [names], "track": [camera dicts]}
+     "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z]}
+
+Cameras are relative to ``origin`` (zeros unless the scene lies far from its coordinate origin:
+:func:`~dibrgs_core.data.scene.local_origin`, the rule the library's readers follow), because
+Blender holds positions in float32; cameras going back to the command line are moved by it
+again (:func:`~dibrgs_core.bridge.path.write_camera_list`).
 
 Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 """
@@ -24,7 +29,7 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.scene import make_split, validate_camera_arrays
+from ..data.scene import local_origin, make_split, validate_camera_arrays
 from ..data.levir import paired_files, read_cams_file
 from .colmap_model import read_model
 from .imagesize import image_size
@@ -46,13 +51,17 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         train, test, source = make_split(root, list(views), None)
     except ValueError as e:
         raise InputError(root, str(e)) from None
+    origin = local_origin(list(views.values()))
+    if origin.any():
+        views = {k: c.translated(-origin) for k, c in views.items()}
+        track = [c.translated(-origin) for c in track]
     out = []
     for name, cam in views.items():
         split = "train" if name in train else "test" if name in test else "other"
         out.append({"name": name, "split": split, "camera": camera_to_dict(cam),
                     "image": str(images[name].resolve())})
     return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
-            "track": [camera_to_dict(c) for c in track]}
+            "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin]}
 
 
 def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]]:

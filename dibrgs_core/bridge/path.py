@@ -304,8 +304,11 @@ def orbit_control_points(orbit: Orbit, n: int = 8) -> np.ndarray:
     return orbit.point(np.arange(n) * (2.0 * np.pi / n))
 
 
-def write_camera_list(path: str | Path, cams: Sequence[Camera]) -> Path:
-    """Write cameras as a JSON camera list (``camera_to_dict`` format), atomically."""
+def write_camera_list(path: str | Path, cams: Sequence[Camera], origin: Sequence[float] | None = None) -> Path:
+    """Write cameras as a JSON camera list (``camera_to_dict`` format), atomically; cameras relative
+    to ``origin`` (a scene description's) are written in the scene files' own frame."""
     path = Path(path)
+    if origin is not None and np.any(origin):
+        cams = [c.translated(origin) for c in cams]
     write_json(path, [camera_to_dict(c) for c in cams])
     return path

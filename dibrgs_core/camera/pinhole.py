@@ -93,9 +93,11 @@ class Camera:
 
     def translated(self, d: Sequence[float] | np.ndarray) -> "Camera":
         """The same camera in a world moved by ``d`` (world units): a point ``X`` there is
-        ``X + d``, the centre becomes ``center + d`` and the rotation is unchanged."""
+        ``X + d``, the rotation is unchanged and the centre becomes ``center + d``, exactly even
+        when ``R`` carries float32 rounding (a camera from Blender): ``t - R d`` would move it by
+        that rounding times ``|d|``, a unit at 1e7."""
         w2c = self.w2c.copy()
-        w2c[:3, 3] = self.t - self.R @ np.asarray(d, np.float64).reshape(3)
+        w2c[:3, 3] = self.t - np.linalg.solve(self.R.T, np.asarray(d, np.float64).reshape(3))
         return replace(self, w2c=w2c)
 
     def scaled(self, factor: float) -> "Camera":

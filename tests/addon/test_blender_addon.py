@@ -400,6 +400,46 @@ def test_init_points_of_a_far_scene_land_where_its_cameras_are(fresh, tmp_path):
     assert tuple(hm.location) == pytest.approx(tuple(origin))
 
 
+def test_a_far_scene_lives_near_blenders_origin_and_goes_back_in_its_own_frame(scene64, fresh, tmp_path):
+    """A scene 1e7 off its coordinate origin (georeferenced) is imported relative to a point near
+    its cameras (float32 would round its positions by a unit): camera objects as precise as in
+    place; cameras written for the command line are in the files' frame again; the run's points
+    (relative to the same point) land at Blender's origin."""
+    import json
+    import shutil
+
+    from dibrgs_core.bridge.path import write_camera_list
+    from dibrgs_core.data.levir import read_cameras, read_cams_file, write_cams_file
+
+    far = tmp_path / "far"
+    shutil.copytree(scene64, far)
+    offset = np.array([1.0e7, -4.0e6, 2.5e5])
+    for f in (far / "Cams").glob("*.txt"):  # the size given: Blender's Python has no Pillow to read it
+        write_cams_file(f, read_cams_file(f, size=(64, 64)).translated(offset))
+    assert bpy.ops.dibrgs.import_scene(directory=str(far)) == {"FINISHED"}
+    sb, results = _mod("scene_build"), _mod("results")
+    origin = np.array(sb.scene_origin())
+    assert np.linalg.norm(origin - offset) < 1e3  # a rounded point near the cameras
+    objs = _view_objects()
+    for vid, obj in objs.items():
+        file_cam = read_cams_file(far / "Cams" / f"{vid}.txt", size=(64, 64))
+        cam = sb.camera_from_object(obj, fresh)
+        local = file_cam.center - origin
+        np.testing.assert_allclose(cam.center, local, atol=1e-5 * np.abs(local).max())
+        np.testing.assert_allclose(cam.R, file_cam.R, atol=1e-5)
+    cams = [sb.camera_from_object(o, fresh) for o in objs.values()]
+    back = read_cameras(write_camera_list(tmp_path / "cams.json", cams, sb.scene_description()["origin"]))
+    for c, b in zip(cams, back):
+        np.testing.assert_allclose(b.center, c.center + origin, rtol=0, atol=1e-3)
+    init = tmp_path / "init"
+    init.mkdir()
+    (init / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                                     "property float z\nend_header\n0.5 -0.25 1.0\n")
+    (init / "init_report.json").write_text(json.dumps({"decisions": [], "values": {"scene_origin": origin.tolist()}}))
+    results.load_init(bpy.context, init)
+    np.testing.assert_allclose(sb.dense_points(), [[0.5, -0.25, 1.0]], atol=1e-6)
+
+
 def test_import_and_results_need_no_torch_pil_or_pycolmap(scene64, tmp_path):
     """Scene import (LEVIR and COLMAP), path, compositor and initialisation outputs in a Python
     whose imports of torch, Pillow, pycolmap, scipy, ... fail, as in Blender's."""

@@ -546,8 +546,9 @@ def test_image_size_from_headers(tmp_path):
         imagesize.image_size(tmp_path / "bad.png")
 
 
-def _same_description(desc: dict, scene) -> None:
+def _same_description(desc: dict, scene, atol: float = 1e-12) -> None:
     assert desc["train"] == list(scene.train) and desc["test"] == list(scene.test)
+    np.testing.assert_array_equal(desc["origin"], scene.origin)
     assert [v["name"] for v in desc["views"]] == list(scene.views)
     assert len(desc["track"]) == len(scene.track)
     for v in desc["views"]:
@@ -555,7 +556,7 @@ def _same_description(desc: dict, scene) -> None:
         got = camera_from_dict(v["camera"])
         assert (got.width, got.height, got.depth_range) == (c.width, c.height, c.depth_range)
         np.testing.assert_array_equal(got.K, c.K)
-        np.testing.assert_allclose(got.w2c, c.w2c, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got.w2c, c.w2c, rtol=0, atol=atol)
         assert Path(v["image"]).is_file() and Path(v["image"]).stem == v["name"]
     for d, c in zip(desc["track"], scene.track):
         np.testing.assert_array_equal(camera_from_dict(d).w2c, c.w2c)
@@ -579,6 +580,16 @@ def test_describe_matches_the_library_on_levir_and_colmap(tiny_scene, tmp_path):
     pycolmap.Reconstruction(str(brighton / "sparse" / "0")).write_binary(str(binary / "sparse" / "0"))
     assert colmap_model.model_format(binary / "sparse" / "0") == "bin"
     _same_description(describe.describe_scene(binary), read_any_scene(binary, load_depth=False))
+    # Moved 5e6 off its origin (georeferenced): both readers put it in the same frame of its own.
+    far = tmp_path / "brighton_far"
+    (far / "sparse" / "0").mkdir(parents=True)
+    (far / "images").symlink_to(brighton / "images")
+    rec = pycolmap.Reconstruction(str(brighton / "sparse" / "0"))
+    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.array([3.0e6, 2.0e6, 5.0e6])))
+    rec.write_text(str(far / "sparse" / "0"))
+    desc, scene = describe.describe_scene(far), read_any_scene(far, load_depth=False)
+    assert np.linalg.norm(scene.origin - [3.0e6, 2.0e6, 5.0e6]) < 10.0
+    _same_description(desc, scene, atol=1e-8)
 
 
 def test_colmap_reader_takes_pinholes_and_refuses_distortion(tmp_path):
