@@ -4,7 +4,8 @@ x, y, z, normals (0), f_dc_0..2 (+ f_rest_* for the 3DGS baseline), opacity
 (logit), scale_0..2 (log) and rot_0..3 (w, x, y, z), readable by common
 Gaussian-splatting viewers. DIBR-GS's view-dependent neural Gaussians are decoded
 once from the most central training camera. Positions are the run's: for a scene far from its
-coordinate origin (``dibrgs info``'s ``origin``), relative to that origin, as the log says.
+coordinate origin (``dibrgs info``'s ``origin``), relative to that origin, which the header gives
+as ``comment origin X Y Z`` and the log repeats.
 FILE is written atomically; a symbolic link is followed, and anything but a regular file (a
 folder, a FIFO, a device) is refused.
 """

@@ -36,10 +36,13 @@ def ply_properties(n_rest: int) -> list[str]:
 
 
 def write_gaussian_ply(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: np.ndarray,
-                       opacities: np.ndarray, sh_dc: np.ndarray, sh_rest: np.ndarray | None = None) -> int:
+                       opacities: np.ndarray, sh_dc: np.ndarray, sh_rest: np.ndarray | None = None,
+                       origin: np.ndarray | None = None) -> int:
     """Write Gaussians (activated scales / opacities, SH DC (N,3), SH rest (N,K,3) or None) atomically.
 
-    Returns the number of Gaussians written. Non-finite rows are dropped.
+    Returns the number of Gaussians written. Non-finite rows are dropped. With a non-zero
+    ``origin`` (the positions are relative to it) the header says so in a line ``comment origin
+    X Y Z`` (17 digits; readers skip comments).
     """
     means = np.asarray(means, np.float64).reshape(-1, 3)
     n = len(means)
@@ -54,7 +57,10 @@ def write_gaussian_ply(path: str | Path, means: np.ndarray, quats: np.ndarray, s
     cols = np.concatenate([means, np.zeros((n, 3)), dc, rest, logit[:, None], s, q], axis=1).astype("<f4")
     cols = cols[np.isfinite(cols).all(axis=1)]
     names = ply_properties(rest.shape[1])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(cols)}"]
+    header = ["ply", "format binary_little_endian 1.0"]
+    if origin is not None and np.any(origin):
+        header.append("comment origin " + " ".join(repr(float(v)) for v in np.asarray(origin).reshape(3)))
+    header.append(f"element vertex {len(cols)}")
     header += [f"property float {p}" for p in names]
     header += ["end_header"]
     with atomic_path(path) as tmp:
@@ -71,13 +77,13 @@ def export_ply(work: str | Path, path: str | Path) -> int:
 
     tr = load_trained(work)
     if np.any(tr.origin):  # float32 positions of a georeferenced scene would lose its detail
-        o = tr.origin
         log.info("positions in %s are relative to (%.10g, %.10g, %.10g) of the scene's files (the scene lies far "
-                 "from their coordinate origin): add it to place them in that frame", path, *o)
+                 "from their coordinate origin; the header's `comment origin`): add it to place them in that frame",
+                 path, *tr.origin)
     g = tr.all_gaussians()
     if "sh_dc" in g:  # spherical harmonics as they are
         dc, rest = g["sh_dc"].numpy(), g["sh_rest"].numpy()
     else:  # view-independent colours as the SH DC term
         dc, rest = (g["colors"].numpy() - 0.5) / SH_C0, None
     return write_gaussian_ply(path, g["means"].numpy(), g["quats"].numpy(), g["scales"].numpy(),
-                              g["opacities"].numpy(), dc, rest)
+                              g["opacities"].numpy(), dc, rest, tr.origin)

@@ -111,3 +111,10 @@ def test_held_out_psnr_does_not_depend_on_the_scene_units_or_placement(tiny_scen
     expected, _ = load_trained(work).render(view.camera)
     got = read_image(tmp_path / "renders" / f"{view.name}.png")
     assert np.abs(got - expected).max() <= 1.0 / 255 + 1e-6
+    # Its export keeps the run's positions and names the point they are relative to.
+    origin = read_any_scene(scene).origin
+    for name, want in (("far", f"comment origin {' '.join(repr(float(v)) for v in origin)}"), ("x1", None)):
+        ply = tmp_path / f"{name}.ply"
+        assert main(["export", str(tmp_path / f"work_{name}"), "--ply", str(ply)]) == 0
+        header = ply.read_bytes().split(b"end_header")[0].decode("ascii")
+        assert (want in header) if want else "comment origin" not in header
