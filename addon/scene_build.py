@@ -171,8 +171,10 @@ def scene_origin() -> tuple[float, float, float]:
     """Where the imported scene's Blender frame has its (0, 0, 0) in the scene's files (non-zero for
     a scene far from its coordinate origin; :func:`~dibrgs_core.bridge.describe.describe_scene`);
     the origin itself before any import."""
-    text = bpy.data.texts.get(SCENE_TEXT)
-    o = json.loads(text.as_string()).get("origin") if text is not None else None
+    try:
+        o = scene_description().get("origin")
+    except ValueError:
+        o = None
     return tuple(float(v) for v in o) if o and len(o) == 3 else (0.0, 0.0, 0.0)
 
 
