@@ -61,6 +61,7 @@ def test_scaled_copy_scales_the_world_only(tiny_scene, tmp_path):
         assert np.array_equal(b.views[k].image, a.views[k].image)
 
 
+@pytest.mark.stability
 def test_a_far_copy_is_read_back_in_a_frame_of_its_own(tiny_scene, tmp_path):
     """Moved 1e8 off the origin, the scene is read relative to a rounded point near its cameras
     (``Scene.origin``): the cameras are the original ones up to that shift, images and depth maps
