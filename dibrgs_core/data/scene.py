@@ -91,7 +91,7 @@ class Scene:
         o = local_origin(self.cameras)
         if not o.any():
             return self
-        views = {k: View(v.camera.translated(-o), v.image, v.depth) for k, v in self.views.items()}
+        views = {k: replace(v, camera=v.camera.translated(-o)) for k, v in self.views.items()}
         return replace(self, views=views, track=[c.translated(-o) for c in self.track], origin=self.origin + o)
 
 
