@@ -14,7 +14,7 @@ on LEVIR and COLMAP (text and binary) scenes. The description is::
      "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z]}
 
 Cameras are relative to ``origin`` (zeros unless the scene lies far from its coordinate origin:
-:func:`~dibrgs_core.data.scene.local_origin`, the rule the library's readers follow), because
+:func:`~dibrgs_core.data.scene.in_local_frame`, the rule the library's readers follow), because
 Blender holds positions in float32; cameras going back to the command line are moved by it
 again (:func:`~dibrgs_core.bridge.path.write_camera_list`).
 
@@ -29,7 +29,7 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.scene import local_origin, make_split, validate_camera_arrays
+from ..data.scene import in_local_frame, make_split, validate_camera_arrays
 from ..data.levir import paired_files, read_cams_file
 from .colmap_model import read_model
 from .imagesize import image_size
@@ -51,10 +51,7 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         train, test, source = make_split(root, list(views), None)
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    origin = local_origin(list(views.values()))
-    if origin.any():
-        views = {k: c.translated(-origin) for k, c in views.items()}
-        track = [c.translated(-origin) for c in track]
+    origin, views, track = in_local_frame(views, track)
     out = []
     for name, cam in views.items():
         split = "train" if name in train else "test" if name in test else "other"

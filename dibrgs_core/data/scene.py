@@ -88,11 +88,11 @@ class Scene:
     def recentred(self) -> "Scene":
         """This scene with its cameras expressed from :func:`local_origin` (itself when that is
         the files' own origin); depth maps are unchanged (z-depth does not move with the frame)."""
-        o = local_origin(self.cameras)
+        o, cams, track = in_local_frame({k: v.camera for k, v in self.views.items()}, self.track)
         if not o.any():
             return self
-        views = {k: replace(v, camera=v.camera.translated(-o)) for k, v in self.views.items()}
-        return replace(self, views=views, track=[c.translated(-o) for c in self.track], origin=self.origin + o)
+        views = {k: replace(v, camera=cams[k]) for k, v in self.views.items()}
+        return replace(self, views=views, track=track, origin=self.origin + o)
 
 
 #: Camera centres farther from the coordinate origin than this many times their spread put a scene
@@ -119,6 +119,17 @@ def local_origin(cameras: Sequence[Camera]) -> np.ndarray:
         return np.zeros(3)
     q = 10.0 ** math.floor(math.log10(spread))
     return np.round(mean / q) * q
+
+
+def in_local_frame(cameras: dict[str, Camera], track: Sequence[Camera] = ()
+                   ) -> tuple[np.ndarray, dict[str, Camera], list[Camera]]:
+    """(:func:`local_origin` of the views' ``cameras``, those cameras and the ``track`` relative to
+    it): the one rule the library's readers and the add-on's description both follow, so that
+    their frames agree."""
+    o = local_origin(list(cameras.values()))
+    if not o.any():
+        return o, dict(cameras), list(track)
+    return o, {k: c.translated(-o) for k, c in cameras.items()}, [c.translated(-o) for c in track]
 
 
 def origin_decision(scene: Scene) -> tuple[bool, str]:

@@ -189,11 +189,14 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     if isinstance(scene, Scene):
         report.decide(STAGE, "recentre", *origin_decision(scene))
     c = geo.cameras[0]
-    report.decide(STAGE, "working_size", geo.resize != 1.0,
-                  f"training photos worked on at {c.width}x{c.height} (x{geo.resize:.4g}; long side {cfg.max_side} px: "
-                  "their finer detail is below the dense cloud's voxel)" if geo.resize != 1.0 else
-                  f"training photos of {c.width}x{c.height} are within the {cfg.max_side} px working size"
-                  if cfg.max_side else "training photos at their own size (max_side 0)")
+    if geo.resize != 1.0:
+        why = (f"training photos worked on at {c.width}x{c.height} (x{geo.resize:.4g}; long side {cfg.max_side} px: "
+               "their finer detail is below the dense cloud's voxel)")
+    elif cfg.max_side:
+        why = f"training photos of {c.width}x{c.height} are within the {cfg.max_side} px working size"
+    else:
+        why = "training photos at their own size (max_side 0)"
+    report.decide(STAGE, "working_size", geo.resize != 1.0, why)
     sparse = run_sparse(geo, cfg, report)
     sfm_reference(geo, sparse, cfg, report)
     report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)
