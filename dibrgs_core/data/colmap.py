@@ -26,6 +26,7 @@ View ids are the image file stems; the split comes from ``--train``/``--test``,
 from __future__ import annotations
 
 import logging
+from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -33,7 +34,7 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
-from .scene import Scene, View, make_split, validate_camera_arrays
+from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays
 from .images import image_size, read_image
 from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 
@@ -101,38 +102,41 @@ def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:
 
 def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
                       test_ids: Iterable[str] | None = None) -> Scene:
-    """Read a COLMAP model and its images (``ROOT/images/``) as a :class:`Scene` (no depth)."""
+    """Read a COLMAP model and its images (``ROOT/images/``) as a :class:`Scene` (no depth). Every
+    photo is decoded (and undistorted) once to check it and left in its file
+    (:class:`~dibrgs_core.data.scene.ImageFile`)."""
     root = Path(root)
     rec, model_dir = _load(root)
     img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images")
                     if d.is_dir()), None)
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
-    views: dict[str, View] = {}
     by_name = {im.name: im for im in rec.images.values()}
-    undistorted = 0
+    photos: list[tuple[Camera, Path, object, bool, bool]] = []
     for cam, name in _cameras(rec, model_dir):
         path = img_dir / name
         if not path.is_file():
             raise InputError(path, "image file missing (listed in the COLMAP model)")
         ccam = rec.cameras[by_name[name].camera_id]
-        oriented = _orientation(path, ccam.width, ccam.height)
-        if check_model(ccam, model_dir):
-            u = undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented))
-            image = u.image
-            undistorted += 1
-        else:
-            image = read_image(path, orient=oriented)
-        h, w = image.shape[:2]
-        if (w, h) != (cam.width, cam.height):
-            raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
-        views[cam.name] = View(camera=cam, image=image)
+        photos.append((cam, path, ccam, _orientation(path, ccam.width, ccam.height), check_model(ccam, model_dir)))
+    undistorted = sum(p[4] for p in photos)
+    sizes = {(c.width, c.height) for c, *_ in photos}
+    crop = len(sizes) > 1 and undistorted > 0
+    if crop:
+        W, H = min(w for w, _ in sizes), min(h for _, h in sizes)
+        log.info("undistorted photos cropped to a common %dx%d", W, H)
+    views: dict[str, View] = {}
+    for cam, path, ccam, oriented, distorted in photos:
+        box = None
+        if crop:
+            cam, box = _cropped(cam, W, H)
+        pixels, size = ImageFile.checked(path, partial(_read_photo, path, ccam, oriented, distorted, box))
+        if size != (cam.width, cam.height):
+            raise InputError(path, f"image is {size[0]}x{size[1]} but its COLMAP camera is {cam.width}x{cam.height}")
+        views[cam.name] = View(camera=cam, image=pixels)
     if undistorted:
         log.info("%s: %d photos undistorted (pycolmap; cache %s)", model_dir, undistorted, cache_dir())
     sizes = {(v.camera.width, v.camera.height) for v in views.values()}
-    if len(sizes) > 1 and undistorted:
-        views = _crop_to_common(views)
-        sizes = {(v.camera.width, v.camera.height) for v in views.values()}
     if len(sizes) > 1:
         raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
     ids = sorted(views)
@@ -158,22 +162,31 @@ def _orientation(path: Path, width: int, height: int) -> bool:
     return False
 
 
-def _crop_to_common(views: dict[str, View]) -> dict[str, View]:
-    """Views cropped about their centres to the smallest width and height among them (the principal
-    point moves with the crop, so each camera stays exact)."""
-    W = min(v.camera.width for v in views.values())
-    H = min(v.camera.height for v in views.values())
-    out = {}
-    for k, v in views.items():
-        c = v.camera
-        x0, y0 = (c.width - W) // 2, (c.height - H) // 2
-        K = c.K.copy()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
-        cam = Camera(K=K, w2c=c.w2c, width=W, height=H, name=c.name, depth_range=c.depth_range)
-        out[k] = View(camera=cam, image=np.ascontiguousarray(v.image[y0:y0 + H, x0:x0 + W]))
-    log.info("undistorted photos cropped to a common %dx%d", W, H)
-    return out
+def _read_photo(path: Path, ccam, oriented: bool, distorted: bool,
+                box: tuple[int, int, int, int] | None) -> np.ndarray:
+    """A photo as its view holds it: read in the pixel order of its pycolmap camera ``ccam``,
+    undistorted when ``distorted``, cropped to ``box`` (x0, y0, width, height) when given."""
+    if distorted:
+        image = undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented)).image
+    else:
+        image = read_image(path, orient=oriented)
+        if image.shape[:2] != (ccam.height, ccam.width):
+            raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
+                                   f"{ccam.width}x{ccam.height}")
+    if box is None:
+        return image
+    x0, y0, w, h = box
+    return np.ascontiguousarray(image[y0:y0 + h, x0:x0 + w])
+
+
+def _cropped(cam: Camera, W: int, H: int) -> tuple[Camera, tuple[int, int, int, int]]:
+    """``cam`` cropped about its centre to W x H (the principal point moves with the crop, so the
+    camera stays exact) and the crop's box (x0, y0, W, H) in its pixels."""
+    x0, y0 = (cam.width - W) // 2, (cam.height - H) // 2
+    K = cam.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Camera(K=K, w2c=cam.w2c, width=W, height=H, name=cam.name, depth_range=cam.depth_range), (x0, y0, W, H)
 
 
 def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool = True,

@@ -16,6 +16,8 @@ default. The standard 3-view protocol trains on the orbit views at indices
 0, 7 and 14 (001, 008, 015) and evaluates on the other 17; ``split.json`` or
 ``--train`` / ``--test`` choose others.
 
+Every image is decoded once when the scene is read (a damaged file is an error then) and left in
+its file (:class:`~dibrgs_core.data.scene.ImageFile`): a run reads the views it uses again.
 Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 This module needs numpy, Pillow, tifffile and OpenEXR, never torch or bpy.
 """
@@ -25,6 +27,7 @@ import json
 import logging
 import math
 import re
+from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -35,7 +38,7 @@ from ..camera.serialize import camera_from_dict
 from ..common.errors import InputError
 from ..common.fileio import write_text
 from .images import DEPTH_EXTS, IMAGE_EXTS, image_size, read_depth, read_image, write_depth_tiff, write_png
-from .scene import Scene, View, make_split, validate_camera_arrays
+from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays
 
 log = logging.getLogger("dibrgs.io_levir")
 
@@ -199,8 +202,7 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
     size: tuple[int, int] | None = None
     first = None
     for stem in sorted(images):
-        img = read_image(images[stem])
-        h, w = img.shape[:2]
+        pixels, (w, h) = ImageFile.checked(images[stem], partial(read_image, images[stem]))
         if size is None:
             size, first = (w, h), images[stem]
         elif (w, h) != size:
@@ -215,7 +217,7 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
             if depth.shape != (h, w):
                 raise InputError(dp, f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image "
                                      f"{images[stem].name} is {w}x{h}")
-        views[stem] = View(camera=cam, image=img, depth=depth)
+        views[stem] = View(camera=cam, image=pixels, depth=depth)
     track = []
     if (root / "Track").is_dir():
         track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -20,23 +20,79 @@ from ..common.errors import InputError
 from ..common.limits import MIN_TRAIN_VIEWS
 
 
-@dataclass
+@dataclass(frozen=True)
+class ImageFile:
+    """A view's pixels left in their file: a scene of hundreds of photos holds only its cameras,
+    and a run reads a photo when it uses it (the split's views), one at a time.
+
+    Attributes:
+        path: the photo's file (for messages).
+        load: returns the float32 (H, W, 3) RGB image in [0, 1], as the reader would have held it
+            (oriented, undistorted, cropped).
+        digest: :func:`pixels_digest` of what ``load`` gives, taken when the scene was read (the
+            reader decodes every photo once to check it, so a damaged file is found before a run
+            starts); :meth:`read` checks it again, so a photo edited since is an error, never
+            silently other pixels than the run's digest says.
+    """
+
+    path: Path
+    load: Callable[[], np.ndarray]
+    digest: str
+
+    @classmethod
+    def checked(cls, path: Path, load: Callable[[], np.ndarray]) -> tuple["ImageFile", tuple[int, int]]:
+        """The image ``load`` reads from ``path``, read once now for its digest, and its (width, height)."""
+        image = load()
+        return cls(Path(path), load, pixels_digest(image)), (image.shape[1], image.shape[0])
+
+    def read(self) -> np.ndarray:
+        image = self.load()
+        if pixels_digest(image) != self.digest:
+            raise InputError(self.path, "changed since the scene was read; start again to use the new photo")
+        return image
+
+
+def pixels_digest(image: np.ndarray) -> str:
+    """Digest of an image's float32 values (the same for a view held in memory or in its file)."""
+    return Digest("pixels/1").array(np.asarray(image, np.float32)).hex()
+
+
 class View:
     """One input view.
 
     Attributes:
         camera: the view's camera (its ``name`` is the view id, e.g. ``"001"``).
-        image: float32 (H, W, 3) RGB in [0, 1] (sRGB-encoded values as stored).
+        image: float32 (H, W, 3) RGB in [0, 1] (sRGB-encoded values as stored); given as an array
+            or as an :class:`ImageFile`, read from disk again at each use and not kept.
         depth: optional float32 (H, W) z-depth in world units; 0 where unknown.
     """
 
-    camera: Camera
-    image: np.ndarray
-    depth: np.ndarray | None = None
+    __slots__ = ("camera", "_image", "depth")
+
+    def __init__(self, camera: Camera, image: np.ndarray | ImageFile, depth: np.ndarray | None = None) -> None:
+        self.camera = camera
+        self._image = image
+        self.depth = depth
+
+    @property
+    def image(self) -> np.ndarray:
+        return self._image.read() if isinstance(self._image, ImageFile) else self._image
 
     @property
     def name(self) -> str:
         return self.camera.name
+
+    def with_camera(self, camera: Camera) -> "View":
+        """This view seen through ``camera`` (same pixels, read or not, and depth)."""
+        return View(camera, self._image, self.depth)
+
+    def pixels_digest(self) -> str:
+        """Digest of the view's pixels (taken when read for an :class:`ImageFile`)."""
+        return self._image.digest if isinstance(self._image, ImageFile) else pixels_digest(self._image)
+
+    def __repr__(self) -> str:
+        what = "in its file" if isinstance(self._image, ImageFile) else f"{np.shape(self._image)}"
+        return f"View({self.name!r}, image {what}, depth {'yes' if self.depth is not None else 'no'})"
 
 
 @dataclass
@@ -91,7 +147,7 @@ class Scene:
         o, cams, track = in_local_frame({k: v.camera for k, v in self.views.items()}, self.track)
         if not o.any():
             return self
-        views = {k: replace(v, camera=cams[k]) for k, v in self.views.items()}
+        views = {k: v.with_camera(cams[k]) for k, v in self.views.items()}
         return replace(self, views=views, track=track, origin=self.origin + o)
 
 
@@ -144,13 +200,13 @@ def origin_decision(scene: Scene) -> tuple[bool, str]:
 
 
 def views_digest(views: Iterable[View], depth: bool = False) -> str:
-    """Digest of views' names, cameras (K, w2c, size) and images, and of their depth maps with
-    ``depth`` (see :mod:`dibrgs_core.common.digest`)."""
-    d = Digest("views/1")
+    """Digest of views' names, cameras (K, w2c, size) and pixels (:meth:`View.pixels_digest`), and
+    of their depth maps with ``depth`` (see :mod:`dibrgs_core.common.digest`)."""
+    d = Digest("views/2")
     for v in views:
         c = v.camera
         d.text(v.name).array(np.asarray(c.K, np.float64)).array(np.asarray(c.w2c, np.float64))
-        d.json([int(c.width), int(c.height)]).array(np.asarray(v.image, np.float32))
+        d.json([int(c.width), int(c.height)]).text(v.pixels_digest())
         if depth:
             d.array(np.zeros(0, np.float32) if v.depth is None else np.asarray(v.depth, np.float32))
     return d.hex()

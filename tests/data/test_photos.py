@@ -117,18 +117,22 @@ def test_undistortion_cache_is_keyed_by_content(tmp_path, monkeypatch):
     entries = sorted((cache / "undistorted").glob("*.npy"))
     assert len(entries) == 1  # three identical photos of one camera: one entry
     b = read_colmap_scene(root)  # from the cache
-    assert all(np.array_equal(a.views[k].image, b.views[k].image) for k in a.views)
+    before = {k: v.image for k, v in a.views.items()}
+    assert all(np.array_equal(before[k], b.views[k].image) for k in a.views)
     img = np.asarray(Image.open(root / "images" / "v1.png")).copy()
     img[:8] = 255
     Image.fromarray(img).save(root / "images" / "v1.png")
     c = read_colmap_scene(root)
     assert len(list((cache / "undistorted").glob("*.npy"))) == 2
-    assert not np.array_equal(c.views["v1"].image, a.views["v1"].image)
-    assert np.array_equal(c.views["v0"].image, a.views["v0"].image)
+    assert not np.array_equal(c.views["v1"].image, before["v1"])
+    assert np.array_equal(c.views["v0"].image, before["v0"])
+    # The scene read before the edit does not pass the new pixels off as the old ones.
+    with pytest.raises(InputError, match="changed since the scene was read"):
+        a.views["v1"].image
     # An unwritable cache is only a warning.
     monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "file"))
     (tmp_path / "file").write_text("not a folder")
-    assert np.array_equal(read_colmap_scene(root).views["v0"].image, a.views["v0"].image)
+    assert np.array_equal(read_colmap_scene(root).views["v0"].image, before["v0"])
 
 
 def test_fisheye_and_other_models_are_clear_errors(tmp_path, monkeypatch):
@@ -204,3 +208,35 @@ def test_colmap_photos_keep_colmaps_pixel_order(tmp_path, monkeypatch):
     s = read_colmap_scene(root)
     assert s.views["v0"].image.shape == (W, H, 3)
     assert np.abs(s.views["v0"].image - np.rot90(stored, -1)).mean() < 0.02
+
+
+def test_a_scene_of_many_photos_holds_its_cameras_not_its_pixels(tmp_path):
+    """Reading decodes each photo once, one at a time, and keeps none of them: a COLMAP project of
+    hundreds of 20 MP photos must not need their float32 copies (24 GB for 100) in memory. A view's
+    image is read from its file when used, equal to the photo."""
+    import tracemalloc
+
+    from dibrgs_core.data.colmap import write_colmap_model
+
+    w, h, n = 480, 320, 12
+    one = w * h * 3 * 4  # one float32 photo
+    cams = [Camera(K=np.array([[400.0, 0, w / 2], [0, 400.0, h / 2], [0, 0, 1]]),
+                   w2c=look_at([3.0 * i, 0.0, 50.0], [3.0 * i, 0.0, 0.0], [0, 1.0, 0]), width=w, height=h,
+                   name=f"p{i:02d}") for i in range(n)]
+    root = tmp_path / "project"
+    write_colmap_model(cams, root / "sparse" / "0")
+    rng = np.random.default_rng(0)
+    (root / "images").mkdir()
+    photos = {}
+    for c in cams:
+        photos[c.name] = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        Image.fromarray(photos[c.name]).save(root / "images" / f"{c.name}.png")
+    tracemalloc.start()
+    try:
+        scene = read_any_scene(root)
+        held, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert held < one / 2, f"the scene holds {held / one:.1f} photos' worth of memory"
+    assert peak < 6 * one, f"reading peaked at {peak / one:.1f} photos' worth"
+    assert all(np.array_equal(scene.views[k].image, photos[k] / np.float32(255)) for k in ("p00", "p07"))
