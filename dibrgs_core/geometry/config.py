@@ -29,7 +29,9 @@ class SfmConfig:
             sparse views most tracks have length two).
         min_angle_deg: minimum triangulation angle.
         max_reproj_error: reprojection error (px) above which points are dropped.
-        num_threads: CPU threads for pycolmap.
+        num_threads: CPU threads for pycolmap's feature extraction and matching (triangulation
+            runs on one: on two its result changed from run to run).
+        seed: COLMAP's RANSAC and triangulation seed (its default, -1, seeds from the clock).
     """
 
     max_num_features: int = 8192
@@ -37,6 +39,7 @@ class SfmConfig:
     min_angle_deg: float = 1.5
     max_reproj_error: float = 4.0
     num_threads: int = 2
+    seed: int = 0
 
 
 @dataclass
