@@ -105,7 +105,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         db_path = root / "database.db"
         names = []
         eo = pycolmap.FeatureExtractionOptions()
-        eo.num_threads = cfg.num_threads
+        eo.num_threads = 1  # one thread throughout: see SfmConfig
         eo.sift.max_num_features = cfg.max_num_features
         for i, (cam, img) in enumerate(zip(cams, images)):
             name = f"{i:04d}.png"
@@ -117,7 +117,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
             pycolmap.extract_features(db_path, img_dir, image_names=[name], camera_mode=pycolmap.CameraMode.SINGLE,
                                       reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
         mo = pycolmap.FeatureMatchingOptions()
-        mo.num_threads = cfg.num_threads
+        mo.num_threads = 1
         vo = pycolmap.TwoViewGeometryOptions()
         vo.ransac.random_seed = cfg.seed
         pycolmap.match_exhaustive(db_path, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
@@ -149,8 +149,6 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
             log.info("SfM: no verified image pairs")
             return SparseCloud.empty()
         opts = pycolmap.IncrementalPipelineOptions()
-        # one thread: COLMAP's triangulation on two gave 56, 75 or 97 points for the same views
-        # from one run to the next (its seed alone did not fix that)
         opts.num_threads = 1
         opts.random_seed = cfg.seed
         opts.triangulation.ignore_two_view_tracks = not cfg.keep_two_view_tracks

@@ -70,7 +70,7 @@ def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
 
     views = ctx.scene.train_views()
     cache = ctx.work / "init" / "sfm_points.npz"
-    sfm_options = {k: v for k, v in asdict(SfmConfig()).items() if k != "num_threads"}
+    sfm_options = asdict(SfmConfig())
     key = Digest("sfm_points/1").text(views_digest(views)).json(sfm_options).hex()
     if cache.exists():
         try:
