@@ -121,7 +121,9 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
         photos.append((cam, path, ccam, _orientation(path, ccam.width, ccam.height), check_model(ccam, model_dir)))
     undistorted = sum(p[4] for p in photos)
     sizes = {(c.width, c.height) for c, *_ in photos}
-    crop = len(sizes) > 1 and undistorted > 0
+    if len(sizes) > 1 and not undistorted:  # found from the cameras, before any photo is decoded
+        raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
+    crop = len(sizes) > 1
     if crop:
         W, H = min(w for w, _ in sizes), min(h for _, h in sizes)
         log.info("undistorted photos cropped to a common %dx%d", W, H)
@@ -136,9 +138,6 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
         views[cam.name] = View(camera=cam, image=pixels)
     if undistorted:
         log.info("%s: %d photos undistorted (pycolmap; cache %s)", model_dir, undistorted, cache_dir())
-    sizes = {(v.camera.width, v.camera.height) for v in views.values()}
-    if len(sizes) > 1:
-        raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
     ids = sorted(views)
     views = {k: views[k] for k in ids}
     try:

@@ -240,3 +240,23 @@ def test_a_scene_of_many_photos_holds_its_cameras_not_its_pixels(tmp_path):
     assert held < one / 2, f"the scene holds {held / one:.1f} photos' worth of memory"
     assert peak < 6 * one, f"reading peaked at {peak / one:.1f} photos' worth"
     assert all(np.array_equal(scene.views[k].image, photos[k] / np.float32(255)) for k in ("p00", "p07"))
+
+
+def test_photos_of_different_sizes_are_refused_before_any_is_decoded(tmp_path):
+    """Pinhole cameras of different sizes (nothing to undistort and crop) are one clear error naming
+    the image folder, found from the cameras: no photo needs decoding for it (here none could be)."""
+    from dibrgs_core.data.colmap import write_colmap_model
+
+    cams = [Camera(K=np.array([[80.0, 0, w / 2], [0, 80.0, 32.0], [0, 0, 1]]),
+                   w2c=look_at([10.0 * i, 0.0, 100.0], [10.0 * i, 0.0, 0.0], [0, 1.0, 0]), width=w, height=64,
+                   name=f"v{i}") for i, w in enumerate((96, 96, 90))]
+    root = tmp_path / "m"
+    write_colmap_model(cams, root / "sparse" / "0")
+    (root / "images").mkdir()
+    for c in cams:  # right size in the header, no pixel data
+        Image.fromarray(np.zeros((c.height, c.width, 3), np.uint8)).save(root / "images" / f"{c.name}.png")
+        data = (root / "images" / f"{c.name}.png").read_bytes()
+        (root / "images" / f"{c.name}.png").write_bytes(data[:60])
+    with pytest.raises(InputError, match=r"images have different sizes: \[\(90, 64\), \(96, 64\)\]") as e:
+        read_colmap_scene(root)
+    assert str(root / "images") in str(e.value)
