@@ -107,11 +107,14 @@ def camera_from_object(obj: bpy.types.Object, scene: bpy.types.Scene) -> "pinhol
         raise ValueError(f"{obj.name}: only perspective cameras can be rendered (type is {d.type})")
     r = scene.render
     scale = r.resolution_percentage / 100.0
+    # A scene's view keeps its own photo's size (photos may differ); other cameras take the render size.
+    w, h = obj["dibrgs_resolution"] if "dibrgs_view" in obj else (r.resolution_x, r.resolution_y)
+    ax, ay = obj["dibrgs_pixel_aspect"] if "dibrgs_view" in obj else (r.pixel_aspect_x, r.pixel_aspect_y)
     p = camera_blender.BlenderCameraParams(
         matrix_world=np.array(obj.matrix_world, dtype=np.float64), lens=d.lens, sensor_width=d.sensor_width,
         sensor_height=d.sensor_height, sensor_fit=d.sensor_fit, shift_x=d.shift_x, shift_y=d.shift_y,
-        resolution_x=max(1, round(r.resolution_x * scale)), resolution_y=max(1, round(r.resolution_y * scale)),
-        pixel_aspect_x=r.pixel_aspect_x, pixel_aspect_y=r.pixel_aspect_y, clip_start=d.clip_start,
+        resolution_x=max(1, round(w * scale)), resolution_y=max(1, round(h * scale)),
+        pixel_aspect_x=ax, pixel_aspect_y=ay, clip_start=d.clip_start,
         clip_end=d.clip_end, name=obj.get("dibrgs_view", obj.name))
     return camera_blender.from_blender(p, depth_range=True)
 
@@ -126,8 +129,9 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     """Camera objects for every view of a scene description (``dibrgs_core.bridge.describe``).
 
     Replaces a previous import. Training views get their image as camera
-    background; the render resolution is set from the views. Returns view
-    id -> camera object.
+    background; the render resolution is the scene camera's (the first training view): photos
+    may differ in size, and Blender draws every camera in the render size's shape, while each
+    view object keeps its own size (:func:`camera_from_object`). Returns view id -> camera object.
     """
     scene = context.scene
     for name in SPLIT_COLLECTIONS.values():
@@ -140,7 +144,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
         obj = new_camera_object(v["name"], coll)
         obj["dibrgs_view"] = v["name"]
         obj["dibrgs_split"] = v["split"]
-        apply_camera(obj, cam, scene)
+        apply_camera(obj, cam)
         if v["split"] == "train" and v.get("image"):
             img = bpy.data.images.load(v["image"], check_existing=True)
             bg = obj.data.background_images.new()
@@ -154,6 +158,8 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
             bpy.data.collections.remove(coll)
     train = [objs[n] for n in desc["train"] if n in objs]
     scene.camera = train[0] if train else next(iter(objs.values()))
+    active = next(v for v in desc["views"] if v["name"] == scene.camera["dibrgs_view"])
+    set_render_size(scene, camera_blender.to_blender(serialize.camera_from_dict(active["camera"], source=desc["root"])))
     text = bpy.data.texts.get(SCENE_TEXT) or bpy.data.texts.new(SCENE_TEXT)
     text.from_string(json.dumps(desc, indent=1))
     return objs

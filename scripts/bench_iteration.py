@@ -195,11 +195,13 @@ def ibr_through_maps(ibr, X: torch.Tensor) -> torch.Tensor:
     front = z > 1e-6
     pix = torch.einsum("vij,vnj->vni", ibr.K, Xc / torch.where(front, z, torch.ones_like(z))[..., None])
     u, v = pix[..., 0], pix[..., 1]
-    ok = front & (u >= 0) & (u < ibr.width) & (v >= 0) & (v < ibr.height)
-    grid = torch.stack([2.0 * u / ibr.width - 1.0, 2.0 * v / ibr.height - 1.0], dim=-1)
+    W, H = ibr.size[:, 0, None], ibr.size[:, 1, None]
+    ok = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    grid = torch.stack([2.0 * u / W - 1.0, 2.0 * v / H - 1.0], dim=-1)
     grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))
-    s = F.grid_sample(maps, grid[:, None], mode="bilinear", padding_mode="border", align_corners=False)[:, :, 0]
-    w = ok.to(maps.dtype)
+    s = torch.stack([F.grid_sample(m[None], g[None, None], mode="bilinear", padding_mode="border",
+                                   align_corners=False)[0, :, 0] for m, g in zip(maps, grid)])
+    w = ok.to(s.dtype)
     return ((s * w[:, None]).sum(0) / w.sum(0).clamp(min=1.0)).T
 
 

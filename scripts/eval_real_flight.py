@@ -143,8 +143,8 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
         p = acc.psnr()
         n_seen = acc.n["one"] + acc.n["two_plus"]
         seen = acc.seen_psnr()
-        runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": [test[0].cam.cam.width,
-                     test[0].cam.cam.height] if test else None, "psnr": float(np.mean(list(per_view.values()))),
+        runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": list(dict.fromkeys(
+                     (f.cam.cam.width, f.cam.cam.height) for f in test)), "psnr": float(np.mean(list(per_view.values()))),
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
                      "seen_fraction": n_seen / max(acc.n["all"], 1)})
     vis = ({"reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset}}
@@ -223,7 +223,7 @@ def table(res: dict) -> str:
              "|---|---|---|---:|---:|---:|---:|---:|"]
     for r in res["runs"]:
         g = r["groups"]
-        res_txt = "x".join(map(str, r["resolution"])) if r["resolution"] else "-"
+        res_txt = ", ".join("x".join(map(str, wh)) for wh in r["resolution"]) or "-"  # each size of the held-out photos
         lines.append(f"| {Path(r['work']).name} | {r['method']} | {res_txt} | {fmt(r['psnr'])} | {fmt(r['seen'])} | "
                      f"{fmt(g['one'])} | {fmt(g['two_plus'])} | {fmt(g['unseen'])} |")
     return "\n".join(lines)

@@ -22,6 +22,7 @@ Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 """
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,7 @@ from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
 from ..data.scene import in_local_frame, make_split, validate_camera_arrays
-from ..data.levir import paired_files, read_cams_file
+from ..data.levir import check_sizes, paired_files, read_cams_file
 from .colmap_model import read_model
 from .imagesize import image_size
 
@@ -66,17 +67,12 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]
     if not img_dir.is_dir():
         raise InputError(img_dir, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
     images, cams = paired_files(img_dir, cam_dir)
-    views: dict[str, Camera] = {}
-    size, first = None, None
-    for stem in sorted(images):
-        w, h = image_size(images[stem])
-        if size is None:
-            size, first = (w, h), images[stem]
-        elif (w, h) != size:
-            raise InputError(images[stem], f"image is {w}x{h} but {first.name} is {size[0]}x{size[1]}")
-        views[stem] = read_cams_file(cams[stem], size=(w, h))
+    views = {stem: read_cams_file(cams[stem], size=image_size(images[stem])) for stem in sorted(images)}
+    check_sizes(views, images, cams)  # each photo at its own size
     track = []
     if (root / "Track").is_dir():
+        # as the library's reader: the photos' most common size
+        size = Counter((c.width, c.height) for c in views.values()).most_common(1)[0][0]
         track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
                  if not p.name.startswith(".")]
     return views, {k: images[k] for k in views}, track
@@ -111,8 +107,5 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera
         paths[vid] = path
     if not views:
         raise InputError(model_dir, "COLMAP model has no posed images")
-    sizes = {(c.width, c.height) for c in views.values()}
-    if len(sizes) > 1:
-        raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
     ids = sorted(views)
     return {k: views[k] for k in ids}, paths, []

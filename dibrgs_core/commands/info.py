@@ -1,6 +1,7 @@
 """``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder or COLMAP model).
 
-Prints the number of views, resolution, train/test split and where it came from
+Prints the number of views, resolution (photos of several sizes: the most common, and ``sizes``
+lists each size's views), train/test split and where it came from
 (``--train``/``--test``, ``split.json`` or the default), depth range, the
 up axis estimated from the cameras (with its confidence), the mean angle off
 nadir, the training cameras' acquisition trajectory (orbit, strips or free, and
@@ -36,12 +37,13 @@ def summarize(scene) -> dict:
     from ..data.scene import orbit_ids
 
     cams = scene.cameras
-    W, H = scene.resolution
+    sizes = scene.sizes()
     up, conf = estimate_up(cams)
     out: dict = {
         "root": str(scene.root),
         "views": len(scene.views),
-        "resolution": [W, H],
+        # the photos' size; with photos of several sizes the most common, and ``sizes`` lists them all
+        "resolution": list(next(iter(sizes))),
         "train": scene.train,
         "test": scene.test,
         "split_source": scene.split_source,
@@ -51,6 +53,8 @@ def summarize(scene) -> dict:
         "up_confidence": round(float(conf), 6),
         "nadir_angle_deg": round(nadir_angle_deg(cams, up), 3),
     }
+    if len(sizes) > 1:
+        out["sizes"] = {f"{w}x{h}": ids for (w, h), ids in sizes.items()}
     ranges = [c.depth_range for c in cams if c.depth_range is not None and c.depth_range[1] > c.depth_range[0]]
     if ranges:
         out["depth_range_cams"] = [float(min(r[0] for r in ranges)), float(max(r[1] for r in ranges))]

@@ -120,19 +120,9 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
         ccam = rec.cameras[by_name[name].camera_id]
         photos.append((cam, path, ccam, _orientation(path, ccam.width, ccam.height), check_model(ccam, model_dir)))
     undistorted = sum(p[4] for p in photos)
-    sizes = {(c.width, c.height) for c, *_ in photos}
-    if len(sizes) > 1 and not undistorted:  # found from the cameras, before any photo is decoded
-        raise InputError(img_dir, f"images have different sizes: {sorted(sizes)}")
-    crop = len(sizes) > 1
-    if crop:
-        W, H = min(w for w, _ in sizes), min(h for _, h in sizes)
-        log.info("undistorted photos cropped to a common %dx%d", W, H)
     views: dict[str, View] = {}
-    for cam, path, ccam, oriented, distorted in photos:
-        box = None
-        if crop:
-            cam, box = _cropped(cam, W, H)
-        pixels, size = ImageFile.checked(path, partial(_read_photo, path, ccam, oriented, distorted, box))
+    for cam, path, ccam, oriented, distorted in photos:  # each photo at its own size
+        pixels, size = ImageFile.checked(path, partial(_read_photo, path, ccam, oriented, distorted))
         if size != (cam.width, cam.height):
             raise InputError(path, f"image is {size[0]}x{size[1]} but its COLMAP camera is {cam.width}x{cam.height}")
         views[cam.name] = View(camera=cam, image=pixels)
@@ -161,31 +151,16 @@ def _orientation(path: Path, width: int, height: int) -> bool:
     return False
 
 
-def _read_photo(path: Path, ccam, oriented: bool, distorted: bool,
-                box: tuple[int, int, int, int] | None) -> np.ndarray:
+def _read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray:
     """A photo as its view holds it: read in the pixel order of its pycolmap camera ``ccam``,
-    undistorted when ``distorted``, cropped to ``box`` (x0, y0, width, height) when given."""
+    undistorted when ``distorted``."""
     if distorted:
-        image = undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented)).image
-    else:
-        image = read_image(path, orient=oriented)
-        if image.shape[:2] != (ccam.height, ccam.width):
-            raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
-                                   f"{ccam.width}x{ccam.height}")
-    if box is None:
-        return image
-    x0, y0, w, h = box
-    return np.ascontiguousarray(image[y0:y0 + h, x0:x0 + w])
-
-
-def _cropped(cam: Camera, W: int, H: int) -> tuple[Camera, tuple[int, int, int, int]]:
-    """``cam`` cropped about its centre to W x H (the principal point moves with the crop, so the
-    camera stays exact) and the crop's box (x0, y0, W, H) in its pixels."""
-    x0, y0 = (cam.width - W) // 2, (cam.height - H) // 2
-    K = cam.K.copy()
-    K[0, 2] -= x0
-    K[1, 2] -= y0
-    return Camera(K=K, w2c=cam.w2c, width=W, height=H, name=cam.name, depth_range=cam.depth_range), (x0, y0, W, H)
+        return undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented)).image
+    image = read_image(path, orient=oriented)
+    if image.shape[:2] != (ccam.height, ccam.width):
+        raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
+                               f"{ccam.width}x{ccam.height}")
+    return image
 
 
 def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool = True,

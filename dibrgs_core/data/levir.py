@@ -27,6 +27,7 @@ import json
 import logging
 import math
 import re
+from collections import Counter
 from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -72,6 +73,22 @@ def parse_cams_text(text: str, path: Path) -> tuple[np.ndarray, np.ndarray, tupl
     dr = (float(rest[9]), float(rest[10]))
     validate_camera_arrays(w2c, K, dr, path)
     return w2c, K, dr
+
+
+def check_sizes(cameras: dict[str, Camera], photos: dict[str, Path], cams_files: dict[str, Path]) -> None:
+    """Photos may differ in size (each camera has its photo's), but a Cams file does not say which
+    size it was made for: when the photos differ, a photo whose camera's principal point lies off
+    its middle half is an InputError naming it (its Cams file is likely for a photo of another
+    size, e.g. one resized by mistake). Photos of one size are taken as they are, off-centre
+    crops included."""
+    if len({(c.width, c.height) for c in cameras.values()}) < 2:
+        return
+    for k, c in cameras.items():
+        cx, cy = float(c.K[0, 2]), float(c.K[1, 2])
+        if abs(cx - c.width / 2) > c.width / 4 or abs(cy - c.height / 2) > c.height / 4:
+            raise InputError(photos[k], f"image is {c.width}x{c.height} but its camera's principal point "
+                                        f"({cx:g}, {cy:g}) lies off its middle: {cams_files[k].name} is likely "
+                                        "for a photo of another size (the scene's photos differ in size)")
 
 
 def read_cams_file(path: str | Path, size: tuple[int, int] | None = None) -> Camera:
@@ -198,16 +215,13 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
             raise InputError(d, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
     images, cams = paired_files(img_dir, cam_dir)
     use_depth = load_depth and dep_dir.is_dir()
+    cameras = {stem: read_cams_file(cams[stem], size=image_size(images[stem])) for stem in sorted(images)}
+    check_sizes(cameras, images, cams)
     views: dict[str, View] = {}
-    size: tuple[int, int] | None = None
-    first = None
-    for stem in sorted(images):
+    for stem, cam in cameras.items():  # each photo at its own size
         pixels, (w, h) = ImageFile.checked(images[stem], partial(read_image, images[stem]))
-        if size is None:
-            size, first = (w, h), images[stem]
-        elif (w, h) != size:
-            raise InputError(images[stem], f"image is {w}x{h} but {first.name} is {size[0]}x{size[1]}")
-        cam = read_cams_file(cams[stem], size=(w, h))
+        if (w, h) != (cam.width, cam.height):
+            raise InputError(images[stem], f"image decodes to {w}x{h} but its header says {cam.width}x{cam.height}")
         depth = None
         if use_depth:
             dp = _find(dep_dir, stem, DEPTH_EXTS)
@@ -219,6 +233,8 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
                                      f"{images[stem].name} is {w}x{h}")
         views[stem] = View(camera=cam, image=pixels, depth=depth)
     track = []
+    sizes = Counter((c.width, c.height) for c in cameras.values())
+    size = sizes.most_common(1)[0][0]  # a track camera renders at the photos' (most common) size
     if (root / "Track").is_dir():
         track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
                  if not p.name.startswith(".")]
@@ -226,8 +242,9 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
         train, test, source = make_split(root, list(views), train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    log.info("read %s: %d views %dx%d, train %s, %d test (split: %s), %d track cameras%s", root, len(views),
-             size[0], size[1], train, len(test), source, len(track), ", with depth" if use_depth else "")
+    log.info("read %s: %d views %dx%d%s, train %s, %d test (split: %s), %d track cameras%s", root, len(views),
+             size[0], size[1], f" (and {len(sizes) - 1} other sizes)" if len(sizes) > 1 else "", train, len(test),
+             source, len(track), ", with depth" if use_depth else "")
     return Scene(root=root, views=views, track=track, train=train, test=test, split_source=source)
 
 

@@ -28,7 +28,7 @@ class ImageFile:
     Attributes:
         path: the photo's file (for messages).
         load: returns the float32 (H, W, 3) RGB image in [0, 1], as the reader would have held it
-            (oriented, undistorted, cropped).
+            (oriented, undistorted).
         digest: :func:`pixels_digest` of what ``load`` gives, taken when the scene was read (the
             reader decodes every photo once to check it, so a damaged file is found before a run
             starts); :meth:`read` checks it again, so a photo edited since is an error, never
@@ -130,11 +130,14 @@ class Scene:
         """Cameras of all views, sorted by id."""
         return [v.camera for v in self.views.values()]
 
-    @property
-    def resolution(self) -> tuple[int, int]:
-        """(width, height) shared by all views."""
-        c = next(iter(self.views.values())).camera
-        return c.width, c.height
+    def sizes(self) -> dict[tuple[int, int], list[str]]:
+        """The views' ids by image size (width, height), most common size first: photos need not
+        share one (two cameras, portrait and landscape photos); each view trains, renders and is
+        evaluated at its own size."""
+        out: dict[tuple[int, int], list[str]] = {}
+        for k, v in self.views.items():
+            out.setdefault((v.camera.width, v.camera.height), []).append(k)
+        return dict(sorted(out.items(), key=lambda kv: -len(kv[1])))
 
     def digest(self) -> str:
         """Digest of the scene's content (every view's name, camera and image; not its path):

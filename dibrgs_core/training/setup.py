@@ -233,7 +233,7 @@ def build_ibr(ctx: SetupContext) -> Any:
     ctx.report.decide("train", "ibr_features", name != "none", f"encoder {name}: {reason}", encoder=name)
     if name == "none":
         return None
-    imgs = torch.stack([f.image.permute(2, 0, 1) for f in ctx.train_frames])
+    imgs = [f.image.permute(2, 0, 1) for f in ctx.train_frames]
     cams = [f.cam.cam for f in ctx.train_frames]
     return build(name, imgs, cams, c_r=cfg.model.ibr_channels, dino_resnet=cfg.dino_resnet, dino_vit=cfg.dino_vit)
 

@@ -146,10 +146,12 @@ class Trainer:
         self.report.decide("train", "pixel_budget", budget, why)
         self.train_frames = views_to_frames(train_views, s)
         self.test_frames = views_to_frames(test_views, s)
+        for f in self.train_frames + self.test_frames:
+            h, w = f.image.shape[:2]
+            if min(h, w) < MIN_RESOLUTION:
+                raise InputError(None, f"--resolution-scale {s:g} gives {w}x{h} images; training needs at least "
+                                       f"{MIN_RESOLUTION} pixels a side: use a larger scale")
         h, w = self.train_frames[0].image.shape[:2]
-        if min(h, w) < MIN_RESOLUTION:
-            raise InputError(None, f"--resolution-scale {s:g} gives {w}x{h} images; training needs at least "
-                                   f"{MIN_RESOLUTION} pixels a side: use a larger scale")
         run = {"digest": digest, "train": list(scene.train), "test": list(scene.test),
                "split_source": scene.split_source, "resolution_scale": s}
         self.report.values["scene"] = {"root": str(self.scene_root), **run, "resolution": [w, h]}

@@ -400,6 +400,38 @@ def test_init_points_of_a_far_scene_land_where_its_cameras_are(fresh, tmp_path):
     assert tuple(hm.location) == pytest.approx(tuple(origin))
 
 
+def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
+    """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
+    the scene camera's (the first training view) and each view object gives back its own camera."""
+    import shutil
+
+    from dibrgs_core.data.levir import read_cams_file, write_cams_file
+
+    mixed = tmp_path / "mixed"
+    shutil.copytree(scene64, mixed)
+    cut = {"008": (0, 8, 64, 48), "004": (8, 0, 48, 64)}
+    for vid, (x0, y0, w, h) in cut.items():
+        c = read_cams_file(mixed / "Cams" / f"{vid}.txt", size=(64, 64))
+        c.K[0, 2] -= x0
+        c.K[1, 2] -= y0
+        write_cams_file(mixed / "Cams" / f"{vid}.txt", c)
+        img = bpy.data.images.new(f"cut_{vid}", w, h)  # Blender writes the PNG: no Pillow in its Python
+        img.filepath_raw, img.file_format = str(mixed / "Images" / f"{vid}.png"), "PNG"
+        img.save()
+        bpy.data.images.remove(img)
+    assert bpy.ops.dibrgs.import_scene(directory=str(mixed)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    r = fresh.render
+    assert fresh.camera["dibrgs_view"] == "001" and (r.resolution_x, r.resolution_y) == (64, 64)
+    for vid, obj in _view_objects().items():
+        want = read_cams_file(mixed / "Cams" / f"{vid}.txt", size=cut.get(vid, (0, 0, 64, 64))[2:])
+        cam = sb.camera_from_object(obj, fresh)
+        assert (cam.width, cam.height) == (want.width, want.height), vid
+        np.testing.assert_allclose(cam.K, want.K, rtol=1e-5, atol=1e-5)
+    held = {c.name: (c.width, c.height) for c in sb.described_cameras(sb.scene_description(), "test")}
+    assert held["004"] == (48, 64) and held["005"] == (64, 64)
+
+
 def test_a_far_scene_lives_near_blenders_origin_and_goes_back_in_its_own_frame(scene64, fresh, tmp_path):
     """A scene 1e7 off its coordinate origin (georeferenced) is imported relative to a point near
     its cameras (float32 would round its positions by a unit): camera objects as precise as in

@@ -80,7 +80,7 @@ def _png_empty(s: Path):
 def _png_size(s: Path):
     from dibrgs_core.data.images import write_png
 
-    write_png(s / "Images" / "004.png", np.zeros((24, 25, 3)))
+    write_png(s / "Images" / "004.png", np.zeros((48, 50, 3)))  # resized by mistake: its camera is for 24x24
 
 
 def _cams_edit(old: str, new: str):
@@ -141,7 +141,7 @@ SCENE_CASES = [
     ("image-not-an-image", _png_text, "unreadable", "Images/004.png"),
     ("image-truncated", _png_truncated, "truncated", "Images/004.png"),
     ("image-empty", _png_empty, "unreadable", "Images/004.png"),
-    ("image-other-size", _png_size, "25x24 but", "Images/004.png"),
+    ("image-other-size", _png_size, "50x48 but its camera's principal point (12, 12) lies off", "Images/004.png"),
     ("image-missing", _no_image, "image missing for camera", "Images/004.png"),
     ("images-folder-missing", _no_images_dir, "missing folder", "Images"),
     ("cams-missing", _no_cam, "camera file missing", "Cams/004.txt"),

@@ -51,7 +51,7 @@ def test_round_trip_exact(scene_dir):
     views, track = make_views()
     s = read_scene(scene_dir)
     assert list(s.views) == sorted(views)
-    assert s.resolution == (W, H)
+    assert list(s.sizes()) == [(W, H)]
     for k, v in views.items():
         r = s.views[k]
         assert np.array_equal(r.camera.w2c, v.camera.w2c)  # repr() floats: bit-exact float64
@@ -180,12 +180,31 @@ def test_unreadable_image(scene_dir):
     _expect(scene_dir, p, "unreadable")
 
 
-def test_images_of_different_sizes(scene_dir):
+def test_images_of_different_sizes_are_each_read_at_their_own(scene_dir):
+    """A photo of another size (here turned to portrait, with its camera) is read at its size; a photo
+    resized by mistake (its camera's principal point off its middle) is an error naming the photo."""
     from PIL import Image
 
-    p = scene_dir / "Images" / "009.png"
-    Image.fromarray(np.zeros((H, W + 2, 3), np.uint8)).save(p)
-    _expect(scene_dir, p, f"{W + 2}x{H} but 000.png is {W}x{H}")
+    from dibrgs_core.commands.info import summarize
+
+    c = read_cams_file(scene_dir / "Cams" / "009.txt")
+    K = np.array([[c.K[1, 1], 0, c.K[1, 2]], [0, c.K[0, 0], W - c.K[0, 2]], [0, 0, 1]])
+    w2c = np.eye(4)
+    w2c[:3] = np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.0]]) @ c.w2c[:3]
+    write_cams_file(scene_dir / "Cams" / "009.txt", Camera(K=K, w2c=w2c, width=H, height=W, name="009"))
+    upright = np.random.default_rng(0).integers(0, 255, (W, H, 3), dtype=np.uint8)
+    Image.fromarray(upright).save(scene_dir / "Images" / "009.png")
+    depth = scene_dir / "Depths" / "009.tiff"
+    write_depth_tiff(depth, np.ascontiguousarray(np.rot90(read_depth(depth))))
+    scene = read_scene(scene_dir)
+    assert scene.views["009"].image.shape == (W, H, 3) and np.array_equal(scene.views["009"].image * 255, upright)
+    assert (scene.views["009"].camera.width, scene.views["009"].camera.height) == (H, W)
+    assert scene.sizes() == {(W, H): [k for k in scene.views if k != "009"], (H, W): ["009"]}
+    info = summarize(scene)
+    assert info["resolution"] == [W, H] and info["sizes"][f"{H}x{W}"] == ["009"]
+    p = scene_dir / "Images" / "010.png"
+    Image.fromarray(np.zeros((H // 2, W // 2, 3), np.uint8)).save(p)
+    _expect(scene_dir, p, f"image is {W // 2}x{H // 2} but its camera's principal point .* lies off its middle")
 
 
 @pytest.mark.parametrize("edit,match", [

@@ -1,7 +1,8 @@
 """Photographs as users have them: COLMAP cameras with lens distortion (undistorted on load with
-pycolmap, cached by content), JPEG with an EXIF rotation, any aspect ratio."""
+pycolmap, cached by content), JPEG with an EXIF rotation, any aspect ratio, photos of several sizes."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -175,7 +176,7 @@ def test_jpeg_scene_with_exif_rotation(tmp_path, orientation):
         _jpeg(root / "Images" / f"{i:03d}.jpg", ups[cam.name], orientation if i != 2 else 1)
     (root / "split.json").write_text('{"train": ["000.jpg", "002.JPG", "003"], "test": ["001"]}')
     s = read_scene(root)
-    assert s.resolution == (W, H) and s.train == ["000", "002", "003"] and s.test == ["001"]
+    assert list(s.sizes()) == [(W, H)] and s.train == ["000", "002", "003"] and s.test == ["001"]
     for k, v in s.views.items():
         assert v.image.shape == (H, W, 3)
         assert np.abs(v.image - ups[k]).mean() < 0.02, k  # JPEG loss only; a rotated read would be far off
@@ -242,21 +243,26 @@ def test_a_scene_of_many_photos_holds_its_cameras_not_its_pixels(tmp_path):
     assert all(np.array_equal(scene.views[k].image, photos[k] / np.float32(255)) for k in ("p00", "p07"))
 
 
-def test_photos_of_different_sizes_are_refused_before_any_is_decoded(tmp_path):
-    """Pinhole cameras of different sizes (nothing to undistort and crop) are one clear error naming
-    the image folder, found from the cameras: no photo needs decoding for it (here none could be)."""
+def test_photos_of_different_sizes_are_each_read_at_their_own(tmp_path, capsys):
+    """Two COLMAP cameras of different sizes (a portrait camera among landscape ones): each photo is read
+    at its camera's size, with its own pixels, and ``dibrgs info`` lists the sizes."""
+    from dibrgs_core.cli import main
     from dibrgs_core.data.colmap import write_colmap_model
 
-    cams = [Camera(K=np.array([[80.0, 0, w / 2], [0, 80.0, 32.0], [0, 0, 1]]),
-                   w2c=look_at([10.0 * i, 0.0, 100.0], [10.0 * i, 0.0, 0.0], [0, 1.0, 0]), width=w, height=64,
-                   name=f"v{i}") for i, w in enumerate((96, 96, 90))]
+    cams = [Camera(K=np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]]),
+                   w2c=look_at([10.0 * i, 0.0, 100.0], [10.0 * i, 0.0, 0.0], [0, 1.0, 0]), width=w, height=h,
+                   name=f"v{i}") for i, (w, h) in enumerate(((96, 64), (64, 96), (96, 64)))]
     root = tmp_path / "m"
     write_colmap_model(cams, root / "sparse" / "0")
     (root / "images").mkdir()
-    for c in cams:  # right size in the header, no pixel data
-        Image.fromarray(np.zeros((c.height, c.width, 3), np.uint8)).save(root / "images" / f"{c.name}.png")
-        data = (root / "images" / f"{c.name}.png").read_bytes()
-        (root / "images" / f"{c.name}.png").write_bytes(data[:60])
-    with pytest.raises(InputError, match=r"images have different sizes: \[\(90, 64\), \(96, 64\)\]") as e:
-        read_colmap_scene(root)
-    assert str(root / "images") in str(e.value)
+    for c in cams:
+        Image.fromarray(np.round(pattern(c.width, c.height) * 255).astype(np.uint8)).save(root / "images" / f"{c.name}.png")
+    scene = read_colmap_scene(root)
+    for c in cams:
+        v = scene.views[c.name]
+        assert (v.camera.width, v.camera.height) == (c.width, c.height) and np.allclose(v.camera.K, c.K)
+        assert np.abs(v.image - pattern(c.width, c.height)).max() <= 0.5 / 255 + 1e-6
+    assert scene.sizes() == {(96, 64): ["v0", "v2"], (64, 96): ["v1"]}
+    assert main(["info", str(root)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["resolution"] == [96, 64] and info["sizes"] == {"96x64": ["v0", "v2"], "64x96": ["v1"]}

@@ -123,7 +123,7 @@ def test_anchor_samples_its_pixel_and_skips_behind(encoder):
     ibr = IBRFeatures(encoder, images, cams, c_r=8, **kw)
     with torch.no_grad():
         maps = ibr.feature_maps()
-    assert maps.shape == (2, 8, 24, 32)
+    assert [tuple(m.shape) for m in maps] == [(8, 24, 32)] * 2
     # the centre of map cell (row 7, col 11) is full-res pixel ((11+0.5)*2, (7+0.5)*2)
     cam = cams[0]
     u, v = (11 + 0.5) * 2, (7 + 0.5) * 2
@@ -135,7 +135,7 @@ def test_anchor_samples_its_pixel_and_skips_behind(encoder):
     ibr2.load_state_dict(ibr.state_dict())
     with torch.no_grad():
         f = ibr2(torch.tensor(X[None], dtype=torch.float32))
-    assert torch.allclose(f[0], maps[0, :, 7, 11], atol=1e-5)
+    assert torch.allclose(f[0], maps[0][:, 7, 11], atol=1e-5)
     uv, z = back.project(X[None])
     assert z[0] < 0
     # an anchor seen by nobody (far outside every frustum) gets zeros
@@ -148,13 +148,13 @@ def test_average_over_views_and_state_dict_small():
     images, cams = ring_views(V=3)
     ibr = IBRFeatures("pyramid", images, cams, c_r=8)
     X = torch.zeros(1, 3)  # the look-at point, inside all three views
-    maps = ibr.feature_maps().detach()
+    maps = [m.detach() for m in ibr.feature_maps()]
     want = []
     for i, c in enumerate(cams):
         uv, z = c.project(np.zeros((1, 3)))
         assert z[0] > 0 and 0 <= uv[0, 0] < 64 and 0 <= uv[0, 1] < 48
         g = torch.tensor([[[[uv[0, 0] / 32 - 1, uv[0, 1] / 24 - 1]]]], dtype=torch.float32)
-        want.append(torch.nn.functional.grid_sample(maps[i:i + 1], g, align_corners=False)[0, :, 0, 0])
+        want.append(torch.nn.functional.grid_sample(maps[i][None], g, align_corners=False)[0, :, 0, 0])
     assert torch.allclose(ibr(X)[0], torch.stack(want).mean(0), atol=1e-5)
     # only P is saved: no image-sized buffers
     assert all(k.startswith("proj.") for k in ibr.state_dict())
@@ -203,7 +203,7 @@ def test_forward_equals_sampling_the_fused_maps(encoder):
         uv, z = c.project(X.double().numpy())
         ok = torch.tensor((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 70) & (uv[:, 1] >= 0) & (uv[:, 1] < 52))
         g = torch.tensor(np.stack([uv[:, 0] / 35 - 1, uv[:, 1] / 26 - 1], -1), dtype=torch.float32)
-        s = torch.nn.functional.grid_sample(maps[i:i + 1], g[None, None], mode="bilinear", padding_mode="border",
+        s = torch.nn.functional.grid_sample(maps[i][None], g[None, None], mode="bilinear", padding_mode="border",
                                             align_corners=False)[0, :, 0].T
         want += s * ok[:, None]
         cnt += ok[:, None]

@@ -56,7 +56,7 @@ def _old_forward(ibr: IBRFeatures, cams: list[Camera], X: torch.Tensor) -> torch
         g = torch.tensor(np.stack([2 * uv[:, 0] / c.width - 1, 2 * uv[:, 1] / c.height - 1], -1),
                          dtype=torch.float32)
         g = torch.where(ok[:, None], g, torch.zeros_like(g))
-        s = F.grid_sample(maps[i:i + 1], g[None, None], mode="bilinear", padding_mode="border",
+        s = F.grid_sample(maps[i][None], g[None, None], mode="bilinear", padding_mode="border",
                           align_corners=False)[0, :, 0].T
         total = total + s * ok[:, None]
         cnt = cnt + ok[:, None]
@@ -118,6 +118,35 @@ def test_values_and_gradients_equal_the_fused_map_path(encoder):
     # a mask selects rows of the same result
     mask = torch.rand(X.shape[0]) < 0.5
     assert torch.allclose(ibr(X, mask), new[mask], atol=1e-6)
+
+
+@pytest.mark.parametrize("encoder", ["pyramid", "dino"])
+def test_views_of_different_sizes_each_keep_their_own(encoder):
+    """Photos of several sizes (a portrait one among landscape ones, a third size): each view's
+    maps have its own size and the factorised path still equals the definition."""
+    (a, ca), (b, cb), (c, cc) = (ring_views(W, H, 3) for W, H in ((70, 52), (52, 70), (41, 33)))
+    images = [a[0], b[1], a[2], c[0]]
+    cams = [ca[0], cb[1], ca[2], cc[0]]
+    kw = {}
+    if encoder == "dino":
+        torch.manual_seed(0)
+        kw = {"resnet": ResNetFeatures((1, 1, 1, 1), width=4),
+              "vit": ViTFeatures(patch=8, dim=64, depth=2, heads=4, img_size=32)}
+    ibr = IBRFeatures(encoder, images, cams, c_r=8, **kw)
+    torch.manual_seed(3)
+    with torch.no_grad():
+        for p in ibr.projection_parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    assert [tuple(m.shape) for m in ibr.feature_maps()] == [(8, 26, 35), (8, 35, 26), (8, 26, 35), (8, 16, 20)]
+    # and the border cases of the other sizes (not those exactly on u = 0, where float32 and float64
+    # projections may fall either side)
+    edges = [i for i in range(14) if i not in (0, 5)]
+    X = torch.cat([_anchors(cams), _anchors([cams[1]], n=0)[edges], _anchors([cams[3]], n=0)[edges]])
+    old, new = _old_forward(ibr, cams, X), ibr(X)
+    assert (old.abs().sum(1) > 0).sum() > 300
+    assert torch.allclose(new, old, atol=2e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="camera '001' is 52x70, its image 70x52"):
+        IBRFeatures(encoder, [a[0], a[1]], [ca[0], cb[1]], c_r=8, **kw)
 
 
 def test_rows_follow_growth_and_pruning(monkeypatch):

@@ -2,7 +2,8 @@
 
 Each training image goes once through a frozen encoder; a learnable projection
 ``P`` maps the encoder outputs to ``C_r`` channels and fuses them into one
-reference map per view of size ``(H//2, W//2)``. An anchor's IBR feature is the
+reference map per view of size ``(H//2, W//2)``, half its own image's (photos may differ in
+size; views of one size share their feature tensors). An anchor's IBR feature is the
 bilinear sample of that map at its projection, averaged over the training views
 where it lies in front of the camera and inside the image. Training never builds
 the maps: ``P`` is affine and the upsampling, sampling and averaging are blends
@@ -68,8 +69,9 @@ class IBRFeatures(nn.Module):
 
     Args:
         encoder: ``"dino"`` or ``"pyramid"`` (use :func:`build_ibr` for ``"none"``).
-        images: (V,3,H,W) training images in [0,1].
-        cameras: the V training cameras (their width/height must be W/H).
+        images: the V training images in [0,1], each (3,H,W) of its camera's size (a (V,3,H,W)
+            tensor when they share one).
+        cameras: the V training cameras.
         c_r: reference feature channels (paper: 32).
         dino_resnet, dino_vit: local paths of ``dino_resnet50_pretrain.pth``
             and ``dino_vitbase8_pretrain.pth`` (both required for ``"dino"``).
@@ -81,25 +83,32 @@ class IBRFeatures(nn.Module):
     ``state_dict``.
     """
 
-    def __init__(self, encoder: str, images: torch.Tensor, cameras: Sequence[Camera], c_r: int = 32,
-                 dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None, *,
+    def __init__(self, encoder: str, images: torch.Tensor | Sequence[torch.Tensor], cameras: Sequence[Camera],
+                 c_r: int = 32, dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None, *,
                  resnet: nn.Module | None = None, vit: nn.Module | None = None):
         super().__init__()
         if encoder not in ("dino", "pyramid"):
             raise ValueError(f"IBRFeatures encoder must be 'dino' or 'pyramid', got {encoder!r}")
-        if images.dim() != 4 or images.shape[1] != 3:
-            raise ValueError(f"images must be (V,3,H,W), got {tuple(images.shape)}")
-        V, _, H, W = images.shape
+        images = list(images)
+        for im in images:
+            if im.dim() != 3 or im.shape[0] != 3:
+                raise ValueError(f"each image must be (3,H,W), got {tuple(im.shape)}")
+        V = len(images)
         if len(cameras) != V:
             raise ValueError(f"{V} images but {len(cameras)} cameras")
-        for c in cameras:
-            if (c.width, c.height) != (W, H):
-                raise ValueError(f"camera {c.name!r} is {c.width}x{c.height}, images are {W}x{H}")
+        for c, im in zip(cameras, images):
+            if (c.width, c.height) != (im.shape[2], im.shape[1]):
+                raise ValueError(f"camera {c.name!r} is {c.width}x{c.height}, its image {im.shape[2]}x{im.shape[1]}")
         self.encoder = encoder
         self.c_r = int(c_r)
-        self.width, self.height = int(W), int(H)
-        self.map_size = (max(1, H // 2), max(1, W // 2))
-        images = images.detach().float().clamp(0.0, 1.0)
+        # Views of one size share their feature tensors (a group); the groups keep the
+        # views' order within them.
+        by_size: dict[tuple[int, int], list[int]] = {}
+        for i, c in enumerate(cameras):
+            by_size.setdefault((int(c.width), int(c.height)), []).append(i)
+        self._groups = [(torch.tensor(ix), (max(1, H // 2), max(1, W // 2))) for (W, H), ix in by_size.items()]
+        self.register_buffer("size", torch.tensor([[c.width, c.height] for c in cameras], dtype=torch.float32),
+                             persistent=False)
         self.register_buffer("K", torch.tensor(np.stack([c.K for c in cameras]), dtype=torch.float32),
                              persistent=False)
         self.register_buffer("w2c", torch.tensor(np.stack([c.w2c for c in cameras]), dtype=torch.float32),
@@ -107,36 +116,42 @@ class IBRFeatures(nn.Module):
 
         self._levels: list[str] = []
         self._raw_dim = 0
+        batches = [torch.stack([images[i] for i in ix.tolist()]).detach().float().clamp(0.0, 1.0)
+                   for ix, _ in self._groups]
         if encoder == "pyramid":
-            feats = image_pyramid(images)
-            self.proj = nn.ModuleDict({f"level{i}": nn.Conv2d(f.shape[1], self.c_r, 1)
-                                       for i, f in enumerate(feats)})
-            for i, f in enumerate(feats):
-                self._add_feature(f"level{i}", f)
+            feats = [image_pyramid(b) for b in batches]  # per group, per level
+            names = [f"level{i}" for i in range(len(feats[0]))]
         else:
             resnet, vit = self._backbones(dino_resnet, dino_vit, resnet, vit)
-            stages, cls, tokens = self._run_dino(images, resnet, vit)
-            proj: dict[str, nn.Module] = {f"stage{i + 1}": nn.Conv2d(f.shape[1], self.c_r, 1)
-                                          for i, f in enumerate(stages)}
-            proj["vit_tokens"] = nn.Linear(tokens.shape[1], self.c_r)
-            proj["vit_cls"] = nn.Linear(cls.shape[1], self.c_r)
-            self.proj = nn.ModuleDict(proj)
-            for i, f in enumerate(stages):
-                self._add_feature(f"stage{i + 1}", f)
-            self._add_feature("vit_tokens", tokens)
+            feats, cls = [], torch.zeros(V, 0)
+            for (ix, _), b in zip(self._groups, batches):
+                stages, c, tokens = self._run_dino(b, resnet, vit)
+                feats.append(stages + [tokens])
+                cls = c.new_zeros(V, c.shape[1]) if cls.shape[1] == 0 else cls
+                cls[ix] = c
+            names = [f"stage{i + 1}" for i in range(len(feats[0]) - 1)] + ["vit_tokens"]
             self.register_buffer("feat_vit_cls", cls, persistent=False)
+        proj: dict[str, nn.Module] = {}
+        for k, name in enumerate(names):
+            ch = feats[0][k].shape[1]
+            proj[name] = nn.Linear(ch, self.c_r) if name == "vit_tokens" else nn.Conv2d(ch, self.c_r, 1)
+            self._add_feature(name, [f[k] for f in feats])
+        if encoder == "dino":
+            proj["vit_cls"] = nn.Linear(cls.shape[1], self.c_r)
+        self.proj = nn.ModuleDict(proj)
         # anchor_rows cache: (position bits (N,3) int32, rows (N,D+1), view weights (N,V))
         self._rows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._rows_generation = 0
         self._projected: tuple[tuple, torch.Tensor] | None = None
 
     # -- construction helpers ----------------------------------------------
-    def _add_feature(self, name: str, f: torch.Tensor) -> None:
+    def _add_feature(self, name: str, per_group: list[torch.Tensor]) -> None:
         # channels-last memory: (V*h*w, C) rows for the per-anchor gathers are a view
-        self.register_buffer(f"feat_{name}", f.contiguous(memory_format=torch.channels_last),
-                             persistent=False)
+        for g, f in enumerate(per_group):
+            self.register_buffer(f"feat_{name}_{g}", f.contiguous(memory_format=torch.channels_last),
+                                 persistent=False)
         self._levels.append(name)
-        self._raw_dim += f.shape[1]
+        self._raw_dim += per_group[0].shape[1]
 
     @staticmethod
     def _backbones(resnet_path, vit_path, resnet, vit) -> tuple[nn.Module, nn.Module]:
@@ -185,8 +200,9 @@ class IBRFeatures(nn.Module):
         """The trainable projection ``P`` (paper: AdamW, lr 1e-4, frozen after 2/3 of training)."""
         return list(self.proj.parameters())
 
-    def feature_maps(self) -> torch.Tensor:
-        """Fused reference maps ``F_v`` (V, C_r, H//2, W//2) through the current ``P``.
+    def feature_maps(self) -> list[torch.Tensor]:
+        """Fused reference maps ``F_v`` through the current ``P``: per view a (C_r, H//2, W//2)
+        map of its own size.
 
         ``P`` is applied at each level's own resolution (a 1x1 convolution is a
         per-pixel linear map), then ResNet/pyramid levels are upsampled
@@ -194,19 +210,22 @@ class IBRFeatures(nn.Module):
         everywhere. :meth:`forward` gives what bilinear sampling of these maps
         gives, without building them; this is its definition (tests, inspection).
         """
-        out = None
-        for name in self._levels:
-            f = getattr(self, f"feat_{name}").permute(0, 2, 3, 1)  # channels last
-            m = self.proj[name]
-            y = F.linear(f, m.weight.reshape(m.weight.shape[0], -1), m.bias).permute(0, 3, 1, 2)
-            if name == "vit_tokens":
-                y = F.interpolate(y, size=self.map_size, mode="nearest")  # repeat each token over its patch
-            else:
-                y = F.interpolate(y, size=self.map_size, mode="bilinear", align_corners=False)
-            out = y if out is None else out + y
-        if self.encoder == "dino":
-            out = out + self.proj["vit_cls"](self.feat_vit_cls)[:, :, None, None]
-        return out
+        maps: list[torch.Tensor | None] = [None] * self.K.shape[0]
+        for g, (ix, map_size) in enumerate(self._groups):
+            out = None
+            for name in self._levels:
+                f = getattr(self, f"feat_{name}_{g}").permute(0, 2, 3, 1)  # channels last
+                m = self.proj[name]
+                y = F.linear(f, m.weight.reshape(m.weight.shape[0], -1), m.bias).permute(0, 3, 1, 2)
+                mode = "nearest" if name == "vit_tokens" else "bilinear"  # a token repeated over its patch
+                y = F.interpolate(y, size=map_size, mode=mode, **({} if mode == "nearest" else
+                                                                  {"align_corners": False}))
+                out = y if out is None else out + y
+            if self.encoder == "dino":
+                out = out + self.proj["vit_cls"](self.feat_vit_cls[ix])[:, :, None, None]
+            for k, i in enumerate(ix.tolist()):
+                maps[i] = out[k]
+        return maps
 
     def forward(self, anchors: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """IBR features (M, C_r) of ``anchors[mask]`` ((N,3) world coordinates; all when
@@ -281,23 +300,27 @@ class IBRFeatures(nn.Module):
         xn, yn = xc / zs, yc / zs
         u = K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2]
         v = K[..., 1, 0] * xn + K[..., 1, 1] * yn + K[..., 1, 2]
-        ok = front & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
-        grid = torch.stack([2.0 * u / self.width - 1.0, 2.0 * v / self.height - 1.0], dim=-1)
+        W, H = self.size[:, 0, None], self.size[:, 1, None]  # (V,1) each view's own size
+        ok = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        grid = torch.stack([2.0 * u / W - 1.0, 2.0 * v / H - 1.0], dim=-1)
         grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into the taps
         w = ok.float()
         omega = (w / w.sum(0).clamp(min=1.0)).T.contiguous()  # (M,V)
         cols = []
         for name in self._levels:
-            f = getattr(self, f"feat_{name}")  # (V,C,h,w), channels-last memory
-            V, C, h, wd = f.shape
             mode = "nearest" if name == "vit_tokens" else "bilinear"
-            idx, wt = upsampled_taps(grid, (h, wd), self.map_size, mode)  # (V,M,16)
-            idx = idx + (torch.arange(V) * (h * wd))[:, None, None]
-            wt = wt * omega.T[..., None]
-            flat = f.permute(0, 2, 3, 1).reshape(V * h * wd, C)  # a view: no copy
-            cols.append(F.embedding_bag(idx.permute(1, 0, 2).reshape(X.shape[0], -1), flat,
-                                        per_sample_weights=wt.permute(1, 0, 2).reshape(X.shape[0], -1),
-                                        mode="sum"))
+            col = None
+            for g, (ix, map_size) in enumerate(self._groups):
+                f = getattr(self, f"feat_{name}_{g}")  # (Vg,C,h,w), channels-last memory
+                Vg, C, h, wd = f.shape
+                idx, wt = upsampled_taps(grid[ix], (h, wd), map_size, mode)  # (Vg,M,16)
+                idx = idx + (torch.arange(Vg) * (h * wd))[:, None, None]
+                wt = wt * omega.T[ix, :, None]
+                flat = f.permute(0, 2, 3, 1).reshape(Vg * h * wd, C)  # a view: no copy
+                part = F.embedding_bag(idx.permute(1, 0, 2).reshape(X.shape[0], -1), flat,
+                                       per_sample_weights=wt.permute(1, 0, 2).reshape(X.shape[0], -1), mode="sum")
+                col = part if col is None else col + part
+            cols.append(col)
         cols.append((omega.sum(1, keepdim=True) > 0).float())
         return torch.cat(cols, 1), omega
 
