@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
                         "(LEVIR Cams file/folder or JSON list; intrinsics in the scene's pixels, resized with "
-                        "its images)")
+                        "its images); every pose is used, and the log names those mostly of padding")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
     g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")

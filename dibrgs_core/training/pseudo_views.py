@@ -35,7 +35,7 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -89,6 +89,9 @@ class PseudoBuild:
         tried: sampled poses built or rejected before ``len(views)`` were kept.
         dropped_cloud: poses left out because the dense cloud covers too little of the view.
         dropped_warped: views dropped because too little of them is warped.
+        thin: names of the user path's poses kept with less than ``min_warped`` of their pixels
+            warped (mostly padding: the path leaves what the training photos saw); a path is
+            taken pose by pose, so these are reported, not dropped.
         cpu_s: process CPU seconds the build took (0 when loaded from the cache).
         cached: loaded from the cache.
     """
@@ -98,6 +101,7 @@ class PseudoBuild:
     tried: int = 0
     dropped_cloud: int = 0
     dropped_warped: int = 0
+    thin: list[str] = field(default_factory=list)
     cpu_s: float = 0.0
     cached: bool = False
 
@@ -208,7 +212,8 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
             scene, another split - rebuild and identical ones load (resume) - and each kept
             view's warped, padded and rejected fractions (``views``). Files are
             written atomically and the manifest last.
-        path: cameras to use instead of sampled poses; all are kept, none filtered.
+        path: cameras to use instead of sampled poses; all are kept, none filtered (poses with
+            less than ``min_warped`` warped are named in ``thin``).
         max_gap_px: warped pixels farther than this (pixels) from any pixel the cloud
             projects to have completed, not measured, depth; they are returned as
             ``padded`` rather than ``valid``.
@@ -248,7 +253,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         views, stats = cached
         log.info("loaded %d pseudo views from %s", len(views), cache_dir)
         return PseudoBuild(views, traj, int(stats.get("tried", len(views))), int(stats.get("dropped_cloud", 0)),
-                           int(stats.get("dropped_warped", 0)), 0.0, True)
+                           int(stats.get("dropped_warped", 0)), list(stats.get("thin", [])), 0.0, True)
     t0 = time.process_time()
     if path is not None:
         cams, filtered = list(path), False
@@ -269,7 +274,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
                         complete_depth(zbuffer_depth(pts, v.camera, spacing), fill=fill)))
     check = consistency_tol > 0 and len(sources) > 1
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete
-    out, files, per_view = [], [], []
+    out, files, per_view, thin = [], [], [], []
     tried = dropped_cloud = dropped_warped = 0
     total = len(cams) if not filtered else n
     bar = tqdm(total=total, desc="pseudo views", unit="view", leave=False)
@@ -284,9 +289,11 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         if pv is None:
             dropped_cloud += 1
             continue
-        if filtered and pv.valid.mean() < min_warped:
-            dropped_warped += 1
-            continue
+        if pv.valid.mean() < min_warped:
+            if filtered:
+                dropped_warped += 1
+                continue
+            thin.append(cam.name)
         pv.camera.name = f"pseudo_{len(out):03d}" if filtered else cam.name
         fname = f"view_{len(out):03d}.npz"
         _save_view(cache_dir / fname, pv)
@@ -303,10 +310,10 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
         log.debug("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
                   *(100 * f for f in fractions.values()))
     bar.close()
-    stats = {"tried": tried, "dropped_cloud": dropped_cloud, "dropped_warped": dropped_warped}
+    stats = {"tried": tried, "dropped_cloud": dropped_cloud, "dropped_warped": dropped_warped, "thin": thin}
     write_json(cache_dir / "manifest.json", {"hash": key, "files": files, "count": len(files), "stats": stats,
                                              "views": per_view})
-    return PseudoBuild(out, traj, tried, dropped_cloud, dropped_warped, time.process_time() - t0)
+    return PseudoBuild(out, traj, tried, dropped_cloud, dropped_warped, thin, time.process_time() - t0)
 
 
 def _build_one(cam: Camera, pts: np.ndarray, spacing: float, hfield, sources: list[tuple], check: bool,

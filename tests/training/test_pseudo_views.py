@@ -184,6 +184,15 @@ def test_build_pseudo_views_cache(tmp_path):
     path = build_pseudo_views(views, np.zeros((0, 3)), n=5, seed=0, cache_dir=tmp_path / "p", path=[cam_at(60, 48)])
     assert len(path.views) == 1 and path.trajectory is None and path.views[0].camera.name == "c60"
     assert not path.views[0].valid.any() and np.isfinite(path.views[0].image).all()
+    # ... and the poses that are mostly padding are named, also when the path loads from the cache
+    away = Camera(K=cam_at(60, 48).K, w2c=look_at([30.0, 0, 3.0], [30.0, 0.1, 0], [0, 0, 1]), width=48, height=48,
+                  name="away")
+    on_off = [cam_at(60, 48), away]
+    for _ in range(2):
+        mixed = build_pseudo_views(views, pts, n=5, seed=0, cache_dir=tmp_path / "q", path=on_off)
+        assert [pv.camera.name for pv in mixed.views] == ["c60", "away"] and mixed.thin == ["away"]
+        assert mixed.views[0].valid.mean() > 0.3 and mixed.views[1].valid.mean() < 0.2
+    assert mixed.cached and not built.thin
 
 
 def test_cache_is_never_reused_by_another_split_or_scene(tmp_path):
