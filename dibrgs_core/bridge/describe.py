@@ -30,7 +30,7 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.scene import in_local_frame, make_split, validate_camera_arrays
+from ..data.scene import in_local_frame, make_split, validate_camera_arrays, view_ids
 from ..data.levir import check_sizes, paired_files, read_cams_file
 from .colmap_model import read_model
 from .imagesize import image_size
@@ -86,17 +86,17 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera
         raise InputError(root / "images", "image folder not found")
     views: dict[str, Camera] = {}
     paths: dict[str, Path] = {}
-    seen: dict[str, str] = {}
+    try:
+        ids = view_ids([im.name for im in imgs])
+    except ValueError as e:
+        raise InputError(model_dir, str(e)) from None
     for im in sorted(imgs, key=lambda i: i.name):
         if im.camera_id not in cams:
             raise InputError(model_dir, f"image {im.name} refers to camera {im.camera_id}, which is not in the model")
         cam = cams[im.camera_id]
         K, w2c = cam.K(model_dir), im.w2c()
         validate_camera_arrays(w2c, K, None, model_dir)
-        vid = Path(im.name).stem
-        if vid in seen:
-            raise InputError(model_dir, f"images {seen[vid]} and {im.name} share the view id {vid!r}")
-        seen[vid] = im.name
+        vid = ids[im.name]
         path = img_dir / im.name
         if not path.is_file():
             raise InputError(path, "image file missing (listed in the COLMAP model)")

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
-from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays
+from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays, view_ids
 from .images import image_size, read_image
 from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 
@@ -78,11 +78,17 @@ def _load(root: str | Path):
 def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:
     """(camera as loaded - undistorted where the model has distortion -, image name) of every posed image."""
     out: list[tuple[Camera, str]] = []
-    seen: dict[str, str] = {}
+    posed = []
     for img in sorted(rec.images.values(), key=lambda im: im.name):
         if not img.has_pose:
             log.warning("%s: image %s has no pose, skipped", model_dir, img.name)
             continue
+        posed.append(img)
+    try:
+        ids = view_ids([img.name for img in posed])
+    except ValueError as e:
+        raise InputError(model_dir, str(e)) from None
+    for img in posed:
         cam = rec.cameras[img.camera_id]
         if check_model(cam, model_dir):
             cam = undistorted_camera(cam)
@@ -90,11 +96,7 @@ def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
         validate_camera_arrays(w2c, K, None, model_dir)
-        vid = Path(img.name).stem
-        if vid in seen:
-            raise InputError(model_dir, f"images {seen[vid]} and {img.name} share the view id {vid!r}")
-        seen[vid] = img.name
-        out.append((Camera(K=K, w2c=w2c, width=cam.width, height=cam.height, name=vid), img.name))
+        out.append((Camera(K=K, w2c=w2c, width=cam.width, height=cam.height, name=ids[img.name]), img.name))
     if not out:
         raise InputError(model_dir, "COLMAP model has no posed images")
     return out

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
@@ -244,8 +244,8 @@ def default_split(ids: Sequence[str], n_train: int = 3) -> tuple[list[str], list
 
 
 def match_names(names: Iterable[str | int], ids: Sequence[str], where: str | Path | None, what: str) -> list[str]:
-    """View ids of ``names``: exact ids, file names (``DJI_0019.png`` for ``DJI_0019``) or LEVIR
-    numbers (``8`` for ``008``). ``InputError`` naming ``where`` lists any name not in the scene."""
+    """View ids of ``names``: exact ids, file names (``DJI_0019.png`` for ``DJI_0019``), paths in a
+    rig's folders (``left/0001.jpg`` or ``left/0001`` for ``left_0001``) or LEVIR numbers (``8`` for ``008``). ``InputError`` naming ``where`` lists any name not in the scene."""
     from .images import IMAGE_EXTS
 
     known = set(ids)
@@ -253,7 +253,8 @@ def match_names(names: Iterable[str | int], ids: Sequence[str], where: str | Pat
     for n in names:
         s = str(n).strip()
         p = Path(s)
-        cands = [s, p.stem if p.suffix.lower() in IMAGE_EXTS else s, _norm_id(s)]
+        cands = [s, p.stem if p.suffix.lower() in IMAGE_EXTS else s, _norm_id(s),
+                 path_id(s) if p.suffix.lower() in IMAGE_EXTS else s.replace("\\", "/").replace("/", "_")]
         hit = next((c for c in cands if c in known), None)
         if hit is None:
             bad.append(s)
@@ -336,6 +337,28 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
     if not train:
         raise InputError(root, "the split leaves no training view")
     return train, test, " + ".join(src)
+
+
+def path_id(name: str) -> str:
+    """An image's path within its image folder, without the extension, folders joined by ``_``
+    (``left/0001.jpg`` -> ``left_0001``): the view id when file names repeat across folders."""
+    p = PurePosixPath(name.replace("\\", "/"))
+    return "_".join(p.parent.parts + (p.stem,))
+
+
+def view_ids(names: Sequence[str]) -> dict[str, str]:
+    """The view id of each image name of a model (names relative to its image folder): the file's
+    stem (``DJI_0019.png`` -> ``DJI_0019``), or, when stems repeat (a camera rig writing the same
+    file names into a folder per camera), :func:`path_id` for every view. ``ValueError`` names two
+    images that still share an id."""
+    stems = [PurePosixPath(n.replace("\\", "/")).stem for n in names]
+    ids = stems if len(set(stems)) == len(stems) else [path_id(n) for n in names]
+    seen: dict[str, str] = {}
+    for n, i in zip(names, ids):
+        if i in seen:
+            raise ValueError(f"images {seen[i]} and {n} share the view id {i!r}")
+        seen[i] = n
+    return dict(zip(names, ids))
 
 
 def _norm_id(i: str | int) -> str:

@@ -108,3 +108,40 @@ def test_zero_distortion_loads_and_fisheye_is_refused(tmp_path):
     rec.write_binary(str(model))
     with pytest.raises(InputError, match="OPENCV_FISHEYE is a fisheye model.*image_undistorter"):
         read_colmap_scene(root)
+
+def test_a_camera_rigs_folders_of_like_named_photos(tmp_path):
+    """A rig writing the same file names into a folder per camera (left/0001.png, right/0001.png):
+    every view is named by its path (left_0001), split.json may name them either way, and the add-on's
+    description names them alike; names that still collide are one error naming the model."""
+    import json
+
+    from dibrgs_core.bridge.describe import describe_scene
+
+    views, _ = make_views()
+    cams = [v.camera for v in views.values()][:6]
+    images = [v.image for v in views.values()][:6]
+    rig = [f"{side}/{k:04d}" for side in ("left", "right") for k in range(3)]
+    for c, name in zip(cams, rig):
+        c.name = name
+    root = tmp_path / "rig"
+    write_colmap_model(cams, root / "sparse" / "0")
+    for name, img in zip(rig, images):
+        write_png(root / "images" / f"{name}.png", img)
+    (root / "split.json").write_text(json.dumps({"train": ["left/0000.png", "right/0001", "left_0002"],
+                                                 "test": ["right/0002.png"]}))
+    s = read_colmap_scene(root)
+    assert list(s.views) == [n.replace("/", "_") for n in rig]
+    assert sorted(s.train) == ["left_0000", "left_0002", "right_0001"]
+    assert s.test == ["right_0002"]
+    for name, img in zip(rig, images):
+        assert np.abs(s.views[name.replace("/", "_")].image - img).max() < 1 / 255
+    desc = describe_scene(root)
+    assert [v["name"] for v in desc["views"]] == list(s.views) and set(desc["train"]) == set(s.train)
+    # a file name that is unique keeps its plain stem; paths that still collide are an error
+    (root / "images" / "left_0000.png").write_bytes((root / "images" / "left" / "0000.png").read_bytes())
+    cams[1].name = "left_0000"
+    shutil.rmtree(root / "sparse")
+    write_colmap_model(cams, root / "sparse" / "0")
+    for read in (read_colmap_scene, describe_scene):
+        with pytest.raises(InputError, match="images left/0000.png and left_0000.png share the view id 'left_0000'"):
+            read(root)
