@@ -1,5 +1,5 @@
-"""Images and depth maps on disk: PNG/JPEG/TIFF images (Pillow), float32 depth as TIFF
-(tifffile) or EXR (OpenEXR). Writers are atomic. Never torch or bpy.
+"""Images and depth maps on disk: PNG/JPEG images (Pillow), TIFF images of 8, 16 or 32 bits,
+integer or float, any number of bands (tifffile), float32 depth as TIFF (tifffile) or EXR (OpenEXR). Writers are atomic. Never torch or bpy.
 
 Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded), turned upright by their
 EXIF orientation unless a reader asks for the stored pixel order (COLMAP); depth maps float32
@@ -18,6 +18,7 @@ from ..common.fileio import atomic_path
 log = logging.getLogger("dibrgs.images")
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+_TIFF_EXTS = (".tif", ".tiff")
 DEPTH_EXTS = (".tiff", ".tif", ".exr")
 
 
@@ -34,10 +35,66 @@ def exif_orientation(im) -> int:
     return o if 1 <= o <= 8 else 1
 
 
+def _tiff(path: Path, pixels: bool):
+    """A TIFF image's first image through tifffile (Pillow misreads 16-bit RGBA and cannot read float
+    TIFFs, both common in remote sensing): ((H, W, bands) array or None, (W, H), orientation tag)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            series = tf.series[0]
+            tag = tf.pages[0].tags.get(0x0112)
+            orientation = int(tag.value) if tag is not None and 1 <= int(tag.value) <= 8 else 1
+            axes, shape = series.axes, series.shape
+            if "Y" not in axes or "X" not in axes:
+                raise ValueError(f"no image axes in {axes}")
+            H, W = shape[axes.index("Y")], shape[axes.index("X")]
+            if not pixels:
+                return None, (W, H), orientation
+            a = series.asarray()
+    except FileNotFoundError:
+        raise InputError(path, "image file not found") from None
+    except (OSError, ValueError, IndexError, tifffile.TiffFileError) as e:
+        raise InputError(path, f"unreadable or truncated image ({e})") from None
+    # bands (samples, channels, pages) last, whatever order the file keeps them in
+    a = np.moveaxis(a, [axes.index("Y"), axes.index("X")], [0, 1]).reshape(H, W, -1)
+    return a, (W, H), orientation
+
+
+def _tiff_image(path: Path, orient: bool) -> np.ndarray:
+    """:func:`read_image` of a TIFF: the first three bands as RGB (one band: grey; two: grey and alpha),
+    integers scaled by their type's maximum, floats taken as values in [0, 1] (NaN, a usual no-data
+    value, as 0)."""
+    a, _, orientation = _tiff(path, pixels=True)
+    a = a[..., :3] if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, axis=2)
+    if a.dtype == bool:
+        a = a.astype(np.float32)
+    elif np.issubdtype(a.dtype, np.integer):
+        a = np.clip(a, 0, None).astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
+    else:
+        a = np.nan_to_num(a.astype(np.float32), nan=0.0, posinf=np.inf, neginf=0.0)
+        top = float(a.max(initial=0.0))
+        if not np.isfinite(top) or top > 1.0 + 1e-6:
+            raise InputError(path, f"floating-point image with values up to {top:g}; expected [0, 1] "
+                                   "(reflectance): rescale it, or save it as 8- or 16-bit")
+        a = np.clip(a, 0.0, 1.0)  # small negative reflectances (correction noise) are dark, not an error
+    return np.ascontiguousarray(_oriented(a, orientation) if orient else a)
+
+
+def _oriented(a: np.ndarray, orientation: int) -> np.ndarray:
+    """``a`` (H, W, ...) as a viewer shows it under EXIF/TIFF orientation 1-8 (as Pillow's exif_transpose)."""
+    return {1: lambda x: x, 2: lambda x: x[:, ::-1], 3: lambda x: x[::-1, ::-1], 4: lambda x: x[::-1],
+            5: lambda x: np.swapaxes(x, 0, 1), 6: lambda x: np.rot90(x, -1), 7: lambda x: np.swapaxes(x[::-1, ::-1], 0, 1),
+            8: lambda x: np.rot90(x, 1)}[orientation](a)
+
+
 def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
     """(width, height) from the image header, as displayed (EXIF orientation applied) with ``orient``."""
     from PIL import Image, UnidentifiedImageError
 
+    if Path(path).suffix.lower() in _TIFF_EXTS:
+        _, (w, h), orientation = _tiff(Path(path), pixels=False)
+        return (h, w) if orient and orientation in _TRANSPOSING else (w, h)
     try:
         with Image.open(path) as im:
             w, h = im.size
@@ -55,6 +112,8 @@ def read_image(path: str | Path, orient: bool = True) -> np.ndarray:
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     path = Path(path)
+    if path.suffix.lower() in _TIFF_EXTS:
+        return _tiff_image(path, orient)
     try:
         with Image.open(path) as im:
             im.load()  # decodes fully: truncated files fail here

@@ -266,3 +266,45 @@ def test_photos_of_different_sizes_are_each_read_at_their_own(tmp_path, capsys):
     assert main(["info", str(root)]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["resolution"] == [96, 64] and info["sizes"] == {"96x64": ["v0", "v2"], "64x96": ["v1"]}
+
+
+def test_tiff_photos_of_any_depth_and_band_layout(tmp_path):
+    """TIFF photos as remote sensing has them: 16-bit RGB and RGBA (Pillow gave RGBA values off by up to
+    0.98), band-sequential multi-band, 16-bit grey, float reflectance with NaN no-data; 8-bit TIFFs read
+    as Pillow read them, orientation tag included; a float image outside [0, 1] is an error naming it."""
+    import tifffile
+    from PIL import ImageOps
+
+    from dibrgs_core.data.images import image_size, read_image
+
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 65536, (20, 30, 4), dtype=np.uint16)
+    cases = {"rgb16.tif": (rgba[..., :3], {"photometric": "rgb"}),
+             "rgba16.tif": (rgba, {"photometric": "rgb", "extrasamples": ["unassalpha"]}),
+             "bands4.tif": (np.moveaxis(rgba, 2, 0), {"photometric": "minisblack", "planarconfig": "separate"}),
+             "grey16.tif": (rgba[..., 0], {"photometric": "minisblack"})}
+    for name, (data, kw) in cases.items():
+        tifffile.imwrite(tmp_path / name, data, **kw)
+        want = rgba[..., :3] if name != "grey16.tif" else np.repeat(rgba[..., :1], 3, axis=2)
+        got = read_image(tmp_path / name)
+        assert got.shape == (20, 30, 3) and np.abs(got - want / 65535.0).max() < 1e-6, name
+        assert image_size(tmp_path / name) == (30, 20)
+    refl = rng.random((20, 30, 3)).astype(np.float32)
+    refl[0, 0] = np.nan
+    refl[1, 1] = -0.002
+    tifffile.imwrite(tmp_path / "refl.tif", refl, photometric="rgb")
+    got = read_image(tmp_path / "refl.tif")
+    assert got[0, 0].tolist() == [0, 0, 0] and got[1, 1].tolist() == [0, 0, 0]
+    assert np.array_equal(got[2:], refl[2:])
+    tifffile.imwrite(tmp_path / "radiance.tif", refl * 300, photometric="rgb")
+    with pytest.raises(InputError, match="values up to 2.*expected \\[0, 1\\]") as e:
+        read_image(tmp_path / "radiance.tif")
+    assert e.value.path == tmp_path / "radiance.tif"
+    rgb8 = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    for o in range(1, 9):
+        f = tmp_path / f"o{o}.tif"
+        tifffile.imwrite(f, rgb8, photometric="rgb", extratags=[(274, "H", 1, o, True)])
+        with Image.open(f) as im:
+            pillow = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255.0
+        assert np.array_equal(read_image(f), pillow) and image_size(f) == pillow.shape[1::-1], o
+        assert np.array_equal(read_image(f, orient=False), rgb8 / np.float32(255))
