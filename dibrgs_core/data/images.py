@@ -1,5 +1,6 @@
 """Images and depth maps on disk: PNG/JPEG images (Pillow), TIFF images of 8, 16 or 32 bits,
-integer or float, any number of bands (tifffile), float32 depth as TIFF (tifffile) or EXR (OpenEXR). Writers are atomic. Never torch or bpy.
+integer or float, any number of bands (tifffile), float32 depth as TIFF (tifffile) or EXR
+(OpenEXR). Writers are atomic. Never torch or bpy.
 
 Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded), turned upright by their
 EXIF orientation unless a reader asks for the stored pixel order (COLMAP); depth maps float32
@@ -37,13 +38,16 @@ def exif_orientation(im) -> int:
 
 def _tiff(path: Path, pixels: bool):
     """A TIFF image's first image through tifffile (Pillow misreads 16-bit RGBA and cannot read float
-    TIFFs, both common in remote sensing): ((H, W, bands) array or None, (W, H), orientation tag)."""
+    TIFFs, both common in remote sensing): ((H, W, bands) array, (W, H), orientation tag). The array
+    is None without ``pixels``, and when its compression needs the imagecodecs package (LZW, JPEG,
+    ...), which needs numpy 2 (bpy needs numpy 1) and is not a dependency: :func:`_tiff_image` then
+    reads it with Pillow where Pillow reads it right."""
     import tifffile
 
     try:
         with tifffile.TiffFile(path) as tf:
-            series = tf.series[0]
-            tag = tf.pages[0].tags.get(0x0112)
+            series, page = tf.series[0], tf.pages[0]
+            tag = page.tags.get(0x0112)
             orientation = int(tag.value) if tag is not None and 1 <= int(tag.value) <= 8 else 1
             axes, shape = series.axes, series.shape
             if "Y" not in axes or "X" not in axes:
@@ -51,7 +55,17 @@ def _tiff(path: Path, pixels: bool):
             H, W = shape[axes.index("Y")], shape[axes.index("X")]
             if not pixels:
                 return None, (W, H), orientation
-            a = series.asarray()
+            try:
+                a = series.asarray()
+            except ValueError as e:
+                if "imagecodecs" not in str(e):
+                    raise
+                # 8-bit images of 1 to 4 bands and 16-bit grey are what Pillow reads right
+                if page.bitspersample == 8 or (page.bitspersample == 16 and page.samplesperpixel == 1):
+                    return None, (W, H), orientation
+                raise InputError(path, f"{page.compression.name}-compressed {page.bitspersample}-bit TIFF of "
+                                       f"{page.samplesperpixel} bands: tifffile needs the imagecodecs package for "
+                                       "it and Pillow misreads it; save it uncompressed or deflate-compressed") from None
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None
     except (OSError, ValueError, IndexError, tifffile.TiffFileError) as e:
@@ -66,6 +80,8 @@ def _tiff_image(path: Path, orient: bool) -> np.ndarray:
     integers scaled by their type's maximum, floats taken as values in [0, 1] (NaN, a usual no-data
     value, as 0)."""
     a, _, orientation = _tiff(path, pixels=True)
+    if a is None:
+        return _pillow_image(path, orient)
     a = a[..., :3] if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, axis=2)
     if a.dtype == bool:
         a = a.astype(np.float32)
@@ -84,8 +100,8 @@ def _tiff_image(path: Path, orient: bool) -> np.ndarray:
 def _oriented(a: np.ndarray, orientation: int) -> np.ndarray:
     """``a`` (H, W, ...) as a viewer shows it under EXIF/TIFF orientation 1-8 (as Pillow's exif_transpose)."""
     return {1: lambda x: x, 2: lambda x: x[:, ::-1], 3: lambda x: x[::-1, ::-1], 4: lambda x: x[::-1],
-            5: lambda x: np.swapaxes(x, 0, 1), 6: lambda x: np.rot90(x, -1), 7: lambda x: np.swapaxes(x[::-1, ::-1], 0, 1),
-            8: lambda x: np.rot90(x, 1)}[orientation](a)
+            5: lambda x: np.swapaxes(x, 0, 1), 6: lambda x: np.rot90(x, -1),
+            7: lambda x: np.swapaxes(x[::-1, ::-1], 0, 1), 8: lambda x: np.rot90(x, 1)}[orientation](a)
 
 
 def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
@@ -109,11 +125,15 @@ def read_image(path: str | Path, orient: bool = True) -> np.ndarray:
     With ``orient`` the EXIF orientation of a photo is applied (the image as a viewer shows it);
     ``orient=False`` keeps the stored pixel order (what COLMAP reconstructs from).
     """
-    from PIL import Image, ImageOps, UnidentifiedImageError
-
     path = Path(path)
     if path.suffix.lower() in _TIFF_EXTS:
         return _tiff_image(path, orient)
+    return _pillow_image(path, orient)
+
+
+def _pillow_image(path: Path, orient: bool) -> np.ndarray:
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
     try:
         with Image.open(path) as im:
             im.load()  # decodes fully: truncated files fail here

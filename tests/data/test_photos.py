@@ -3,6 +3,7 @@ pycolmap, cached by content), JPEG with an EXIF rotation, any aspect ratio, phot
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -300,7 +301,23 @@ def test_tiff_photos_of_any_depth_and_band_layout(tmp_path):
     with pytest.raises(InputError, match="values up to 2.*expected \\[0, 1\\]") as e:
         read_image(tmp_path / "radiance.tif")
     assert e.value.path == tmp_path / "radiance.tif"
+    # LZW (as most GeoTIFFs): tifffile needs imagecodecs (numpy 2 only), so Pillow reads what it reads right
+    grey16 = rgba[..., 0]
+    Image.fromarray(grey16).save(tmp_path / "grey16_lzw.tif", compression="tiff_lzw")
+    assert np.array_equal(read_image(tmp_path / "grey16_lzw.tif")[..., 1] * np.float32(65535), grey16)
     rgb8 = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    Image.fromarray(rgb8).save(tmp_path / "rgb8_lzw.tif", compression="tiff_lzw")
+    assert np.array_equal(read_image(tmp_path / "rgb8_lzw.tif"), rgb8 / np.float32(255))
+    # ... and what Pillow would misread is an error that says what to do (the tag says LZW)
+    f = tmp_path / "rgba16_lzw.tif"
+    shutil.copy(tmp_path / "rgba16.tif", f)
+    with tifffile.TiffFile(f) as tf:
+        at = tf.pages[0].tags["Compression"].valueoffset
+    with open(f, "r+b") as fh:
+        fh.seek(at)
+        fh.write((5).to_bytes(2, "little"))
+    with pytest.raises(InputError, match="LZW-compressed 16-bit TIFF of 4 bands: .*save it uncompressed"):
+        read_image(f)
     for o in range(1, 9):
         f = tmp_path / f"o{o}.tif"
         tifffile.imwrite(f, rgb8, photometric="rgb", extratags=[(274, "H", 1, o, True)])
