@@ -143,8 +143,9 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
         p = acc.psnr()
         n_seen = acc.n["one"] + acc.n["two_plus"]
         seen = acc.seen_psnr()
-        runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": list(dict.fromkeys(
-                     (f.cam.cam.width, f.cam.cam.height) for f in test)), "psnr": float(np.mean(list(per_view.values()))),
+        sizes = list(dict.fromkeys((f.cam.cam.width, f.cam.cam.height) for f in test))  # each size once
+        runs.append({"work": str(w), "method": t.method, "preset": t.cfg.preset, "resolution": sizes,
+                     "psnr": float(np.mean(list(per_view.values()))),
                      "seen": seen, "groups": p, "per_view": per_view, "fractions": acc.fractions(),
                      "seen_fraction": n_seen / max(acc.n["all"], 1)})
     vis = ({"reference": str(reference), "plane": {"normal": normal.tolist(), "offset": offset}}

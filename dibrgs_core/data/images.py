@@ -64,8 +64,9 @@ def _tiff(path: Path, pixels: bool):
                 if page.bitspersample == 8 or (page.bitspersample == 16 and page.samplesperpixel == 1):
                     return None, (W, H), orientation
                 raise InputError(path, f"{page.compression.name}-compressed {page.bitspersample}-bit TIFF of "
-                                       f"{page.samplesperpixel} bands: tifffile needs the imagecodecs package for "
-                                       "it and Pillow misreads it; save it uncompressed or deflate-compressed") from None
+                                       f"{page.samplesperpixel} bands: tifffile needs the imagecodecs package "
+                                       "for it and Pillow misreads it; save it uncompressed or "
+                                       "deflate-compressed") from None
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None
     except (OSError, ValueError, IndexError, tifffile.TiffFileError) as e:

@@ -245,7 +245,8 @@ def default_split(ids: Sequence[str], n_train: int = 3) -> tuple[list[str], list
 
 def match_names(names: Iterable[str | int], ids: Sequence[str], where: str | Path | None, what: str) -> list[str]:
     """View ids of ``names``: exact ids, file names (``DJI_0019.png`` for ``DJI_0019``), paths in a
-    rig's folders (``left/0001.jpg`` or ``left/0001`` for ``left_0001``) or LEVIR numbers (``8`` for ``008``). ``InputError`` naming ``where`` lists any name not in the scene."""
+    rig's folders (``left/0001.jpg`` or ``left/0001`` for ``left_0001``) or LEVIR numbers (``8``
+    for ``008``). ``InputError`` naming ``where`` lists any name not in the scene."""
     from .images import IMAGE_EXTS
 
     known = set(ids)

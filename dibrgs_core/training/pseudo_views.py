@@ -293,7 +293,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
             if filtered:
                 dropped_warped += 1
                 continue
-            thin.append(cam.name)
+            thin.append(cam.name or f"pose {tried - 1}")
         pv.camera.name = f"pseudo_{len(out):03d}" if filtered else cam.name
         fname = f"view_{len(out):03d}.npz"
         _save_view(cache_dir / fname, pv)

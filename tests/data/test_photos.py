@@ -257,7 +257,8 @@ def test_photos_of_different_sizes_are_each_read_at_their_own(tmp_path, capsys):
     write_colmap_model(cams, root / "sparse" / "0")
     (root / "images").mkdir()
     for c in cams:
-        Image.fromarray(np.round(pattern(c.width, c.height) * 255).astype(np.uint8)).save(root / "images" / f"{c.name}.png")
+        photo = np.round(pattern(c.width, c.height) * 255).astype(np.uint8)
+        Image.fromarray(photo).save(root / "images" / f"{c.name}.png")
     scene = read_colmap_scene(root)
     for c in cams:
         v = scene.views[c.name]
