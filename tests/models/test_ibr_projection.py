@@ -29,8 +29,9 @@ def _views(W: int = 70, H: int = 52, V: int = 3):
     return ring_views(W, H, V)
 
 
-def _ibr(encoder: str, W: int = 70, H: int = 52) -> tuple[IBRFeatures, list[Camera]]:
-    images, cams = _views(W, H)
+def _ibr(encoder: str, W: int = 70, H: int = 52, views=None) -> tuple[IBRFeatures, list[Camera]]:
+    """IBR features of ``views`` ((images, cameras); default :func:`_views`) with P moved off its init."""
+    images, cams = views if views is not None else _views(W, H)
     kw = {}
     if encoder == "dino":
         torch.manual_seed(0)
@@ -125,18 +126,7 @@ def test_views_of_different_sizes_each_keep_their_own(encoder):
     """Photos of several sizes (a portrait one among landscape ones, a third size): each view's
     maps have its own size and the factorised path still equals the definition."""
     (a, ca), (b, cb), (c, cc) = (ring_views(W, H, 3) for W, H in ((70, 52), (52, 70), (41, 33)))
-    images = [a[0], b[1], a[2], c[0]]
-    cams = [ca[0], cb[1], ca[2], cc[0]]
-    kw = {}
-    if encoder == "dino":
-        torch.manual_seed(0)
-        kw = {"resnet": ResNetFeatures((1, 1, 1, 1), width=4),
-              "vit": ViTFeatures(patch=8, dim=64, depth=2, heads=4, img_size=32)}
-    ibr = IBRFeatures(encoder, images, cams, c_r=8, **kw)
-    torch.manual_seed(3)
-    with torch.no_grad():
-        for p in ibr.projection_parameters():
-            p.add_(0.3 * torch.randn_like(p))
+    ibr, cams = _ibr(encoder, views=([a[0], b[1], a[2], c[0]], [ca[0], cb[1], ca[2], cc[0]]))
     assert [tuple(m.shape) for m in ibr.feature_maps()] == [(8, 26, 35), (8, 35, 26), (8, 26, 35), (8, 16, 20)]
     # and the border cases of the other sizes (not those exactly on u = 0, where float32 and float64
     # projections may fall either side)
@@ -146,7 +136,7 @@ def test_views_of_different_sizes_each_keep_their_own(encoder):
     assert (old.abs().sum(1) > 0).sum() > 300
     assert torch.allclose(new, old, atol=2e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="camera '001' is 52x70, its image 70x52"):
-        IBRFeatures(encoder, [a[0], a[1]], [ca[0], cb[1]], c_r=8, **kw)
+        _ibr(encoder, views=([a[0], a[1]], [ca[0], cb[1]]))
 
 
 def test_rows_follow_growth_and_pruning(monkeypatch):
