@@ -7,7 +7,8 @@ views ... between existing cameras". Real acquisitions are not all circles:
   the generated scenes; an oblique orbit round a site);
 * ``strips``: the camera centres lie on one straight line (a corridor, or one
   photo from each strip of a mapping flight: then the cameras face across the
-  line, and the strips run along their headings) or on parallel straight lines
+  line, at least two thirds of them, and the strips run along their headings)
+  or on parallel straight lines
   with at least two cameras each (a mapping grid);
 * ``free``: anything else.
 
@@ -231,23 +232,29 @@ def _neighbour_pairs(P: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _headings_across(cams: Sequence[Camera], F: np.ndarray, d: np.ndarray,
-                     scene_depth: float | None) -> list[np.ndarray] | None:
-    """For cameras on one line (horizontal direction ``d`` in frame ``F``): when every camera's
-    heading (its image up, horizontal) is within 30 degrees of square to the line, the world vector
-    from each camera to half its image's ground extent ahead (``scene_depth`` x half the image
-    height over the focal length); else None (no depth known either)."""
+                     scene_depth: float | None) -> tuple[list[np.ndarray], int] | None:
+    """For cameras on one line (horizontal direction ``d`` in frame ``F``): when at least two thirds of
+    them face across it (heading = image up, horizontal, within 30 degrees of square to the line), the
+    world vector from each camera to half its image's ground extent ahead (``scene_depth`` x half the
+    image's extent along the heading over its focal length), and how many faced across; else None (no
+    depth known either). The strips of a flight are parallel, so a camera that does not face across
+    (a photo stored turned a quarter) takes the heading square to the line."""
     if not scene_depth or not np.isfinite(scene_depth) or scene_depth <= 0:
         return None
-    out = []
+    square = np.array([-d[1], d[0]])
+    out, facing = [], 0
     for c in cams:
-        h = (-c.R[1]) @ F.T  # image up in (e1, e2, up)
-        hh = h[:2]
+        hh = ((-c.R[1]) @ F.T)[:2]  # image up in (e1, e2)
         norm = float(np.linalg.norm(hh))
-        if norm < 0.5 or abs(float(hh @ d)) / norm > np.sin(np.radians(30.0)):
-            return None
-        reach = 0.5 * c.height / float(c.K[1, 1]) * scene_depth
-        out.append((np.array([hh[0], hh[1], 0.0]) / norm) @ F * reach)
-    return out
+        faces = norm >= 0.5 and abs(float(hh @ d)) / norm <= np.sin(np.radians(30.0))
+        facing += faces
+        head = hh / norm if faces else square
+        # the image's half extent along the heading: its height where image up points that way
+        right = (c.R[0] @ F.T)[:2]
+        along_up = abs(float(head @ hh)) >= abs(float(head @ right))
+        half = 0.5 * c.height / float(c.K[1, 1]) if along_up else 0.5 * c.width / float(c.K[0, 0])
+        out.append(np.array([head[0], head[1], 0.0]) @ F * (half * scene_depth))
+    return (out, facing) if 3 * facing >= 2 * len(cams) else None
 
 
 def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float = 0.5,
@@ -287,15 +294,18 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
         why = (f"the {n} camera centres lie on one straight line (RMS offset {across:.3g}, "
                f"{100 * across / max(along, 1e-300):.1f}% of their spread {along:.3g} along it)")
         segs = _segments_along([line], P, extend)
-        across_strips = _headings_across(cams, F, d, scene_depth)
-        if across_strips is not None:
+        headings = _headings_across(cams, F, d, scene_depth)
+        if headings is not None:
             # One photo from each strip of a mapping flight: the strips run along the cameras'
             # heading, across this line; poses along them get as many draws as those across.
+            across_strips, facing = headings
             heads_len = sum(2.0 * float(np.linalg.norm(v)) for v in across_strips)  # t from -1 to 1
             w = sum(sg.length(C) for sg in segs) / max(heads_len, 1e-300)
             segs += [Segment(i, i, -1.0, 1.0, direction=v, weight=w) for i, v in enumerate(across_strips)]
-            why += ("; each camera faces across it (image up within 30 deg of square to it): one photo a "
-                    "strip, poses also along each camera's heading")
+            who = "each camera faces" if facing == n else f"{facing} of the {n} cameras face"
+            why += (f"; {who} across it (image up within 30 deg of square to it): one photo a strip, poses "
+                    "also along each camera's heading"
+                    + ("" if facing == n else " (square to the line for the others)"))
         return Trajectory("strips", why, up, spacing, lines=[line], segments=segs)
     orbit = fit_orbit(cams, up)
     is_orbit, why_orbit = _orbit_evidence(cams, orbit, F, P)

@@ -124,6 +124,20 @@ def test_one_photo_per_strip_also_samples_along_the_strips():
     corridor = [nadir(0.0, y) for y in (0.0, 1.6, 3.2)]
     assert all(sg.direction is None for sg in classify(corridor, scene_depth=5.3).segments)
     assert all(sg.direction is None for sg in classify(cams).segments)
+    # A photo stored turned a quarter (its image up along the line): the other two decide, and its
+    # heading is square to the line, as far as its image's width reaches.
+    turned = [cams[0], nadir(-0.13, 2.50, yaw_deg=90.0, name="b"), cams[2]]
+    t = classify(turned, scene_depth=5.3)
+    assert "one photo a strip" in t.reason and "2 of the 3 cameras face" in t.reason
+    heads = [sg.direction for sg in t.segments if sg.direction is not None]
+    assert len(heads) == 3 and np.allclose(heads[0], [0.0, reach, 0.0]) and np.allclose(heads[2], [0.0, reach, 0.0])
+    line = np.array(t.lines[0])
+    along = C[line[-1]] - C[line[0]]
+    assert np.isclose(np.linalg.norm(heads[1]), 0.5 * 320 / 300.0 * 5.3) and heads[1][2] == 0.0
+    assert abs(heads[1] @ along) < 0.05 * np.linalg.norm(heads[1]) * np.linalg.norm(along)  # square to the line
+    # two of three turned look like a corridor's cameras: no headings
+    two = [cams[0], nadir(-0.13, 2.50, yaw_deg=90.0), nadir(2.81, 2.42, yaw_deg=-90.0)]
+    assert all(sg.direction is None for sg in classify(two, scene_depth=5.3).segments)
 
 
 def test_a_mapping_grid_is_parallel_strips():
