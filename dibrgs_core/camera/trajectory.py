@@ -233,26 +233,23 @@ def _neighbour_pairs(P: np.ndarray) -> list[tuple[int, int]]:
 
 def _headings_across(cams: Sequence[Camera], F: np.ndarray, d: np.ndarray,
                      scene_depth: float | None) -> tuple[list[np.ndarray], int] | None:
-    """For cameras on one line (horizontal direction ``d`` in frame ``F``): when at least two thirds of
-    them face across it (heading = image up, horizontal, within 30 degrees of square to the line), the
-    world vector from each camera to half its image's ground extent ahead (``scene_depth`` x half the
-    image's extent along the heading over its focal length), and how many faced across; else None (no
-    depth known either). The strips of a flight are parallel, so a camera that does not face across
-    (a photo stored turned a quarter) takes the heading square to the line."""
+    """For cameras on one line (horizontal direction ``d`` in frame ``F``): when two thirds of them face
+    across it (heading = image up, horizontal, within 30 degrees of square to the line), the world vector
+    from each camera to half its image's ground extent along its heading (``scene_depth`` x its half
+    extent that way over the focal length) and how many faced; else None (no depth known either). Strips
+    are parallel: a camera not facing across (a photo stored turned) takes the heading square to the line."""
     if not scene_depth or not np.isfinite(scene_depth) or scene_depth <= 0:
         return None
-    square = np.array([-d[1], d[0]])
     out, facing = [], 0
     for c in cams:
-        hh = ((-c.R[1]) @ F.T)[:2]  # image up in (e1, e2)
+        hh, right = ((-c.R[1]) @ F.T)[:2], (c.R[0] @ F.T)[:2]  # image up and right in (e1, e2)
         norm = float(np.linalg.norm(hh))
         faces = norm >= 0.5 and abs(float(hh @ d)) / norm <= np.sin(np.radians(30.0))
         facing += faces
-        head = hh / norm if faces else square
+        head = hh / norm if faces else np.array([-d[1], d[0]])
         # the image's half extent along the heading: its height where image up points that way
-        right = (c.R[0] @ F.T)[:2]
-        along_up = abs(float(head @ hh)) >= abs(float(head @ right))
-        half = 0.5 * c.height / float(c.K[1, 1]) if along_up else 0.5 * c.width / float(c.K[0, 0])
+        up = abs(float(head @ hh)) >= abs(float(head @ right))
+        half = 0.5 * c.height / float(c.K[1, 1]) if up else 0.5 * c.width / float(c.K[0, 0])
         out.append(np.array([head[0], head[1], 0.0]) @ F * (half * scene_depth))
     return (out, facing) if 3 * facing >= 2 * len(cams) else None
 
@@ -302,10 +299,10 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
             heads_len = sum(2.0 * float(np.linalg.norm(v)) for v in across_strips)  # t from -1 to 1
             w = sum(sg.length(C) for sg in segs) / max(heads_len, 1e-300)
             segs += [Segment(i, i, -1.0, 1.0, direction=v, weight=w) for i, v in enumerate(across_strips)]
-            who = "each camera faces" if facing == n else f"{facing} of the {n} cameras face"
+            who, rest = ("each camera faces", "") if facing == n else (f"{facing} of the {n} cameras face",
+                                                                     " (square to the line for the others)")
             why += (f"; {who} across it (image up within 30 deg of square to it): one photo a strip, poses "
-                    "also along each camera's heading"
-                    + ("" if facing == n else " (square to the line for the others)"))
+                    f"also along each camera's heading{rest}")
         return Trajectory("strips", why, up, spacing, lines=[line], segments=segs)
     orbit = fit_orbit(cams, up)
     is_orbit, why_orbit = _orbit_evidence(cams, orbit, F, P)
