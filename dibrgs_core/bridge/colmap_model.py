@@ -6,9 +6,9 @@ posed pinhole cameras, so this module parses the two documented file formats
 (https://colmap.github.io/format.html) itself. ``tests/bridge/test_bridge.py``
 checks it against pycolmap on text and binary models.
 
-Like pycolmap's ``Reconstruction``, the binary model is read when
-``cameras.bin``, ``images.bin`` and ``points3D.bin`` all exist, else the text
-model; the points themselves are not read.
+As the library reads it, the binary model is read when ``cameras.bin`` and
+``images.bin`` exist, else the text model; ``points3D`` may be missing (the
+points themselves are not read).
 """
 from __future__ import annotations
 
@@ -84,10 +84,10 @@ class ColmapImage:
 
 def model_format(model_dir: Path) -> str:
     """``"bin"`` or ``"txt"``, the files pycolmap would read; InputError naming a missing file."""
-    for ext in ("bin", "txt"):
-        if all((model_dir / f"{stem}.{ext}").is_file() for stem in ("cameras", "images", "points3D")):
+    for ext in ("bin", "txt"):  # points3D may be absent: nothing here reads it
+        if all((model_dir / f"{stem}.{ext}").is_file() for stem in ("cameras", "images")):
             return ext
-    for stem in ("cameras", "images", "points3D"):
+    for stem in ("cameras", "images"):
         if not any((model_dir / f"{stem}.{e}").is_file() for e in ("bin", "txt")):
             raise InputError(model_dir / f"{stem}.bin", "COLMAP model file missing")
     raise InputError(model_dir, "COLMAP model mixes .bin and .txt files")

@@ -6,26 +6,28 @@ Accepted layouts (the first that holds ``cameras.bin`` or ``cameras.txt`` wins):
     ROOT/sparse/{cameras,images,points3D}.{bin,txt}     + ROOT/images/<name>
     ROOT/{cameras,images,points3D}.{bin,txt}            + ROOT/images/<name>
 
+``points3D`` may be missing (a model of known cameras and poses only): its points are never used.
+
 COLMAP poses are world-to-camera with OpenCV axes and pixel centres at +0.5,
 the project's own convention, so they are taken over unchanged. Pinhole
 cameras are used as they are; ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and
 ``FULL_OPENCV`` cameras with distortion are undistorted on load
-(:mod:`.undistort`: pycolmap, cached); fisheye models are refused. When the
-undistorted photos of several cameras differ in size by a few pixels, all are
-cropped about their centres to the common size (the principal point moves with
-the crop, so the pinholes stay exact).
+(:mod:`.undistort`: pycolmap, cached); fisheye models are refused.
 
-Photos: JPEG, PNG or TIFF, any aspect ratio. COLMAP reconstructs from the
+Photos: JPEG, PNG or TIFF, any aspect ratio, of any sizes (each view keeps its own). COLMAP reconstructs from the
 stored pixel order and ignores EXIF orientation, so the stored order is used
 when it matches the camera's size; a photo that matches only when turned
 upright (a model made from rotated copies) is turned upright.
 
-View ids are the image file stems; the split comes from ``--train``/``--test``,
+View ids are the image file stems (a rig's like-named photos in folders of their own: their paths,
+:func:`~dibrgs_core.data.scene.view_ids`); the split comes from ``--train``/``--test``,
 ``split.json`` or :func:`~dibrgs_core.data.scene.default_split`.
 """
 from __future__ import annotations
 
 import logging
+import shutil
+import struct
 from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -65,14 +67,32 @@ def _load(root: str | Path):
     model_dir = find_colmap_model(root)
     if model_dir is None:
         raise InputError(root, "no COLMAP model (cameras.bin/.txt in sparse/0, sparse/ or the folder)")
-    for stem in ("images", "points3D"):
-        if not any((model_dir / f"{stem}{e}").is_file() for e in (".bin", ".txt")):
-            raise InputError(model_dir / f"{stem}.bin", "COLMAP model file missing")
+    if not any((model_dir / f"images{e}").is_file() for e in (".bin", ".txt")):
+        raise InputError(model_dir / "images.bin", "COLMAP model file missing")
     try:
-        rec = pycolmap.Reconstruction(str(model_dir))
+        if any((model_dir / f"points3D{e}").is_file() for e in (".bin", ".txt")):
+            return pycolmap.Reconstruction(str(model_dir)), model_dir
+        return _without_points(model_dir), model_dir
     except Exception as e:  # pycolmap raises plain exceptions for corrupt models
         raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
-    return rec, model_dir
+
+
+def _without_points(model_dir: Path):
+    """A model of cameras and poses only (no points3D file: COLMAP's FAQ writes an empty one for
+    known poses, not every exporter does; the pipeline triangulates its own points), read by
+    pycolmap through a copy with an empty points file."""
+    import tempfile
+
+    import pycolmap
+
+    ext = ".bin" if (model_dir / "cameras.bin").is_file() else ".txt"
+    with tempfile.TemporaryDirectory(prefix="dibrgs-colmap-") as tmp:
+        for stem in ("cameras", "images", "rigs", "frames"):
+            if (model_dir / f"{stem}{ext}").is_file():
+                shutil.copyfile(model_dir / f"{stem}{ext}", Path(tmp) / f"{stem}{ext}")
+        (Path(tmp) / f"points3D{ext}").write_bytes(struct.pack("<Q", 0) if ext == ".bin" else b"")
+        log.info("%s: no points3D file, read without points (the SfM stage triangulates its own)", model_dir)
+        return pycolmap.Reconstruction(tmp)
 
 
 def _cameras(rec, model_dir: Path) -> list[tuple[Camera, str]]:

@@ -145,3 +145,23 @@ def test_a_camera_rigs_folders_of_like_named_photos(tmp_path):
     for read in (read_colmap_scene, describe_scene):
         with pytest.raises(InputError, match="images left/0000.png and left_0000.png share the view id 'left_0000'"):
             read(root)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_model_of_cameras_and_poses_only(tmp_path, binary):
+    """No points3D file (known cameras and poses, as some exporters write them): read as the model
+    with its points, by the library and by the add-on's description alike; images still required."""
+    from dibrgs_core.bridge.describe import describe_scene
+
+    root = colmap_dir(tmp_path / "c", binary)
+    full = read_colmap_scene(root)
+    (root / "sparse" / "0" / ("points3D.bin" if binary else "points3D.txt")).unlink()
+    bare = read_colmap_scene(root)
+    assert list(bare.views) == list(full.views)
+    for k in full.views:
+        assert np.array_equal(bare.views[k].camera.w2c, full.views[k].camera.w2c)
+        assert np.array_equal(bare.views[k].camera.K, full.views[k].camera.K)
+    assert [v["name"] for v in describe_scene(root)["views"]] == list(full.views)
+    (root / "sparse" / "0" / ("images.bin" if binary else "images.txt")).unlink()
+    with pytest.raises(InputError, match="COLMAP model file missing"):
+        read_colmap_scene(root)
