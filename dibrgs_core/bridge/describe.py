@@ -22,7 +22,6 @@ Bad input raises :class:`~dibrgs_core.common.errors.InputError` naming the file.
 """
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +30,7 @@ from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
 from ..data.scene import in_local_frame, make_split, validate_camera_arrays, view_ids
-from ..data.levir import check_sizes, paired_files, read_cams_file
+from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from .colmap_model import read_model
 from .imagesize import image_size
 
@@ -69,12 +68,7 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]
     images, cams = paired_files(img_dir, cam_dir)
     views = {stem: read_cams_file(cams[stem], size=image_size(images[stem])) for stem in sorted(images)}
     check_sizes(views, images, cams)  # each photo at its own size
-    track = []
-    if (root / "Track").is_dir():
-        # as the library's reader: the photos' most common size
-        size = Counter((c.width, c.height) for c in views.values()).most_common(1)[0][0]
-        track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
-                 if not p.name.startswith(".")]
+    track = read_track(root, views)
     return views, {k: images[k] for k in views}, track
 
 

@@ -178,11 +178,7 @@ def _read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray
     undistorted when ``distorted``."""
     if distorted:
         return undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented)).image
-    image = read_image(path, orient=oriented)
-    if image.shape[:2] != (ccam.height, ccam.width):
-        raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
-                               f"{ccam.width}x{ccam.height}")
-    return image
+    return read_image(path, orient=oriented)  # its size is checked against its camera by the caller
 
 
 def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool = True,

@@ -232,20 +232,27 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
                 raise InputError(dp, f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image "
                                      f"{images[stem].name} is {w}x{h}")
         views[stem] = View(camera=cam, image=pixels, depth=depth)
-    track = []
-    sizes = Counter((c.width, c.height) for c in cameras.values())
-    size = sizes.most_common(1)[0][0]  # a track camera renders at the photos' (most common) size
-    if (root / "Track").is_dir():
-        track = [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt"))
-                 if not p.name.startswith(".")]
+    track = read_track(root, cameras)
     try:
         train, test, source = make_split(root, list(views), train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
+    scene = Scene(root=root, views=views, track=track, train=train, test=test, split_source=source)
+    sizes = scene.sizes()
+    (w, h), others = next(iter(sizes)), len(sizes) - 1
     log.info("read %s: %d views %dx%d%s, train %s, %d test (split: %s), %d track cameras%s", root, len(views),
-             size[0], size[1], f" (and {len(sizes) - 1} other sizes)" if len(sizes) > 1 else "", train, len(test),
-             source, len(track), ", with depth" if use_depth else "")
-    return Scene(root=root, views=views, track=track, train=train, test=test, split_source=source)
+             w, h, f" (and {others} other sizes)" if others else "", train, len(test), source, len(track),
+             ", with depth" if use_depth else "")
+    return scene
+
+
+def read_track(root: Path, cameras: dict[str, Camera]) -> list[Camera]:
+    """The render-path cameras of ``ROOT/Track/`` (none without the folder), at the size of the
+    scene's photos ``cameras`` (the most common one): a Cams file holds no size."""
+    if not (root / "Track").is_dir():
+        return []
+    size = Counter((c.width, c.height) for c in cameras.values()).most_common(1)[0][0]
+    return [read_cams_file(p, size=size) for p in sorted((root / "Track").glob("*.txt")) if not p.name.startswith(".")]
 
 
 def write_scene(root: str | Path, views: dict[str, View] | Iterable[View], track: Iterable[Camera] = ()) -> Path:
