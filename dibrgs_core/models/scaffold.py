@@ -14,6 +14,9 @@ and ``k`` learned offsets ``O``) spawns ``k`` neural Gaussians per view:
   with ``g = E_mod(f_v) = sigmoid(Linear(f_v))``, its bias initialised to -5 so the
   reference feature enters gently.
 
+Fusion, the decoders' input and the three MLPs run in :mod:`.decoder` (one C++ node on the
+rasterizer's fast path).
+
 Distances fed to the MLPs are divided by ``dist_scale`` (the mean camera-to-scene
 distance at initialisation) so the decoders see O(1) inputs whatever the scene's
 units; Scaffold-GS feeds raw distances on scenes a few units across. The near plane
@@ -46,6 +49,7 @@ from ..geometry.pointcloud import voxelize
 from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
+from .decoder import decode as decode_heads, fuse
 from .spawn import spawn, take_rows
 
 log = logging.getLogger("dibrgs.neural_gaussians")
@@ -178,14 +182,11 @@ class NeuralGaussians(nn.Module):
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
-        return self._fuse(take_rows([self.anchor_feat], idx)[0], ibr_feats)
+        return fuse(take_rows([self.anchor_feat], idx)[0], ibr_feats, self._fusion())
 
-    def _fuse(self, f: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
-        """:meth:`fused_features` of the anchors' own features ``f`` (M, feat_dim)."""
-        if self.use_ibr and ibr_feats is not None:
-            g = torch.sigmoid(self.e_mod(ibr_feats))
-            f = f + g * self.e_ref(ibr_feats)
-        return f
+    def _fusion(self) -> tuple[nn.Linear, nn.Linear] | None:
+        """(E_ref, E_mod), or None without IBR fusion."""
+        return (self.e_ref, self.e_mod) if self.use_ibr else None
 
     def visible_anchors(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int,
                         near: float | None = None) -> torch.Tensor:
@@ -232,12 +233,10 @@ class NeuralGaussians(nn.Module):
             visible = self.visible_anchors(K, w2c, width, height)
         idx = torch.nonzero(visible).squeeze(1)
         anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
-        feat = self._fuse(feat, ibr_feats)
-        view = anchor - cam_center
-        dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
-        x = torch.cat([feat, view / dist, dist / self.dist_scale], dim=1)
-        neural_opacity = self.mlp_opacity(x).reshape(-1)
-        g = spawn(neural_opacity, self.mlp_color(x), self.mlp_cov(x), anchor, _activate_scaling(log_s), offset)
+        opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
+                                           (self.mlp_opacity, self.mlp_cov, self.mlp_color))
+        neural_opacity = opacity.reshape(-1)
+        g = spawn(neural_opacity, color, cov, anchor, _activate_scaling(log_s), offset)
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
                        anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 

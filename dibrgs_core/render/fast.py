@@ -3,12 +3,13 @@
 Build and cache
     The extension (``csrc/rasterize.cpp`` with the projection ``csrc/project.h`` and the tile
     kernels ``csrc/composite.h``; for training, the loss ``csrc/ssim.h`` and ``csrc/loss.h``, the
-    optimiser's step ``csrc/adam.h``, the anchors' culling, gathers and spawning ``csrc/spawn.h``,
-    ``csrc/rows.h``) is compiled for the machine that runs it (``-march=native``: 16-lane float
-    vectors with AVX-512, 8 with AVX2) by :func:`build`, which :func:`extension` calls on first
-    use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default ``~/.cache/dibrgs/ext``), in a folder
-    named after a digest of the source bytes, the compiler (``$CXX``, default ``c++``), the flags,
-    the torch and Python versions and the CPU's instruction-set flags - not of the source's path:
+    optimiser's step ``csrc/adam.h``, the anchors' culling, gathers, decoder and spawning
+    ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``) is compiled for the machine that runs it
+    (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2) by :func:`build`, which
+    :func:`extension` calls on first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
+    ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source bytes, the compiler
+    (``$CXX``, default ``c++``), the flags, the torch and Python versions and the CPU's
+    instruction-set flags - not of the source's path:
     the sources are copied into that folder and compiled there, so two copies of the package (a
     git checkout and the installed Blender add-on) share one build, and a cache copied to another
     CPU is rebuilt. Once built, loading it is an import (no compiler, no ninja).
@@ -60,7 +61,8 @@ from .projection import Projected
 log = logging.getLogger("dibrgs.render")
 
 _CSRC = Path(__file__).with_name("csrc")
-_SOURCES = ("rasterize.cpp", "adam.h", "chunks.h", "composite.h", "loss.h", "project.h", "rows.h", "spawn.h", "ssim.h")
+_SOURCES = ("rasterize.cpp", "adam.h", "chunks.h", "composite.h", "decoder.h", "loss.h", "project.h", "rows.h",
+            "spawn.h", "ssim.h")
 _NAME = "dibrgs_rasterize"
 _MARKER = "built.json"
 BUILD_TIME = "about 1-2 minutes"

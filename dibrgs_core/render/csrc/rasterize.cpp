@@ -23,6 +23,7 @@
 
 #include "adam.h"
 #include "composite.h"
+#include "decoder.h"
 #include "loss.h"
 #include "spawn.h"
 #include "project.h"
@@ -906,6 +907,200 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
   return {dnop, dcolor, dcov, danchor, dscal, doffset};
 }
 
+namespace {
+
+// The decoder's layers from the bindings' lists (detached: the blocks run on threads whose
+// autograd mode is not the caller's), checked against feat (M, F) and ibr (M, C).
+dibrgs::decoder::Weights decoder_weights(const torch::Tensor& feat, const torch::Tensor& ibr,
+                                         const std::vector<torch::Tensor>& fusion, const std::vector<torch::Tensor>& W1,
+                                         const std::vector<torch::Tensor>& b1, const std::vector<torch::Tensor>& W2,
+                                         const std::vector<torch::Tensor>& b2, const std::vector<int64_t>& acts) {
+  const int64_t F = feat.size(1), D = F + 4, C = ibr.dim() == 2 ? ibr.size(1) : 0;
+  const size_t nh = W1.size();
+  TORCH_CHECK(b1.size() == nh && W2.size() == nh && b2.size() == nh && acts.size() == nh,
+              "decoder: W1, b1, W2, b2 and acts one per head");
+  TORCH_CHECK(fusion.empty() || fusion.size() == 4, "decoder: fusion is [] or [Wref, bref, Wmod, bmod]");
+  const auto dt = feat.scalar_type();
+  auto check = [&](const torch::Tensor& t, torch::IntArrayRef shape, const char* what) {
+    TORCH_CHECK(t.sizes() == shape && t.scalar_type() == dt && t.device().is_cpu(), "decoder: ", what,
+                " must be ", shape, " of the features' dtype, got ", t.sizes());
+    return t.detach();
+  };
+  dibrgs::decoder::Weights w;
+  if (!fusion.empty()) {
+    TORCH_CHECK(C > 0 && ibr.size(0) == feat.size(0), "decoder: fusion needs the IBR features (M, C)");
+    w.Wref = check(fusion[0], {F, C}, "Wref"), w.bref = check(fusion[1], {F}, "bref");
+    w.Wmod = check(fusion[2], {F, C}, "Wmod"), w.bmod = check(fusion[3], {F}, "bmod");
+  }
+  for (size_t h = 0; h < nh; ++h) {
+    const int64_t H = W1[h].size(0), O = W2[h].size(0);
+    TORCH_CHECK(acts[h] >= 0 && acts[h] <= 2, "decoder: activation codes are 0-2");
+    w.W1.push_back(check(W1[h], {H, D}, "W1"));
+    w.b1.push_back(check(b1[h], {H}, "b1"));
+    w.W2.push_back(check(W2[h], {O, H}, "W2"));
+    w.b2.push_back(check(b2[h], {O}, "b2"));
+    w.acts.push_back(static_cast<dibrgs::decoder::Act>(acts[h]));
+  }
+  return w;
+}
+
+}  // namespace
+
+// The decoder (decoder.h) of M visible anchors: feat (M, F) their own features, ibr (M, C) their
+// IBR features (unused without fusion), fusion [] or [Wref (F, C), bref, Wmod (F, C), bmod],
+// anchor (M, 3), centre (3), dist_scale, and per head W1 (H, F + 4), b1, W2 (O, H), b2 and its
+// activation. Returns the heads' outputs (M, O_h), then what decoder_backward needs: x (M, F + 4),
+// dist (M), gate and ref (M, F; empty without fusion), the hidden activations (M, H_h).
+std::vector<torch::Tensor> decoder_forward(torch::Tensor feat, torch::Tensor ibr, std::vector<torch::Tensor> fusion,
+                                           torch::Tensor anchor, torch::Tensor centre, double dist_scale,
+                                           std::vector<torch::Tensor> W1, std::vector<torch::Tensor> b1,
+                                           std::vector<torch::Tensor> W2, std::vector<torch::Tensor> b2,
+                                           std::vector<int64_t> acts) {
+  TORCH_CHECK(feat.dim() == 2 && feat.device().is_cpu(), "decoder_forward: feat must be (M, F) on the CPU");
+  feat = feat.detach().contiguous();
+  const int64_t M = feat.size(0), F = feat.size(1), D = F + 4;
+  const auto dt = feat.scalar_type();
+  TORCH_CHECK(anchor.sizes() == torch::IntArrayRef({M, 3}) && centre.numel() == 3 && anchor.scalar_type() == dt &&
+                  centre.scalar_type() == dt,
+              "decoder_forward: anchor must be (M, 3) and centre (3), of the features' dtype");
+  anchor = anchor.detach().contiguous(), centre = centre.detach().contiguous();
+  const auto w = decoder_weights(feat, ibr, fusion, W1, b1, W2, b2, acts);
+  if (w.fusion()) ibr = ibr.detach().contiguous();
+  const size_t nh = w.W1.size();
+  const auto o = feat.options();
+  dibrgs::decoder::Saved sv;
+  sv.x = torch::empty({M, D}, o), sv.dist = torch::empty({M}, o);
+  sv.gate = torch::empty({w.fusion() ? M : 0, F}, o), sv.ref = torch::empty({w.fusion() ? M : 0, F}, o);
+  std::vector<torch::Tensor> W1t, W2t;
+  for (size_t h = 0; h < nh; ++h) {
+    W1t.push_back(w.W1[h].t()), W2t.push_back(w.W2[h].t());
+    sv.hidden.push_back(torch::empty({M, w.W1[h].size(0)}, o));
+    sv.out.push_back(torch::empty({M, w.W2[h].size(0)}, o));
+  }
+  const torch::Tensor WmodT = w.fusion() ? w.Wmod.t() : torch::Tensor(), WrefT = w.fusion() ? w.Wref.t() : torch::Tensor();
+  dibrgs::decoder::for_blocks(M, dibrgs::decoder::blocks(M), [&](int64_t, int64_t r0, int64_t n) {
+    if (w.fusion()) {
+      const auto vs = ibr.narrow(0, r0, n);
+      auto gs = sv.gate.narrow(0, r0, n), es = sv.ref.narrow(0, r0, n);
+      at::addmm_out(gs, w.bmod, vs, WmodT);
+      gs.sigmoid_();
+      at::addmm_out(es, w.bref, vs, WrefT);
+    }
+    AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_input", [&] {
+      const scalar_t* g = w.fusion() ? sv.gate.data_ptr<scalar_t>() + r0 * F : nullptr;
+      const scalar_t* e = w.fusion() ? sv.ref.data_ptr<scalar_t>() + r0 * F : nullptr;
+      dibrgs::decoder::input_rows<scalar_t>(feat.data_ptr<scalar_t>() + r0 * F, g, e,
+                                            anchor.data_ptr<scalar_t>() + r0 * 3, centre.data_ptr<scalar_t>(),
+                                            dist_scale, sv.x.data_ptr<scalar_t>() + r0 * D,
+                                            sv.dist.data_ptr<scalar_t>() + r0, n, F);
+    });
+    const auto xs = sv.x.narrow(0, r0, n);
+    for (size_t h = 0; h < nh; ++h) {
+      auto hs = sv.hidden[h].narrow(0, r0, n), os = sv.out[h].narrow(0, r0, n);
+      at::addmm_out(hs, w.b1[h], xs, W1t[h]);
+      hs.clamp_min_(0);
+      at::addmm_out(os, w.b2[h], hs, W2t[h]);
+      if (w.acts[h] == dibrgs::decoder::TANH)  // ATen's vectorised tanh / sigmoid: scalar ones cost 10x
+        os.tanh_();
+      else if (w.acts[h] == dibrgs::decoder::SIGMOID)
+        os.sigmoid_();
+    }
+  });
+  std::vector<torch::Tensor> res(sv.out);
+  res.insert(res.end(), {sv.x, sv.dist, sv.gate, sv.ref});
+  res.insert(res.end(), sv.hidden.begin(), sv.hidden.end());
+  return res;
+}
+
+// Gradients of decoder_forward from those of its outputs (gout[h] (M, O_h)) and what it returned
+// for this: {dfeat (M, F), danchor (M, 3), dibr (M, C; empty without fusion or want_dibr), then
+// with fusion dWref, dbref, dWmod, dbmod, then per head dW1, db1, dW2, db2}.
+std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, torch::Tensor ibr,
+                                            std::vector<torch::Tensor> fusion, torch::Tensor x, torch::Tensor dist,
+                                            torch::Tensor gate, torch::Tensor ref, std::vector<torch::Tensor> hidden,
+                                            std::vector<torch::Tensor> out, double dist_scale,
+                                            std::vector<torch::Tensor> W1, std::vector<torch::Tensor> b1,
+                                            std::vector<torch::Tensor> W2, std::vector<torch::Tensor> b2,
+                                            std::vector<int64_t> acts, bool want_dibr) {
+  x = x.detach();
+  const int64_t M = x.size(0), D = x.size(1), F = D - 4;
+  const auto feat_like = x.narrow(1, 0, F);
+  const auto w = decoder_weights(feat_like, ibr, fusion, W1, b1, W2, b2, acts);
+  const size_t nh = w.W1.size();
+  TORCH_CHECK(gout.size() == nh && hidden.size() == nh && out.size() == nh,
+              "decoder_backward: one gradient, hidden and output a head");
+  const auto dt = x.scalar_type();
+  const auto o = x.options();
+  for (size_t h = 0; h < nh; ++h) {
+    hidden[h] = hidden[h].detach(), out[h] = out[h].detach();
+    gout[h] = gout[h].detach().to(dt).contiguous();
+    TORCH_CHECK(gout[h].sizes() == out[h].sizes(), "decoder_backward: gradient ", h, " must match its output");
+  }
+  if (w.fusion()) ibr = ibr.detach().contiguous(), gate = gate.detach(), ref = ref.detach();
+  const int64_t C = w.fusion() ? ibr.size(1) : 0, nb = dibrgs::decoder::blocks(M);
+  auto dx = torch::empty({M, D}, o), dfeat = torch::empty({M, F}, o), danchor = torch::empty({M, 3}, o);
+  auto dibr = torch::empty({w.fusion() && want_dibr ? M : 0, C}, o);
+  auto dpre_gate = torch::empty({w.fusion() ? M : 0, F}, o), dref = torch::empty({w.fusion() ? M : 0, F}, o);
+  // Per block partial weight gradients, summed over the blocks below (zeros: no rows, no block).
+  std::vector<torch::Tensor> dW1, db1, dW2, db2;
+  for (size_t h = 0; h < nh; ++h) {
+    const int64_t H = w.W1[h].size(0), O = w.W2[h].size(0);
+    dW1.push_back(torch::zeros({nb, H, D}, o)), db1.push_back(torch::zeros({nb, H}, o));
+    dW2.push_back(torch::zeros({nb, O, H}, o)), db2.push_back(torch::zeros({nb, O}, o));
+  }
+  auto dWref = torch::zeros({w.fusion() ? nb : 0, F, C}, o), dWmod = torch::zeros({w.fusion() ? nb : 0, F, C}, o);
+  auto dbref = torch::zeros({w.fusion() ? nb : 0, F}, o), dbmod = torch::zeros({w.fusion() ? nb : 0, F}, o);
+  dibrgs::decoder::for_blocks(M, nb, [&](int64_t b, int64_t r0, int64_t n) {
+    const auto xs = x.narrow(0, r0, n);
+    auto dxs = dx.narrow(0, r0, n);
+    for (size_t h = 0; h < nh; ++h) {
+      const int64_t H = w.W1[h].size(0), O = w.W2[h].size(0);
+      const auto hs = hidden[h].narrow(0, r0, n);
+      auto gz = torch::empty({n, O}, o), gw2 = dW2[h][b], gw1 = dW1[h][b];
+      AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_output_grad", [&] {
+        dibrgs::decoder::output_grad<scalar_t>(gout[h].data_ptr<scalar_t>() + r0 * O,
+                                               out[h].data_ptr<scalar_t>() + r0 * O, gz.data_ptr<scalar_t>(),
+                                               db2[h].data_ptr<scalar_t>() + b * O, n, O, w.acts[h]);
+      });
+      at::mm_out(gw2, gz.t(), hs);
+      auto gh = at::mm(gz, w.W2[h]);
+      AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_relu_grad", [&] {
+        dibrgs::decoder::relu_grad<scalar_t>(gh.data_ptr<scalar_t>(), hs.data_ptr<scalar_t>(),
+                                             db1[h].data_ptr<scalar_t>() + b * H, n, H);
+      });
+      at::mm_out(gw1, gh.t(), xs);
+      if (h == 0)
+        at::mm_out(dxs, gh, w.W1[h]);
+      else
+        dxs.addmm_(gh, w.W1[h]);
+    }
+    AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_input_grad", [&] {
+      const bool f = w.fusion();
+      dibrgs::decoder::input_grad<scalar_t>(
+          dx.data_ptr<scalar_t>() + r0 * D, x.data_ptr<scalar_t>() + r0 * D, dist.data_ptr<scalar_t>() + r0,
+          f ? gate.data_ptr<scalar_t>() + r0 * F : nullptr, f ? ref.data_ptr<scalar_t>() + r0 * F : nullptr,
+          dist_scale, dfeat.data_ptr<scalar_t>() + r0 * F, danchor.data_ptr<scalar_t>() + r0 * 3,
+          f ? dpre_gate.data_ptr<scalar_t>() + r0 * F : nullptr, f ? dref.data_ptr<scalar_t>() + r0 * F : nullptr,
+          f ? dbmod.data_ptr<scalar_t>() + b * F : nullptr, f ? dbref.data_ptr<scalar_t>() + b * F : nullptr, n, F);
+    });
+    if (w.fusion()) {
+      const auto vs = ibr.narrow(0, r0, n), dgs = dpre_gate.narrow(0, r0, n), des = dref.narrow(0, r0, n);
+      auto gwm = dWmod[b], gwr = dWref[b];
+      at::mm_out(gwm, dgs.t(), vs);
+      at::mm_out(gwr, des.t(), vs);
+      if (want_dibr) {
+        auto dvs = dibr.narrow(0, r0, n);
+        at::mm_out(dvs, dgs, w.Wmod);
+        dvs.addmm_(des, w.Wref);
+      }
+    }
+  });
+  std::vector<torch::Tensor> res{dfeat, danchor, dibr};
+  if (w.fusion()) res.insert(res.end(), {dWref.sum(0), dbref.sum(0), dWmod.sum(0), dbmod.sum(0)});
+  for (size_t h = 0; h < nh; ++h) res.insert(res.end(), {dW1[h].sum(0), db1[h].sum(0), dW2[h].sum(0), db2[h].sum(0)});
+  return res;
+}
+
 // Whether none of the n floating-point values at p (of U's width) has all exponent bits
 // (mask) set, i.e. is an infinity or a NaN. Integer tests vectorise (a float sum would not).
 template <typename U>
@@ -959,6 +1154,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("all_finite", &all_finite, "whether every element of the tensors is finite");
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
   m.def("spawn_backward", &spawn_backward, "gradients of spawn_forward");
+  m.def("decoder_forward", &decoder_forward, "IBR fusion and decoder heads of the visible anchors");
+  m.def("decoder_backward", &decoder_backward, "gradients of decoder_forward");
   m.def("anchor_visibility", &anchor_visibility, "frustum culling of anchors");
   m.def("take_rows_forward", &take_rows_forward, "rows of a tensor");
   m.def("take_rows_backward", &take_rows_backward, "gradient of take_rows_forward");

@@ -1,0 +1,126 @@
+"""The decoder of the neural Gaussians: IBR fusion, the decoders' input and their MLP heads.
+
+For the ``M`` visible anchors of a view (paper Sec. "Adaptive Feature Fusion"; Scaffold-GS):
+
+* fused feature ``f = f_s + sigmoid(E_mod(f_v)) * E_ref(f_v)`` (``f_s`` without IBR features);
+* input ``x = [f, view / dist, dist / dist_scale]`` with ``view = anchor - camera centre`` (world
+  units) and ``dist = max(|view|, 1e-8)``;
+* a head is ``nn.Sequential(Linear(D, H), ReLU(), Linear(H, O))`` optionally followed by ``Tanh``
+  or ``Sigmoid`` (the opacity, covariance and colour decoders); :func:`decode` returns each
+  head's output for ``x``.
+
+Two paths with the same maths: the C++ one of the rasterizer's extension
+(``render/csrc/decoder.h``: the rows cut into one block a thread, fusion, input and heads of a
+block in one pass, forward and backward, one autograd node) for CPU tensors when the
+rasterizer's backend resolves to it, and torch modules otherwise (:func:`decode_reference`).
+The C++ path sums the weight gradients over its blocks, so they differ from torch's in the
+last bits.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ..render import Backend, uses_fast
+
+#: Activation codes of decoder.h (``decoder::Act``).
+_ACTS: dict[type | None, int] = {None: 0, nn.Tanh: 1, nn.Sigmoid: 2}
+#: The camera distance is clamped at this (world units; decoder.h's DIST_EPS).
+DIST_EPS = 1e-8
+
+Fusion = tuple[nn.Linear, nn.Linear]  # (E_ref, E_mod)
+
+
+def head_activation(head: nn.Module) -> int | None:
+    """decoder.h's code of a head's activation, or None when ``head`` is not a head as above."""
+    layers = list(head.children()) if isinstance(head, nn.Sequential) else []
+    if not (3 <= len(layers) <= 4 and isinstance(layers[0], nn.Linear) and isinstance(layers[1], nn.ReLU)
+            and isinstance(layers[2], nn.Linear) and layers[0].bias is not None and layers[2].bias is not None):
+        return None
+    return _ACTS.get(type(layers[3]) if len(layers) == 4 else None)
+
+
+def fuse(feat: Tensor, ibr: Tensor | None, fusion: Fusion | None) -> Tensor:
+    """``f_s + sigmoid(E_mod(f_v)) * E_ref(f_v)`` (feat (M, F), ibr (M, C)); ``feat`` without either."""
+    if fusion is None or ibr is None:
+        return feat
+    e_ref, e_mod = fusion
+    return feat + torch.sigmoid(e_mod(ibr)) * e_ref(ibr)
+
+
+def decode_reference(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dist_scale: float,
+                     fusion: Fusion | None, heads: Sequence[nn.Module]) -> list[Tensor]:
+    """:func:`decode` in torch operators (autograd, any device)."""
+    view = anchor - centre
+    dist = view.norm(dim=1, keepdim=True).clamp_min(DIST_EPS)
+    x = torch.cat([fuse(feat, ibr, fusion), view / dist, dist / dist_scale], dim=1)
+    return [h(x) for h in heads]
+
+
+def decode(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dist_scale: float,
+           fusion: Fusion | None, heads: Sequence[nn.Module], backend: Backend | None = None) -> list[Tensor]:
+    """Each head's output (M, O_h) for the visible anchors.
+
+    Args:
+        feat: (M, F) the anchors' own features; ibr: (M, C) their IBR features or None.
+        anchor: (M, 3) positions and centre: (3,) the camera centre, world units.
+        dist_scale: the camera distance that the decoders see as 1 (world units).
+        fusion: (E_ref, E_mod) Linear(C, F) layers, or None (no IBR fusion).
+        heads: decoder heads as in the module docstring, fed ``F + 4`` inputs.
+        backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
+    """
+    acts = [head_activation(h) for h in heads]
+    fusion = None if ibr is None else fusion
+    if (heads and feat.dim() == 2 and feat.dtype in (torch.float32, torch.float64) and None not in acts
+            and uses_fast(backend, feat)):
+        params: list[Tensor] = []
+        for h in heads:
+            params += [h[0].weight, h[0].bias, h[2].weight, h[2].bias]
+        if fusion is not None:
+            params += [fusion[0].weight, fusion[0].bias, fusion[1].weight, fusion[1].bias]
+        tensors = [feat, anchor, centre] + ([ibr] if fusion is not None else []) + params
+        if all(t.dtype == feat.dtype for t in tensors):
+            return list(_DecodeFast.apply((tuple(acts), fusion is not None, float(dist_scale)), *tensors))
+    return decode_reference(feat, ibr, anchor, centre, dist_scale, fusion, heads)
+
+
+class _DecodeFast(torch.autograd.Function):
+    """Inputs: feat, anchor, centre, [ibr], per head W1, b1, W2, b2, [Wref, bref, Wmod, bmod]."""
+
+    @staticmethod
+    def forward(ctx, spec, feat, anchor, centre, *rest):  # type: ignore[override]
+        from ..render.fast import extension
+
+        acts, fused, dist_scale = spec
+        n = len(acts)
+        ibr = rest[0] if fused else feat.new_empty(0)
+        params = rest[1:] if fused else rest
+        W1, b1, W2, b2 = (list(params[i:4 * n:4]) for i in range(4))
+        fusion = list(params[4 * n:])
+        res = extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2, list(acts))
+        outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
+        ctx.save_for_backward(ibr, x, dist, gate, ref, *hidden, *outs, *params)
+        ctx.spec, ctx.fused = spec, fused
+        ctx.set_materialize_grads(False)
+        return tuple(outs)
+
+    @staticmethod
+    def backward(ctx, *gouts):  # type: ignore[override]
+        from ..render.fast import extension
+
+        acts, fused, dist_scale = ctx.spec
+        n = len(acts)
+        ibr, x, dist, gate, ref, *rest = ctx.saved_tensors
+        hidden, outs, params = rest[:n], rest[n:2 * n], rest[2 * n:]
+        W1, b1, W2, b2 = (list(params[i:4 * n:4]) for i in range(4))
+        fusion = list(params[4 * n:])
+        want_dibr = fused and ctx.needs_input_grad[4]
+        grads = [torch.zeros_like(o) if g is None else g for g, o in zip(gouts, outs)]
+        res = extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),
+                                           dist_scale, W1, b1, W2, b2, list(acts), want_dibr)
+        dfeat, danchor, dibr = res[:3]
+        fusion_grads, head_grads = (res[3:7], res[7:]) if fused else ([], res[3:])
+        return (None, dfeat, danchor, None, *([dibr if want_dibr else None] if fused else []),
+                *head_grads, *fusion_grads)
