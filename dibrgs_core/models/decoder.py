@@ -73,8 +73,9 @@ def decode(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dis
     """
     acts = [head_activation(h) for h in heads]
     fusion = None if ibr is None else fusion
+    # The C++ node gives the camera centre no gradient: a centre that wants one takes the torch path.
     if (heads and feat.dim() == 2 and feat.dtype in (torch.float32, torch.float64) and None not in acts
-            and uses_fast(backend, feat)):
+            and not centre.requires_grad and uses_fast(backend, feat)):
         params: list[Tensor] = []
         for h in heads:
             params += [h[0].weight, h[0].bias, h[2].weight, h[2].bias]
@@ -102,7 +103,7 @@ class _DecodeFast(torch.autograd.Function):
         res = extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2, list(acts))
         outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
         ctx.save_for_backward(ibr, x, dist, gate, ref, *hidden, *outs, *params)
-        ctx.spec, ctx.fused = spec, fused
+        ctx.spec = spec
         ctx.set_materialize_grads(False)
         return tuple(outs)
 

@@ -85,8 +85,9 @@ def test_fast_gradients_against_finite_differences():
     torch.autograd.gradcheck(f, (feat, ibr, anchor, *params))
 
 
-def test_other_modules_use_torch():
-    """A head that is not Linear-ReLU-Linear(-Tanh|Sigmoid) runs as its own module on any backend."""
+def test_other_modules_and_a_centre_with_gradient_use_torch():
+    """A head that is not Linear-ReLU-Linear(-Tanh|Sigmoid) runs as its own module on any backend, and a
+    camera centre that wants a gradient gets it (the C++ node gives it none)."""
     heads, fusion = _layers(torch.float32)
     odd = nn.Sequential(nn.Linear(F + 4, H), nn.GELU(), nn.Linear(H, 2))
     assert head_activation(odd) is None and [head_activation(h) for h in heads] == [1, 0, 2]
@@ -97,3 +98,7 @@ def test_other_modules_use_torch():
     assert out[-1].grad_fn is not None and "Addmm" in type(out[-1].grad_fn).__name__
     for a, b in zip(out, ref):
         torch.testing.assert_close(a, b)
+    centre = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
+    outs = decode(feat, ibr, anchor, centre, 80.0, fusion, heads, "fast")
+    sum(o.sum() for o in outs).backward()
+    assert centre.grad is not None and float(centre.grad.abs().sum()) > 0
