@@ -4,7 +4,7 @@ For the ``M`` visible anchors of a view (paper Sec. "Adaptive Feature Fusion"; S
 
 * fused feature ``f = f_s + sigmoid(E_mod(f_v)) * E_ref(f_v)`` (``f_s`` without IBR features);
 * input ``x = [f, view / dist, dist / dist_scale]`` with ``view = anchor - camera centre`` (world
-  units) and ``dist = max(|view|, 1e-8)``;
+  units) and ``dist = max(|view|, 1e-8)`` (``|view|`` summed in float64);
 * a head is ``nn.Sequential(Linear(D, H), ReLU(), Linear(H, O))`` optionally followed by ``Tanh``
   or ``Sigmoid`` (the opacity, covariance and colour decoders); :func:`decode` returns each
   head's output for ``x``.
@@ -54,7 +54,8 @@ def decode_reference(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: T
                      fusion: Fusion | None, heads: Sequence[nn.Module]) -> list[Tensor]:
     """:func:`decode` in torch operators (autograd, any device)."""
     view = anchor - centre
-    dist = view.norm(dim=1, keepdim=True).clamp_min(DIST_EPS)
+    # Summed in float64 as decoder.h does: squares of distances above ~1.8e19 overflow float32.
+    dist = view.double().norm(dim=1, keepdim=True).clamp_min(DIST_EPS).to(view.dtype)
     x = torch.cat([fuse(feat, ibr, fusion), view / dist, dist / dist_scale], dim=1)
     return [h(x) for h in heads]
 

@@ -102,3 +102,19 @@ def test_other_modules_and_a_centre_with_gradient_use_torch():
     outs = decode(feat, ibr, anchor, centre, 80.0, fusion, heads, "fast")
     sum(o.sum() for o in outs).backward()
     assert centre.grad is not None and float(centre.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("backend", ["fast", "reference"])
+@pytest.mark.parametrize("scale", [1e-30, 1e25])
+def test_finite_at_extreme_distances(scale, backend):
+    """Camera distances whose squares leave float32 (1e25: 1e50) or fall below the clamp (1e-30):
+    the distance is summed in float64, outputs and gradients stay finite."""
+    heads, fusion = _layers(torch.float32)
+    feat, ibr, _ = _inputs(300, torch.float32)
+    g = torch.Generator().manual_seed(5)
+    anchor = (torch.randn(300, 3, generator=g) * scale).requires_grad_()
+    outs = decode(feat, ibr, anchor, torch.zeros(3), max(scale, 1e-6), fusion, heads, backend)
+    sum(o.sum() for o in outs).backward()
+    assert all(torch.isfinite(o).all() for o in outs)
+    for t in [feat, ibr, anchor] + [p for m in heads + list(fusion) for p in m.parameters()]:
+        assert t.grad is not None and torch.isfinite(t.grad).all()
