@@ -5,7 +5,8 @@ Build and cache
     kernels ``csrc/composite.h``; for training, the loss ``csrc/ssim.h`` and ``csrc/loss.h``, the
     optimiser's step ``csrc/adam.h``, the anchors' culling, gathers, decoder and spawning
     ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``) is compiled for the machine that runs it
-    (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2) by :func:`build`, which
+    (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2 and on AVX-512 CPUs that
+    run it at half width, :mod:`.cpu`) by :func:`build`, which
     :func:`extension` calls on first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
     ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source bytes, the compiler
     (``$CXX``, default ``c++``), the flags, the torch and Python versions and the CPU's
@@ -31,7 +32,8 @@ Failures
 Environment
     ``DIBRGS_EXT_DIR`` cache root; ``CXX`` compiler; ``DIBRGS_EXT_FLAGS``
     replaces the default compile flags (``-O3 -march=native -fopenmp
-    -fno-math-errno``) for compilers that reject them.
+    -fno-math-errno``, plus ``-DDIBRGS_VBYTES=32`` for 8-lane compositing
+    vectors where :mod:`.cpu` finds that faster) for compilers that reject them.
 """
 from __future__ import annotations
 
@@ -56,6 +58,7 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
+from .cpu import cpu_flags, half_width_avx512
 from .projection import Projected
 
 log = logging.getLogger("dibrgs.render")
@@ -82,26 +85,17 @@ class BuildError(RuntimeError):
     user_error = True  # the command line prints the message, not "internal error"
 
 
-def _cpu_flags() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                return " ".join(sorted(line.split(":", 1)[1].split()))
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _compiler() -> str:
     return os.environ.get("CXX", "c++")
 
 
 def default_flags() -> list[str]:
-    """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept."""
+    """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept;
+    8-lane compositing vectors on AVX-512 CPUs that run it at half width (:mod:`.cpu`)."""
     native = "-mcpu=native" if platform.machine().lower() in ("arm64", "aarch64") else "-march=native"
     # -fopenmp: at::parallel_for (an inline header template) runs serially without it.
     # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.
-    return ["-O3", native, "-fopenmp", "-fno-math-errno"]
+    return ["-O3", native, "-fopenmp", "-fno-math-errno"] + (["-DDIBRGS_VBYTES=32"] if half_width_avx512() else [])
 
 
 def build_flags() -> list[str]:
@@ -119,7 +113,7 @@ def _digest(flags: list[str]) -> str:
         sys.implementation.cache_tag or "",
         sysconfig.get_config_var("EXT_SUFFIX") or "",
         platform.machine(),
-        _cpu_flags(),
+        cpu_flags(),
         _compiler(),
         " ".join(flags),
     ):

@@ -33,12 +33,14 @@ constexpr double ALPHA_MIN = 1.0 / 255.0;
 constexpr double ALPHA_MAX = 0.99;
 constexpr double T_MIN = 1e-4;
 
+#ifndef DIBRGS_VBYTES  // a build may choose a narrower width (-DDIBRGS_VBYTES=32: render/fast.py)
 #if defined(__AVX512F__)
 #define DIBRGS_VBYTES 64
 #elif defined(__AVX__)
 #define DIBRGS_VBYTES 32
 #else
 #define DIBRGS_VBYTES 16
+#endif
 #endif
 constexpr int VBYTES = DIBRGS_VBYTES;
 
@@ -64,8 +66,10 @@ struct Vec<double> {
 
 // Short name of the vector code path, for build reports.
 inline const char* simd_name() {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return "avx512";
+#elif DIBRGS_VBYTES == 32 && defined(__AVX512F__)
+  return "avx512vl";  // AVX-512 instructions on 256-bit vectors
 #elif defined(__AVX2__) && defined(__FMA__)
   return "avx2+fma";
 #elif defined(__AVX__)
@@ -80,7 +84,7 @@ inline const char* simd_name() {
 // a * b + c, fused where the target has FMA (written out: the extension is
 // compiled in ISO mode, where GCC does not contract a * b + c by itself).
 inline VF fmadd(VF a, VF b, VF c) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VF)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
 #elif defined(__FMA__) && DIBRGS_VBYTES == 32
   return (VF)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
@@ -89,7 +93,7 @@ inline VF fmadd(VF a, VF b, VF c) {
 #endif
 }
 inline VD fmadd(VD a, VD b, VD c) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_fmadd_pd((__m512d)a, (__m512d)b, (__m512d)c);
 #elif defined(__FMA__) && DIBRGS_VBYTES == 32
   return (VD)_mm256_fmadd_pd((__m256d)a, (__m256d)b, (__m256d)c);
@@ -99,7 +103,7 @@ inline VD fmadd(VD a, VD b, VD c) {
 }
 
 inline VF vsqrt(VF x) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VF)_mm512_sqrt_ps((__m512)x);
 #elif DIBRGS_VBYTES == 32
   return (VF)_mm256_sqrt_ps((__m256)x);
@@ -111,7 +115,7 @@ inline VF vsqrt(VF x) {
 #endif
 }
 inline VD vsqrt(VD x) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_sqrt_pd((__m512d)x);
 #elif DIBRGS_VBYTES == 32
   return (VD)_mm256_sqrt_pd((__m256d)x);
@@ -125,7 +129,7 @@ inline VD vsqrt(VD x) {
 
 // Bit i = lane i of a 0 / -1 mask.
 inline uint32_t lanes(VIF m) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
 #elif DIBRGS_VBYTES == 32
   return static_cast<uint32_t>(_mm256_movemask_ps((__m256)m));
@@ -138,7 +142,7 @@ inline uint32_t lanes(VIF m) {
 #endif
 }
 inline uint32_t lanes(VID m) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return _mm512_test_epi64_mask((__m512i)m, (__m512i)m);
 #elif DIBRGS_VBYTES == 32
   return static_cast<uint32_t>(_mm256_movemask_pd((__m256d)m));
@@ -158,7 +162,7 @@ inline V splat(typename std::remove_reference<decltype(V()[0])>::type x) {
 // min / max with x86 semantics (the second operand when either is NaN), one
 // instruction on x86 (the ternary form becomes compare + blend).
 inline VF vmin(VF a, VF b) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VF)_mm512_min_ps((__m512)a, (__m512)b);
 #elif DIBRGS_VBYTES == 32
   return (VF)_mm256_min_ps((__m256)a, (__m256)b);
@@ -167,7 +171,7 @@ inline VF vmin(VF a, VF b) {
 #endif
 }
 inline VF vmax(VF a, VF b) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VF)_mm512_max_ps((__m512)a, (__m512)b);
 #elif DIBRGS_VBYTES == 32
   return (VF)_mm256_max_ps((__m256)a, (__m256)b);
@@ -176,7 +180,7 @@ inline VF vmax(VF a, VF b) {
 #endif
 }
 inline VD vmin(VD a, VD b) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_min_pd((__m512d)a, (__m512d)b);
 #elif DIBRGS_VBYTES == 32
   return (VD)_mm256_min_pd((__m256d)a, (__m256d)b);
@@ -185,7 +189,7 @@ inline VD vmin(VD a, VD b) {
 #endif
 }
 inline VD vmax(VD a, VD b) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_max_pd((__m512d)a, (__m512d)b);
 #elif DIBRGS_VBYTES == 32
   return (VD)_mm256_max_pd((__m256d)a, (__m256d)b);

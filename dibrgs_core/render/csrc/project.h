@@ -36,7 +36,7 @@ using dibrgs::vsqrt;  // VD (composite.h)
 inline double vsqrt(double x) { return std::sqrt(x); }
 inline double vceil(double x) { return std::ceil(x); }
 inline VD vceil(VD x) {
-#if defined(__AVX512F__)
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_roundscale_pd((__m512d)x, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC);
 #elif DIBRGS_VBYTES == 32
   return (VD)_mm256_ceil_pd((__m256d)x);
