@@ -6,11 +6,10 @@ Build and cache
     optimiser's step ``csrc/adam.h``, the anchors' culling, gathers, decoder and spawning
     ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``) is compiled for the machine that runs it
     (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2 and on AVX-512 CPUs that
-    run it at half width, :mod:`.cpu`) by :func:`build`, which
-    :func:`extension` calls on first use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default
-    ``~/.cache/dibrgs/ext``), in a folder named after a digest of the source bytes, the compiler
-    (``$CXX``, default ``c++``), the flags, the torch and Python versions and the CPU's
-    instruction-set flags - not of the source's path:
+    run it at half width, :mod:`.cpu`) by :func:`build`, which :func:`extension` calls on first
+    use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default ``~/.cache/dibrgs/ext``), in a folder
+    named after a digest of the source bytes, the compiler (``$CXX``, default ``c++``), the flags,
+    the torch and Python versions and the CPU's instruction-set flags - not of the source's path:
     the sources are copied into that folder and compiled there, so two copies of the package (a
     git checkout and the installed Blender add-on) share one build, and a cache copied to another
     CPU is rebuilt. Once built, loading it is an import (no compiler, no ninja).
