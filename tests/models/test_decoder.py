@@ -32,6 +32,8 @@ def _run(backend: str, feat, ibr, anchor, centre, heads, fusion, weights):
     for p in weights:
         p.grad = None
     outs = decode(feat, ibr, anchor, centre, 80.0, fusion, heads, backend)
+    node = type(outs[0].grad_fn).__name__
+    assert (node == "_DecodeFastBackward") is (backend == "fast"), node  # the path asked for ran
     g = torch.Generator().manual_seed(7)
     sum((torch.randn(o.shape, generator=g, dtype=o.dtype) * o).sum() for o in outs).backward()
     grads = [None if t is None or t.grad is None else t.grad.clone() for t in [feat, ibr, anchor] + weights]
