@@ -6,7 +6,7 @@ Build and cache
     optimiser's step ``csrc/adam.h``, the anchors' culling, gathers, decoder and spawning
     ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``) is compiled for the machine that runs it
     (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2 and on AVX-512 CPUs that
-    run it at half width, :mod:`.cpu`) by :func:`build`, which :func:`extension` calls on first
+    run it at half width, :mod:`..common.cpu`) by :func:`build`, which :func:`extension` calls on first
     use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default ``~/.cache/dibrgs/ext``), in a folder
     named after a digest of the source bytes, the compiler (``$CXX``, default ``c++``), the flags,
     the torch and Python versions and the CPU's instruction-set flags - not of the source's path:
@@ -32,7 +32,7 @@ Environment
     ``DIBRGS_EXT_DIR`` cache root; ``CXX`` compiler; ``DIBRGS_EXT_FLAGS``
     replaces the default compile flags (``-O3 -march=native -fopenmp
     -fno-math-errno``, plus ``-DDIBRGS_VBYTES=32`` for 8-lane compositing
-    vectors where :mod:`.cpu` finds that faster) for compilers that reject them.
+    vectors where :mod:`..common.cpu` finds that faster) for compilers that reject them.
 """
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
-from .cpu import cpu_flags, half_width_avx512
+from ..common.cpu import cpu_flags, half_width_avx512
 from .projection import Projected
 
 log = logging.getLogger("dibrgs.render")
@@ -90,7 +90,7 @@ def _compiler() -> str:
 
 def default_flags() -> list[str]:
     """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept;
-    8-lane compositing vectors on AVX-512 CPUs that run it at half width (:mod:`.cpu`)."""
+    8-lane compositing vectors on AVX-512 CPUs that run it at half width (:mod:`..common.cpu`)."""
     native = "-mcpu=native" if platform.machine().lower() in ("arm64", "aarch64") else "-march=native"
     # -fopenmp: at::parallel_for (an inline header template) runs serially without it.
     # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.

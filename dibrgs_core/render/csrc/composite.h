@@ -7,7 +7,7 @@
 // Vectors are GCC/Clang vector extensions of the build target's native width
 // (the extension is compiled with -march=native): 64 bytes with AVX-512, 32
 // with AVX/AVX2, 16 otherwise (SSE, NEON); 32 on AVX-512 CPUs that run it at
-// half width (render/cpu.py: the build passes -DDIBRGS_VBYTES=32). One tile row of 16 pixels is
+// half width (common/cpu.py: the build passes -DDIBRGS_VBYTES=32). One tile row of 16 pixels is
 // 16 / L vectors of L lanes (float: 2 with AVX2, 1 with AVX-512). Every vector
 // of a tile keeps its state (T, accumulators) in the workspace, and each
 // Gaussian visits only the row segments its alpha >= 1/255 ellipse reaches

@@ -1,6 +1,6 @@
-"""What building the C++ path needs to know about this CPU (Linux ``/proc/cpuinfo``; the
-platform's names elsewhere): its instruction-set flags, part of the build's cache key, and the
-vector width its compositing kernels run fastest at.
+"""This CPU as ``/proc/cpuinfo`` describes it (Linux; the platform's names elsewhere), standard library
+only: its fields (the benchmarks' machine line), its instruction-set flags (part of the C++ build's
+cache key) and the vector width the compositing kernels run fastest at.
 
 AMD Zen 4 (vendor AuthenticAMD, family 25, with AVX-512) executes a 512-bit operation as two
 256-bit halves, so 16-lane vectors do the work of two 8-lane ones while a tile row's Gaussians
@@ -23,7 +23,7 @@ def cpuinfo() -> str:
         return ""
 
 
-def _field(text: str, *names: str) -> str:
+def cpuinfo_field(text: str, *names: str) -> str:
     """The first processor's value of the first field named one of ``names``."""
     for line in text.splitlines():
         key, sep, value = line.partition(":")
@@ -35,12 +35,12 @@ def _field(text: str, *names: str) -> str:
 def cpu_flags(text: str | None = None) -> str:
     """The instruction-set flags, sorted and space-separated (the processor's name without them)."""
     text = cpuinfo() if text is None else text
-    flags = _field(text, "flags", "Features")
+    flags = cpuinfo_field(text, "flags", "Features")
     return " ".join(sorted(flags.split())) if flags else (platform.processor() or platform.machine())
 
 
 def half_width_avx512(text: str | None = None) -> bool:
     """Whether this CPU has AVX-512 but runs 512-bit operations as two 256-bit halves (AMD Zen 4)."""
     text = cpuinfo() if text is None else text
-    return (_field(text, "vendor_id") == "AuthenticAMD" and _field(text, "cpu family") == "25"
-            and "avx512f" in _field(text, "flags").split())
+    return (cpuinfo_field(text, "vendor_id") == "AuthenticAMD" and cpuinfo_field(text, "cpu family") == "25"
+            and "avx512f" in cpuinfo_field(text, "flags").split())

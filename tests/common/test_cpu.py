@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from dibrgs_core.render import cpu, fast
+from dibrgs_core.common import cpu
+from dibrgs_core.render import fast
 
 
 def _info(vendor: str, family: str, flags: str) -> str:
