@@ -1,4 +1,5 @@
-"""Image losses and metrics in torch: differentiable SSIM, the paper's photometric loss, PSNR.
+"""Image losses and metrics in torch: differentiable SSIM, the paper's photometric loss, PSNR;
+and the neural Gaussians' volume regulariser (:func:`mean_volume`).
 
 Image layout: **(H, W, C)** (channels last, as the rasterizer returns them) or
 (H, W) for a single channel; values in [0, 1]. All functions return 0-d tensors
@@ -190,6 +191,37 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     return (1.0 - lam) * l1 + lam * dssim
 
 
+class _MeanVolume(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, scales, unit):  # type: ignore[override]
+        from ..render.fast import extension
+
+        ctx.save_for_backward(scales)
+        ctx.unit = unit
+        return extension().volume_forward(scales, unit)
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        from ..render.fast import extension
+
+        (scales,) = ctx.saved_tensors
+        return extension().volume_backward(g, scales, ctx.unit), None
+
+
+def mean_volume(scales: torch.Tensor, unit: float) -> torch.Tensor:
+    """Mean over Gaussians of their volume ``prod(scales / unit)`` ((N, 3) scales; ``unit`` the
+    length that counts as 1, so that the term weighs the same in any scene's units); 0 without
+    Gaussians. On the C++ path one autograd node (torch's ``prod`` and its backward, which guards
+    zeros with several passes, cost about 0.6 ms of a 22 ms step at 256x256); otherwise the same
+    product in torch."""
+    if scales.shape[0] == 0:
+        return scales.sum() * 0.0
+    if scales.dtype in (torch.float32, torch.float64) and uses_fast(None, scales):
+        return _MeanVolume.apply(scales.contiguous(), float(unit))
+    s = scales / unit
+    return (s[:, 0] * s[:, 1] * s[:, 2]).mean()
+
+
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Peak signal-to-noise ratio in dB for images in [0,1] (0-d tensor).
 
@@ -211,4 +243,4 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None)
     return -10.0 * torch.log10(torch.clamp(mse, min=1e-10))
 
 
-__all__ = ["ssim", "ssim_map", "photometric_loss", "psnr"]
+__all__ = ["ssim", "ssim_map", "photometric_loss", "mean_volume", "psnr"]

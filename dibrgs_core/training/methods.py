@@ -21,6 +21,7 @@ from ..strategy.base import Strategy
 from ..strategy.densify import DensifyStrategy
 from .appearance import ColourTransforms
 from .config import GS3DConfig, TrainConfig, expon_lr
+from .losses import mean_volume
 from .optim import Adam
 
 log = logging.getLogger("dibrgs.train")
@@ -152,7 +153,7 @@ class ScaffoldTraining(TrainingMethod):
     def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
         if info is None:
             return torch.zeros(())
-        return (info["gaussians"].scales / self.model.paper_unit).prod(dim=1).mean()
+        return mean_volume(info["gaussians"].scales, self.model.paper_unit)
 
     def parameters(self) -> list[torch.Tensor]:
         return super().parameters() + self.p_params

@@ -7,7 +7,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from dibrgs_core import render
-from dibrgs_core.training.losses import photometric_loss, psnr, ssim, ssim_map
+from dibrgs_core.training.losses import mean_volume, photometric_loss, psnr, ssim, ssim_map
 
 torch.set_num_threads(2)
 
@@ -196,3 +196,54 @@ def test_ssim_after_inference_mode_still_trains():
     s1 = ssim(p, b)
     s1.backward()
     assert abs(float(s1.detach()) - s0) < 1e-6 and p.grad is not None and bool(torch.isfinite(p.grad).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, 7, 20_000])
+def test_mean_volume_equals_torch_prod(backend, dtype, n):
+    """The volume regulariser on either path: torch's ``prod(scales / unit).mean()`` and its
+    gradient, whichever node computed it (the C++ one on "fast")."""
+    g = torch.Generator().manual_seed(n)
+    unit = 0.37
+    s0 = (torch.rand(n, 3, generator=g, dtype=dtype) * 0.2 + 1e-3) * unit
+    s = s0.clone().requires_grad_(True)
+    v = mean_volume(s, unit)
+    assert (v.grad_fn.name() == "_MeanVolumeBackward") is (backend == "fast"), v.grad_fn.name()
+    (3.0 * v).backward()
+    t = s0.clone().requires_grad_(True)
+    w = (t / unit).prod(dim=1).mean()
+    (3.0 * w).backward()
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
+    assert v.dtype == dtype and abs(float(v) - float(w)) <= tol * float(w)
+    torch.testing.assert_close(s.grad, t.grad, rtol=tol * 10, atol=0.0)
+
+
+@pytest.mark.parametrize("units", [1e-6, 1e-3, 1e3, 1e6])
+def test_mean_volume_is_the_same_in_any_units(backend, units):
+    """Scales in another scene's units with the unit scaled alike: the same value and the same
+    gradient once rescaled (no overflow or underflow at either end)."""
+    g = torch.Generator().manual_seed(1)
+    s = torch.rand(1000, 3, generator=g) * 0.1 + 1e-3
+    a = s.clone().requires_grad_(True)
+    b = (s * units).requires_grad_(True)
+    va, vb = mean_volume(a, 1.0), mean_volume(b, units)
+    va.backward()
+    vb.backward()
+    assert torch.isfinite(vb) and abs(float(va) - float(vb)) <= 1e-5 * float(va)
+    torch.testing.assert_close(b.grad * units, a.grad, rtol=1e-5, atol=0.0)
+
+
+def test_mean_volume_of_no_gaussians_is_zero(backend):
+    s = torch.zeros(0, 3, requires_grad=True)
+    v = mean_volume(s, 2.0)
+    v.backward()
+    assert float(v) == 0.0 and s.grad.shape == (0, 3)
+
+
+def test_mean_volume_gradcheck():
+    render.set_backend("fast")
+    try:
+        s = (torch.rand(6, 3, dtype=torch.float64) + 0.1).requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda x: mean_volume(x, 0.7), (s,))
+    finally:
+        render.set_backend(None)

@@ -724,6 +724,33 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
   return dx;
 }
 
+// The volume regulariser of (N, 3) scales (training/losses.py mean_volume): the mean over rows of
+// prod(s / unit), 0 without rows; a 0-d tensor of the scales' dtype.
+torch::Tensor volume_forward(torch::Tensor s, double unit) {
+  TORCH_CHECK(s.dim() == 2 && s.size(1) == 3 && s.device().is_cpu(), "volume_forward: scales must be (N, 3) on the CPU");
+  TORCH_CHECK(unit > 0.0 && std::isfinite(unit), "volume_forward: unit must be positive and finite");
+  s = s.detach().contiguous();
+  const int64_t n = s.size(0);
+  double total = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_volume_forward", [&] {
+    total = dibrgs::loss::volume_sum<scalar_t>(s.data_ptr<scalar_t>(), n, unit);
+  });
+  return torch::full({}, n > 0 ? total / static_cast<double>(n) : 0.0, s.options());
+}
+
+// Gradient of volume_forward with respect to the scales, times g (its 0-d gradient).
+torch::Tensor volume_backward(torch::Tensor g, torch::Tensor s, double unit) {
+  s = s.detach().contiguous();
+  const int64_t n = s.size(0);
+  auto ds = torch::empty_like(s);
+  if (n == 0) return ds;
+  const double k = g.item<double>() / static_cast<double>(n);
+  AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_volume_backward", [&] {
+    dibrgs::loss::volume_grad<scalar_t>(s.data_ptr<scalar_t>(), n, k, unit, ds.data_ptr<scalar_t>());
+  });
+  return ds;
+}
+
 // One Adam step (adam.h) over float32 CPU tensors: params, grads, exp_avgs and exp_avg_sqs
 // (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (n x 6 float64:
 // lr, beta1, beta2, eps, weight_decay, decoupled 0/1). Returns false, with nothing changed, when
@@ -1150,6 +1177,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
   m.def("photometric_forward", &photometric_forward, "L1 + D-SSIM training loss and its SSIM factors");
   m.def("photometric_backward", &photometric_backward, "gradient of photometric_forward");
+  m.def("volume_forward", &volume_forward, "mean volume of Gaussians' scales");
+  m.def("volume_backward", &volume_backward, "gradient of volume_forward");
   m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
   m.def("all_finite", &all_finite, "whether every element of the tensors is finite");
   m.def("spawn_forward", &spawn_forward, "neural Gaussians of the visible anchors");
