@@ -22,7 +22,7 @@ from ..strategy.densify import DensifyStrategy
 from .appearance import ColourTransforms
 from .config import GS3DConfig, TrainConfig, expon_lr
 from .losses import mean_volume
-from .optim import Adam
+from .optim import Adam, step_together
 
 log = logging.getLogger("dibrgs.train")
 
@@ -71,15 +71,18 @@ class TrainingMethod(ABC):
             self.colour_optimizer.zero_grad(set_to_none=True)
 
     def step(self, it: int) -> None:
-        self.optimizer.step()
-        self.step_colour(it)
+        """The optimisers' step of iteration ``it``, together (:func:`.optim.step_together`)."""
+        step_together(self.stepping(it))
 
-    def step_colour(self, it: int) -> None:
-        if self.colour_optimizer is None or it < self.cfg.it(self.cfg.colour.start):
-            return
-        for g in self.colour_optimizer.param_groups:
-            g["lr"] = expon_lr(it, self.cfg.iterations, *self.cfg.colour.lr)
-        self.colour_optimizer.step()
+    def stepping(self, it: int) -> list[torch.optim.Optimizer]:
+        """The optimisers that step at iteration ``it``: the model's, and the colour transforms'
+        from their start (their learning rate of ``it`` set here)."""
+        opts = [self.optimizer]
+        if self.colour_optimizer is not None and it >= self.cfg.it(self.cfg.colour.start):
+            for g in self.colour_optimizer.param_groups:
+                g["lr"] = expon_lr(it, self.cfg.iterations, *self.cfg.colour.lr)
+            opts.append(self.colour_optimizer)
+        return opts
 
     def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
         """After the strategy's post-backward hook (``changes``: what it did this step)."""
@@ -163,15 +166,19 @@ class ScaffoldTraining(TrainingMethod):
         if self.p_optimizer is not None:
             self.p_optimizer.zero_grad(set_to_none=True)
 
-    def step(self, it: int) -> None:
-        self.optimizer.step()
-        self.step_colour(it)
+    def stepping(self, it: int) -> list[torch.optim.Optimizer]:
+        """The base's optimisers and, until it freezes, the IBR projection's."""
+        opts = super().stepping(it)
         if self.p_optimizer is not None and it <= self.p_freeze_at:
-            self.p_optimizer.step()
-            if it == self.p_freeze_at:
-                for p in self.p_params:
-                    p.requires_grad_(False)
-                log.info("IBR projection P frozen at iteration %d", it)
+            opts.append(self.p_optimizer)
+        return opts
+
+    def step(self, it: int) -> None:
+        super().step(it)
+        if self.p_optimizer is not None and it == self.p_freeze_at:
+            for p in self.p_params:
+                p.requires_grad_(False)
+            log.info("IBR projection P frozen at iteration %d", it)
 
     def after_step(self, it: int, changes: dict[str, int], report: Report) -> None:
         self.report_colour(it, report)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dibrgs_core import render
-from dibrgs_core.training.optim import Adam
+from dibrgs_core.training.optim import Adam, step_together
 
 # A Scaffold model's tensors in miniature: offsets, features, scalings, MLP weights and biases.
 SHAPES = [(301, 10, 3), (301, 32), (301, 6), (32, 36), (32,), (10, 32), (10,), (1,)]
@@ -102,3 +102,54 @@ def test_a_step_bumps_the_parameters_version_as_torchs_does():
     before = [p._version for p in b]
     run(1, [(b, ours)])
     assert all(p._version > v for p, v in zip(b, before))
+
+
+def test_optimisers_step_together_in_one_call_as_each_alone(monkeypatch):
+    """A model's Adam and an AdamW (the IBR projection's) stepped together: one extension call,
+    the values of each stepping alone; an optimiser with a step hook takes its own step, hook
+    included, and one of another class its own."""
+    from dibrgs_core.render import fast
+
+    def make():
+        torch.manual_seed(0)
+        a = [torch.randn(s).requires_grad_() for s in SHAPES[:4]]
+        b = [torch.randn(s).requires_grad_() for s in SHAPES[4:]]
+        c = [torch.randn(3).requires_grad_()]
+        return (a, Adam(a, lr=1e-2)), (b, Adam(b, lr=3e-3, weight_decay=0.01, decoupled_weight_decay=True)), \
+            (c, torch.optim.SGD(c, lr=0.1))
+
+    def grads(groups, it):
+        gen = torch.Generator().manual_seed(it)
+        for ps, _ in groups:
+            for p in ps:
+                p.grad = torch.randn(p.shape, generator=gen)
+
+    alone, together = make(), make()
+    ext = fast.extension()
+    calls = []
+
+    class Spy:
+        def __getattr__(self, name):
+            return getattr(ext, name)
+
+        def adam_step(self, *args):
+            calls.append(len(args[0]))
+            return ext.adam_step(*args)
+
+    monkeypatch.setattr(fast, "extension", lambda: Spy())
+    for it in range(5):
+        grads(alone, it)
+        grads(together, it)
+        for _, opt in alone:
+            opt.step()
+        step_together([opt for _, opt in together])
+    assert calls == [4, 4, 8] * 5  # each alone, then both in one call
+    for (pa, _), (pb, _) in zip(alone, together):
+        for p, q in zip(pa, pb):
+            assert torch.equal(p, q)
+    seen = []
+    together[1][1].register_step_pre_hook(lambda opt, args, kwargs: seen.append(opt))
+    grads(together, 9)
+    calls.clear()
+    step_together([opt for _, opt in together])
+    assert seen == [together[1][1]] and calls == [4, 4]

@@ -752,18 +752,17 @@ torch::Tensor volume_backward(torch::Tensor g, torch::Tensor s, double unit) {
 }
 
 // One Adam step (adam.h) over float32 CPU tensors: params, grads, exp_avgs and exp_avg_sqs
-// (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (n x 6 float64:
+// (same shapes a tensor), steps (float32 scalars, incremented here) and hyper (six numbers a tensor:
 // lr, beta1, beta2, eps, weight_decay, decoupled 0/1). Returns false, with nothing changed, when
 // any tensor is not a plain contiguous float32 CPU tensor of its parameter's size (the caller then
 // takes torch's step): the caller's Python checks cost more than the step on a small model.
 bool adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> grads, std::vector<torch::Tensor> exp_avgs,
-               std::vector<torch::Tensor> exp_avg_sqs, std::vector<torch::Tensor> steps, torch::Tensor hyper) {
+               std::vector<torch::Tensor> exp_avg_sqs, std::vector<torch::Tensor> steps,
+               std::vector<double> hyper) {
   const size_t n = params.size();
   TORCH_CHECK(grads.size() == n && exp_avgs.size() == n && exp_avg_sqs.size() == n && steps.size() == n,
               "adam_step: one grad, exp_avg, exp_avg_sq and step a parameter");
-  TORCH_CHECK(hyper.dim() == 2 && hyper.size(0) == static_cast<int64_t>(n) && hyper.size(1) == 6 &&
-                  hyper.scalar_type() == torch::kFloat64 && hyper.is_contiguous(),
-              "adam_step: hyper must be (n, 6) float64");
+  TORCH_CHECK(hyper.size() == 6 * n, "adam_step: hyper must hold six numbers a parameter");
   for (size_t i = 0; i < n; ++i) {
     for (const auto* t : {&params[i], &grads[i], &exp_avgs[i], &exp_avg_sqs[i]})
       if (!(t->defined() && t->layout() == torch::kStrided && t->scalar_type() == torch::kFloat32 &&
@@ -773,7 +772,7 @@ bool adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
           steps[i].device().is_cpu() && !steps[i].requires_grad()))
       return false;
   }
-  const double* h = hyper.data_ptr<double>();
+  const double* h = hyper.data();
   std::vector<dibrgs::adam::Slot> slots(n);
   for (size_t i = 0; i < n; ++i) {
     float* st = steps[i].data_ptr<float>();
