@@ -66,9 +66,10 @@ class TrainingMethod(ABC):
         return own + (list(self.colour.parameters()) if self.colour is not None else [])
 
     def zero_grad(self) -> None:
-        self.optimizer.zero_grad(set_to_none=True)
-        if self.colour_optimizer is not None:
-            self.colour_optimizer.zero_grad(set_to_none=True)
+        """Every optimised tensor's gradient to None (the optimisers' ``zero_grad(set_to_none=True)``,
+        without their profiler scopes: one loop for all of them)."""
+        for p in self.parameters():
+            p.grad = None
 
     def step(self, it: int) -> None:
         """The optimisers' step of iteration ``it``, together (:func:`.optim.step_together`)."""
@@ -160,11 +161,6 @@ class ScaffoldTraining(TrainingMethod):
 
     def parameters(self) -> list[torch.Tensor]:
         return super().parameters() + self.p_params
-
-    def zero_grad(self) -> None:
-        super().zero_grad()
-        if self.p_optimizer is not None:
-            self.p_optimizer.zero_grad(set_to_none=True)
 
     def stepping(self, it: int) -> list[torch.optim.Optimizer]:
         """The base's optimisers and, until it freezes, the IBR projection's."""
