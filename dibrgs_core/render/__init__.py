@@ -27,6 +27,7 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor
 
+from . import fast
 from .projection import Projected, project_gaussians, quat_to_rotmat
 from .reference import composite_reference
 
@@ -46,12 +47,13 @@ __all__ = [
 log = logging.getLogger("dibrgs.render")
 
 Backend = Literal["auto", "fast", "reference"]
+_BACKENDS = get_args(Backend)
 ENV_BACKEND = "DIBRGS_RASTERIZER"
 _backend: Backend | None = None
 
 
 def _check(backend: str, where: str) -> Backend:
-    if backend not in get_args(Backend):
+    if backend not in _BACKENDS:
         raise ValueError(f"{where}: unknown rasterizer backend {backend!r} (expected auto, fast or reference)")
     return backend  # type: ignore[return-value]
 
@@ -88,8 +90,6 @@ def composite(
     ``"fast"`` (C++, CPU only) or ``"reference"``; None is :func:`get_backend`.
     """
     if uses_fast(backend, feats):
-        from . import fast
-
         C = feats.shape[1]
         return fast.composite_fast(means2d, conics, opacities, feats, depths, radii, width, height, (C,))[0]
     return composite_reference(means2d, conics, opacities, feats, depths, radii, width, height)
@@ -98,15 +98,14 @@ def composite(
 def uses_fast(backend: Backend | None, like: Tensor) -> bool:
     """Whether ``backend`` resolves to the C++ path for tensors like ``like`` (building it if
     needed: a failed build raises :class:`fast.BuildError`)."""
+    # Called by every stage of a training step (about ten times): kept cheap.
     backend = get_backend() if backend is None else _check(backend, "rasterizer")
     if backend == "reference":
         return False
-    if like.device.type != "cpu":
+    if not like.is_cpu:
         if backend == "fast":
             raise ValueError("the fast backend runs on CPU tensors only")
         return False
-    from . import fast
-
     fast.extension()
     return True
 
@@ -167,16 +166,12 @@ def rasterize(
     C = colors.shape[1]
     use_fast = uses_fast(backend, colors)
     if use_fast and not (viewmat.requires_grad or K.requires_grad):
-        from . import fast
-
         proj = fast.project_fast(means, quats, scales, viewmat, K, width, height, near, far)
     else:
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
     ones = torch.ones_like(proj.depths)
     feats = torch.cat([colors, proj.depths[:, None], ones[:, None]], dim=1)
     if use_fast:
-        from . import fast
-
         image, depth_acc, alpha = fast.composite_fast(
             proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height, (C, 1, 1))
     else:

@@ -18,19 +18,21 @@ log = logging.getLogger("dibrgs.train")
 def all_finite(tensors: list[torch.Tensor | None]) -> bool:
     """Whether every element of ``tensors`` (None entries skipped) is finite.
 
-    On the C++ path (float32 / float64 CPU tensors): one parallel pass over all of them in the
-    rasterizer's extension. Otherwise one vectorised sum a tensor: a NaN or an infinity makes
-    its sum non-finite, so a finite sum proves the tensor finite; only when a sum is not finite
-    (a non-finite element, or finite values overflowing float32) does the exact per-element
-    test decide.
+    On the C++ path (when every tensor is float32 / float64 CPU data): one parallel pass over all
+    of them in the rasterizer's extension. Otherwise one vectorised sum a tensor: a NaN or an
+    infinity makes its sum non-finite, so a finite sum proves the tensor finite; only when a sum
+    is not finite (a non-finite element, or finite values overflowing float32) does the exact
+    per-element test decide.
     """
     ts = [t for t in tensors if t is not None]
     if not ts:
         return True
-    if all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in ts) and uses_fast(None, ts[0]):
+    if uses_fast(None, ts[0]):
         from ..render.fast import extension
 
-        return bool(extension().all_finite(ts))
+        found = extension().all_finite(ts)  # -1: a tensor the extension does not test
+        if found >= 0:
+            return bool(found)
     if bool(torch.isfinite(torch.stack([t.sum() for t in ts])).all()):
         return True
     return all(bool(torch.isfinite(t).all()) for t in ts)

@@ -69,6 +69,11 @@ def test_all_finite(backend):
         u[5, 0] = math.nan
         assert not all_finite([u.t()])  # not contiguous
         assert not all_finite([u[:, :1]]) and all_finite([u[:5]])
+        # Other dtypes beside float32 ones (the extension declines them; torch's test decides).
+        h = torch.ones(9, dtype=torch.float16)
+        assert all_finite([torch.ones(3), h, torch.arange(4)])
+        h[4] = math.inf
+        assert not all_finite([torch.ones(3), h])
     finally:
         set_backend(None)
 

@@ -1141,14 +1141,16 @@ inline bool exponents_finite(const void* p, int64_t n, U mask) {
   return bad == 0;
 }
 
-// Whether every element of the float32 / float64 CPU tensors is finite: all tensors cut into
-// chunks, one parallel loop (training/guard.py; a torch sum a tensor costs more in dispatch than
-// the test itself for the model's small tensors).
-bool all_finite(std::vector<torch::Tensor> ts) {
+// Whether every element of the float32 / float64 CPU tensors is finite (1, else 0): all tensors
+// cut into chunks, one parallel loop (training/guard.py; a torch sum a tensor costs more in
+// dispatch than the test itself for the model's small tensors). -1, having tested nothing, when a
+// tensor is of another kind (the caller tests it in torch): checks in Python cost more a step.
+int64_t all_finite(std::vector<torch::Tensor> ts) {
   std::vector<int64_t> lengths;
   for (auto& t : ts) {
-    TORCH_CHECK(t.device().is_cpu() && (t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64),
-                "all_finite: float32 / float64 CPU tensors only");
+    if (!(t.defined() && t.device().is_cpu() && t.layout() == torch::kStrided &&
+          (t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64)))
+      return -1;
     t = t.contiguous();
     lengths.push_back(t.numel());
   }
@@ -1161,7 +1163,7 @@ bool all_finite(std::vector<torch::Tensor> ts) {
                          : exponents_finite<uint32_t>(p, i1 - i0, 0x7F800000u);
     if (!fin) ok.store(false, std::memory_order_relaxed);
   });
-  return ok.load();
+  return ok.load() ? 1 : 0;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
