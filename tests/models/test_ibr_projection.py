@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from dibrgs_core.camera.pinhole import Camera
 from dibrgs_core.models.base import CameraTensors
 from dibrgs_core.models.ibr.features import IBRFeatures
+from dibrgs_core.models.ibr.projection import project_rows
 from dibrgs_core.models.ibr.resnet import ResNetFeatures
 from dibrgs_core.models.ibr.sampling import upsampled_taps
 from dibrgs_core.models.ibr.vit import ViTFeatures
@@ -201,3 +202,19 @@ def test_neural_gaussians_use_the_features_of_their_visible_anchors():
     g = model.gaussians(ct)
     g.colors.sum().backward()
     assert all(p.grad is not None for p in ibr.projection_parameters())
+
+
+def test_projection_node_gradcheck_and_no_grad_values():
+    """``project_rows``: one node (float64 gradcheck over every level's weight and bias, a seen
+    column with zeros), and the same values without recording."""
+    g = torch.Generator().manual_seed(3)
+    rows = torch.rand(40, 3 + 6 + 12 + 1, generator=g, dtype=torch.float64)
+    rows[:, -1] = (torch.rand(40, generator=g) > 0.25).double()
+    ws = [torch.randn(shape, generator=g, dtype=torch.float64) for shape in ((4, 3, 1, 1), (4, 6, 1, 1), (4, 12))]
+    bs = [torch.randn(4, generator=g, dtype=torch.float64) for _ in ws]
+    params = [p.requires_grad_() for p in ws + bs]
+    out = project_rows(rows, ws, bs)
+    assert out.grad_fn.name() == "_ProjectRowsBackward"
+    assert torch.autograd.gradcheck(lambda *p: project_rows(rows, list(p[:3]), list(p[3:])), tuple(params))
+    with torch.no_grad():
+        assert torch.equal(project_rows(rows, ws, bs), out.detach())

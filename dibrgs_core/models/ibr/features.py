@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from ...camera.pinhole import Camera
 from ...common.errors import InputError
 from ...common.modes import IbrEncoder, choices
+from .projection import project_rows
 from .pyramid import image_pyramid
 from .resnet import dino_resnet50
 from .sampling import upsampled_taps
@@ -327,9 +328,8 @@ class IBRFeatures(nn.Module):
     def _project(self, rows: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
         """``P`` applied to :meth:`anchor_rows`: one matmul (weights of every level side by
         side, their biases summed on the "seen" column) plus, for DINO, the CLS term."""
-        ws = [self.proj[n].weight.reshape(self.c_r, -1) for n in self._levels]
-        bias = torch.stack([self.proj[n].bias for n in self._levels]).sum(0)
-        out = F.linear(rows, torch.cat(ws + [bias[:, None]], 1))
+        levels = [self.proj[n] for n in self._levels]
+        out = project_rows(rows, [m.weight for m in levels], [m.bias for m in levels])
         if self.encoder == "dino":
             out = out + omega @ self.proj["vit_cls"](self.feat_vit_cls)
         return out
