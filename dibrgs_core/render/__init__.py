@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from . import fast
+from .depth import expected_depth
 from .projection import Projected, project_gaussians, quat_to_rotmat
 from .reference import composite_reference
 
@@ -177,12 +178,12 @@ def rasterize(
     else:
         out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)
         image, depth_acc, alpha = out[..., :C], out[..., C : C + 1], out[..., C + 1 : C + 2]
-    if background is not None and (background.requires_grad or bool(background.any())):
+    # A 3-value list read, not a reduction: one operator of dispatch a step for a black background.
+    if background is not None and (background.requires_grad or any(background.reshape(-1).tolist())):
         # (H,W,1) @ (1,C): the gradient to alpha is then a matmul, not a slow reduction over the
         # few channels (about 1 ms of a 256x256 step); a fixed black background adds nothing.
         image = image + (1.0 - alpha) @ background.to(image).reshape(1, -1)
-    hit = alpha > 0
-    depth = torch.where(hit, depth_acc / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    depth = expected_depth(depth_acc, alpha, use_fast)
     meta = {
         "radii": proj.radii,
         "visible": proj.visible,

@@ -288,3 +288,32 @@ def test_outputs_used_alone_give_the_reference_gradients(use):
     for a, b in zip(*grads):
         assert a is not None and b is not None
         torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-7)
+
+
+def test_expected_depth_node_equals_the_torch_formula():
+    """render/depth.py: the C++ node and the torch formula give the same depth and gradients,
+    0 and a zero gradient where the alpha is 0 (never NaN); float64 gradcheck where it is positive."""
+    from dibrgs_core.render.depth import expected_depth
+
+    g = torch.Generator().manual_seed(5)
+    for dt in (torch.float32, torch.float64):
+        alpha = torch.rand(40, 50, 1, generator=g, dtype=dt)
+        alpha[alpha < 0.3] = 0.0
+        alpha[0, 0, 0] = 1e-30  # tiny but positive
+        acc = alpha * torch.rand(40, 50, 1, generator=g, dtype=dt) * 1e3
+        gd = torch.randn(40, 50, 1, generator=g, dtype=dt)
+        outs = []
+        for use_fast in (True, False):
+            a, w = acc.clone().requires_grad_(), alpha.clone().requires_grad_()
+            d = expected_depth(a, w, use_fast)
+            assert (d.grad_fn.name() == "_ExpectedDepthBackward") is use_fast
+            d.backward(gd)
+            outs.append((d.detach(), a.grad, w.grad))
+        for x, y in zip(*outs):
+            assert torch.isfinite(x).all()
+            torch.testing.assert_close(x, y, rtol=1e-6 if dt == torch.float32 else 1e-12, atol=0.0)
+        off = alpha == 0
+        assert (outs[0][0][off] == 0).all() and (outs[0][1][off] == 0).all() and (outs[0][2][off] == 0).all()
+    a = (torch.rand(6, 1, dtype=torch.float64) * 5).requires_grad_()
+    w = (torch.rand(6, 1, dtype=torch.float64) + 0.1).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x, y: expected_depth(x, y, True), (a, w))

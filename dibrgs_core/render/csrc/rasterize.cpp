@@ -724,6 +724,42 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
   return dx;
 }
 
+// Expected depth of a render (render/depth.py): depth_acc / alpha where alpha > 0, else 0, for
+// float tensors of one shape; and its gradient (g_acc, g_alpha) for the depth's gradient g.
+torch::Tensor expected_depth_forward(torch::Tensor acc, torch::Tensor alpha) {
+  TORCH_CHECK(acc.sizes() == alpha.sizes() && acc.scalar_type() == alpha.scalar_type() && acc.device().is_cpu(),
+              "expected_depth_forward: depth_acc and alpha must be CPU tensors of one shape and dtype");
+  acc = acc.detach().contiguous(), alpha = alpha.detach().contiguous();
+  auto out = torch::empty_like(acc);
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "dibrgs_expected_depth", [&] {
+    const scalar_t *a = acc.data_ptr<scalar_t>(), *w = alpha.data_ptr<scalar_t>();
+    scalar_t* o = out.data_ptr<scalar_t>();
+    at::parallel_for(0, acc.numel(), 1 << 15, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) o[i] = w[i] > 0 ? a[i] / w[i] : scalar_t(0);
+    });
+  });
+  return out;
+}
+
+std::vector<torch::Tensor> expected_depth_backward(torch::Tensor g, torch::Tensor acc, torch::Tensor alpha) {
+  g = g.contiguous().to(acc.scalar_type()), acc = acc.detach().contiguous(), alpha = alpha.detach().contiguous();
+  TORCH_CHECK(g.sizes() == acc.sizes(), "expected_depth_backward: the gradient must match the depth");
+  auto ga = torch::empty_like(acc), gw = torch::empty_like(acc);
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "dibrgs_expected_depth_backward", [&] {
+    const scalar_t *gp = g.data_ptr<scalar_t>(), *a = acc.data_ptr<scalar_t>(), *w = alpha.data_ptr<scalar_t>();
+    scalar_t *pa = ga.data_ptr<scalar_t>(), *pw = gw.data_ptr<scalar_t>();
+    at::parallel_for(0, acc.numel(), 1 << 15, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        const bool hit = w[i] > 0;
+        const scalar_t inv = hit ? scalar_t(1) / w[i] : scalar_t(0);
+        pa[i] = gp[i] * inv;
+        pw[i] = hit ? -gp[i] * (a[i] * inv) * inv : scalar_t(0);
+      }
+    });
+  });
+  return {ga, gw};
+}
+
 // The volume regulariser of (N, 3) scales (training/losses.py mean_volume): the mean over rows of
 // prod(s / unit), 0 without rows; a 0-d tensor of the scales' dtype.
 torch::Tensor volume_forward(torch::Tensor s, double unit) {
@@ -1178,6 +1214,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map");
   m.def("photometric_forward", &photometric_forward, "L1 + D-SSIM training loss and its SSIM factors");
   m.def("photometric_backward", &photometric_backward, "gradient of photometric_forward");
+  m.def("expected_depth_forward", &expected_depth_forward, "expected depth of a render");
+  m.def("expected_depth_backward", &expected_depth_backward, "gradient of expected_depth_forward");
   m.def("volume_forward", &volume_forward, "mean volume of Gaussians' scales");
   m.def("volume_backward", &volume_backward, "gradient of volume_forward");
   m.def("adam_step", &adam_step, "one Adam step over many parameter tensors");
