@@ -244,7 +244,10 @@ class IBRFeatures(nn.Module):
         rows, omega = self.anchor_rows(anchors)
         params = self.projection_parameters()
         if torch.is_grad_enabled() and any(p.requires_grad for p in params):
-            return self._project(rows if mask is None else rows[mask], omega if mask is None else omega[mask])
+            if mask is None:
+                return self._project(rows, omega)
+            # omega (the view weights) serves only DINO's CLS term: no second gather without it.
+            return self._project(rows[mask], omega[mask] if self.encoder == "dino" else omega)
         # No gradient can reach P (frozen, or evaluation): project every anchor once and
         # keep it while neither P (its versions) nor the anchors change.
         key = (self._rows_generation,) + tuple((p._version, p.data_ptr()) for p in params)
@@ -327,7 +330,8 @@ class IBRFeatures(nn.Module):
 
     def _project(self, rows: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
         """``P`` applied to :meth:`anchor_rows`: one matmul (weights of every level side by
-        side, their biases summed on the "seen" column) plus, for DINO, the CLS term."""
+        side, their biases summed on the "seen" column) plus, for DINO, the CLS term (``omega``:
+        the rows' view weights, read only then)."""
         levels = [self.proj[n] for n in self._levels]
         out = project_rows(rows, [m.weight for m in levels], [m.bias for m in levels])
         if self.encoder == "dino":
