@@ -1103,15 +1103,36 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
   auto dx = torch::empty({M, D}, o), dfeat = torch::empty({M, F}, o), danchor = torch::empty({M, 3}, o);
   auto dibr = torch::empty({w.fusion() && want_dibr ? M : 0, C}, o);
   auto dpre_gate = torch::empty({w.fusion() ? M : 0, F}, o), dref = torch::empty({w.fusion() ? M : 0, F}, o);
-  // Per block partial weight gradients, summed over the blocks below (zeros: no rows, no block).
-  std::vector<torch::Tensor> dW1, db1, dW2, db2;
+  // Per block partial weight gradients, summed over the blocks at the end (zeros: no rows, no
+  // block). One buffer (nb, total) holds every layer's, so that the zeroing and the sum are one
+  // operator each instead of two a tensor.
+  std::vector<std::vector<int64_t>> shapes;  // each partial's shape, in the buffer's order
+  if (w.fusion()) shapes = {{F, C}, {F}, {F, C}, {F}};  // Wref, bref, Wmod, bmod
   for (size_t h = 0; h < nh; ++h) {
     const int64_t H = w.W1[h].size(0), O = w.W2[h].size(0);
-    dW1.push_back(torch::zeros({nb, H, D}, o)), db1.push_back(torch::zeros({nb, H}, o));
-    dW2.push_back(torch::zeros({nb, O, H}, o)), db2.push_back(torch::zeros({nb, O}, o));
+    shapes.insert(shapes.end(), {{H, D}, {H}, {O, H}, {O}});  // W1, b1, W2, b2
   }
-  auto dWref = torch::zeros({w.fusion() ? nb : 0, F, C}, o), dWmod = torch::zeros({w.fusion() ? nb : 0, F, C}, o);
-  auto dbref = torch::zeros({w.fusion() ? nb : 0, F}, o), dbmod = torch::zeros({w.fusion() ? nb : 0, F}, o);
+  std::vector<int64_t> starts{0};
+  for (const auto& sh : shapes) {
+    int64_t n = 1;
+    for (const int64_t d : sh) n *= d;
+    starts.push_back(starts.back() + n);
+  }
+  auto partial = torch::zeros({nb, starts.back()}, o);
+  auto part = [&](size_t k) {  // (nb, shape...) view of partial k: its rows b are contiguous, not the view
+    std::vector<int64_t> sh{nb};
+    sh.insert(sh.end(), shapes[k].begin(), shapes[k].end());
+    return partial.narrow(1, starts[k], starts[k + 1] - starts[k]).view(sh);
+  };
+  const size_t first_head = w.fusion() ? 4 : 0;
+  std::vector<torch::Tensor> dW1, db1, dW2, db2;
+  for (size_t h = 0; h < nh; ++h) {
+    const size_t k = first_head + 4 * h;
+    dW1.push_back(part(k)), db1.push_back(part(k + 1)), dW2.push_back(part(k + 2)), db2.push_back(part(k + 3));
+  }
+  const auto none = torch::zeros({0, F, C}, o), none1 = torch::zeros({0, F}, o);
+  auto dWref = w.fusion() ? part(0) : none, dbref = w.fusion() ? part(1) : none1;
+  auto dWmod = w.fusion() ? part(2) : none, dbmod = w.fusion() ? part(3) : none1;
   dibrgs::decoder::for_blocks(M, nb, [&](int64_t b, int64_t r0, int64_t n) {
     const auto xs = x.narrow(0, r0, n);
     auto dxs = dx.narrow(0, r0, n);
@@ -1122,13 +1143,13 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
       AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_output_grad", [&] {
         dibrgs::decoder::output_grad<scalar_t>(gout[h].data_ptr<scalar_t>() + r0 * O,
                                                out[h].data_ptr<scalar_t>() + r0 * O, gz.data_ptr<scalar_t>(),
-                                               db2[h].data_ptr<scalar_t>() + b * O, n, O, w.acts[h]);
+                                               db2[h][b].data_ptr<scalar_t>(), n, O, w.acts[h]);
       });
       at::mm_out(gw2, gz.t(), hs);
       auto gh = at::mm(gz, w.W2[h]);
       AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_relu_grad", [&] {
         dibrgs::decoder::relu_grad<scalar_t>(gh.data_ptr<scalar_t>(), hs.data_ptr<scalar_t>(),
-                                             db1[h].data_ptr<scalar_t>() + b * H, n, H);
+                                             db1[h][b].data_ptr<scalar_t>(), n, H);
       });
       at::mm_out(gw1, gh.t(), xs);
       if (h == 0)
@@ -1143,7 +1164,7 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
           f ? gate.data_ptr<scalar_t>() + r0 * F : nullptr, f ? ref.data_ptr<scalar_t>() + r0 * F : nullptr,
           dist_scale, dfeat.data_ptr<scalar_t>() + r0 * F, danchor.data_ptr<scalar_t>() + r0 * 3,
           f ? dpre_gate.data_ptr<scalar_t>() + r0 * F : nullptr, f ? dref.data_ptr<scalar_t>() + r0 * F : nullptr,
-          f ? dbmod.data_ptr<scalar_t>() + b * F : nullptr, f ? dbref.data_ptr<scalar_t>() + b * F : nullptr, n, F);
+          f ? dbmod[b].data_ptr<scalar_t>() : nullptr, f ? dbref[b].data_ptr<scalar_t>() : nullptr, n, F);
     });
     if (w.fusion()) {
       const auto vs = ibr.narrow(0, r0, n), dgs = dpre_gate.narrow(0, r0, n), des = dref.narrow(0, r0, n);
@@ -1157,9 +1178,12 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
       }
     }
   });
+  // Summed over the blocks, then cut into the layers' gradients: contiguous views of one tensor
+  // (they become the parameters' .grad as they are; nothing writes one through another).
+  const auto total = nb == 1 ? partial[0] : partial.sum(0);
   std::vector<torch::Tensor> res{dfeat, danchor, dibr};
-  if (w.fusion()) res.insert(res.end(), {dWref.sum(0), dbref.sum(0), dWmod.sum(0), dbmod.sum(0)});
-  for (size_t h = 0; h < nh; ++h) res.insert(res.end(), {dW1[h].sum(0), db1[h].sum(0), dW2[h].sum(0), db2[h].sum(0)});
+  for (size_t k = 0; k < shapes.size(); ++k)
+    res.push_back(total.narrow(0, starts[k], starts[k + 1] - starts[k]).view(shapes[k]));
   return res;
 }
 
