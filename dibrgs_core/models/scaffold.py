@@ -50,7 +50,7 @@ from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .decoder import decode as decode_heads, fuse
-from .spawn import spawn, take_rows
+from .spawn import activate_scaling, spawn, take_rows
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -59,11 +59,6 @@ ANCHOR_PARAMS = ("anchor", "offset", "anchor_feat", "scaling")
 # Near plane as a fraction of the camera-to-scene distance (the rasterizer's former 0.01 m
 # at the generated scenes' 210 m is 5e-5; anything nearer a camera than this is a floater).
 NEAR_FRACTION = 1e-4
-
-
-def _activate_scaling(log_s: torch.Tensor) -> torch.Tensor:
-    """Anchor scaling from its log, clamped so that exp stays finite."""
-    return torch.exp(log_s.clamp(-30.0, 20.0))
 
 
 def _mlp(in_dim: int, hidden: int, out_dim: int, act: nn.Module | None) -> nn.Sequential:
@@ -178,7 +173,7 @@ class NeuralGaussians(nn.Module):
     # -- per-anchor helpers ----------------------------------------------------
     def anchor_scaling(self) -> torch.Tensor:
         """(N,6) activated anchor scaling (the decode activates the visible anchors' rows itself)."""
-        return _activate_scaling(self.scaling)
+        return activate_scaling(self.scaling)
 
     def fused_features(self, idx: torch.Tensor, ibr_feats: torch.Tensor | None) -> torch.Tensor:
         """``f_s + g * E_ref(f_v)`` for anchors ``idx`` (ibr_feats: (len(idx), C_r) or None)."""
@@ -236,7 +231,7 @@ class NeuralGaussians(nn.Module):
         opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
                                            (self.mlp_opacity, self.mlp_cov, self.mlp_color))
         neural_opacity = opacity.reshape(-1)
-        g = spawn(neural_opacity, color, cov, anchor, _activate_scaling(log_s), offset)
+        g = spawn(neural_opacity, color, cov, anchor, log_s, offset)
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
                        anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 

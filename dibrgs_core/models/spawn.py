@@ -9,8 +9,8 @@ For ``M`` visible anchors with ``k`` offsets each, row ``(a, j)`` (``a * k + j``
   1e-12 is the identity);
 * opacity ``nop[a*k + j]``, colour ``color[a, 3j:3j+3]``.
 
-``scal`` is the activated anchor scaling ``exp(l_v)`` of the visible anchors. Two paths with the
-same maths: the C++ one of the rasterizer's extension (``render/csrc/spawn.h``; one parallel
+``scal`` is the activated anchor scaling ``exp(clamp(l_v, -30, 20))`` (:func:`activate_scaling`)
+of the visible anchors' logs ``l_v``, which :func:`spawn` takes. Two paths with the same maths: the C++ one of the rasterizer's extension (``render/csrc/spawn.h``; one parallel
 pass forward and backward) for CPU tensors when the rasterizer's backend resolves to it, and
 the torch formulation (any device, the ``reference`` backend).
 """
@@ -24,6 +24,12 @@ from torch import Tensor
 from ..render import Backend, uses_fast
 
 QUAT_EPS = 1e-12  # a quaternion this short has no direction (spawn.h uses the same)
+LOG_SCALING_RANGE = (-30.0, 20.0)  # anchor scaling logs are clamped to this before exp (spawn.h too)
+
+
+def activate_scaling(log_s: Tensor) -> Tensor:
+    """Anchor scaling from its log, clamped so that exp stays finite."""
+    return torch.exp(log_s.clamp(*LOG_SCALING_RANGE))
 
 
 class Spawned(NamedTuple):
@@ -37,23 +43,23 @@ class Spawned(NamedTuple):
     selected: Tensor
 
 
-def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, scal: Tensor, offset: Tensor,
+def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, log_scal: Tensor, offset: Tensor,
           backend: Backend | None = None) -> Spawned:
     """Gaussians of the rows with ``nop > 0``.
 
     Args:
         nop: (M*k,) Tanh opacities; color: (M, 3k) colours in [0, 1]; cov: (M, 7k) raw scale
-            logits and quaternions (7 a row); anchor: (M, 3) anchor positions; scal: (M, 6)
-            activated scaling; offset: (M, k, 3) learned offsets.
+            logits and quaternions (7 a row); anchor: (M, 3) anchor positions; log_scal: (M, 6)
+            the anchors' scaling logs (activated here: :func:`activate_scaling`); offset: (M, k, 3)
+            learned offsets.
         backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
     """
-    selected = nop > 0.0
     if uses_fast(backend, anchor):
         dt = anchor.dtype
-        means, quats, scales, opac, colors = _SpawnFast.apply(
-            *(t.to(dt).contiguous() for t in (nop, color, cov, anchor, scal, offset)))
+        means, quats, scales, opac, colors, selected = _SpawnFast.apply(
+            *(t.to(dt).contiguous() for t in (nop, color, cov, anchor, log_scal, offset)))
         return Spawned(means, quats, scales, opac, colors, selected)
-    return spawn_reference(nop, color, cov, anchor, scal, offset)
+    return spawn_reference(nop, color, cov, anchor, activate_scaling(log_scal), offset)
 
 
 def take_rows(tensors: Sequence[Tensor], idx: Tensor, backend: Backend | None = None) -> list[Tensor]:
@@ -124,19 +130,20 @@ def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, sca
 
 class _SpawnFast(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, nop, color, cov, anchor, scal, offset):  # type: ignore[override]
+    def forward(ctx, nop, color, cov, anchor, log_scal, offset):  # type: ignore[override]
         from ..render.fast import extension
 
-        means, quats, scales, opac, colors, start = extension().spawn_forward(
-            nop.reshape(-1), color, cov, anchor, scal, offset)
-        ctx.save_for_backward(nop, cov, scal, offset, start)
-        return means, quats, scales, opac, colors
+        means, quats, scales, opac, colors, start, selected = extension().spawn_forward(
+            nop.reshape(-1), color, cov, anchor, log_scal, offset)
+        ctx.save_for_backward(nop, cov, log_scal, offset, start)
+        ctx.mark_non_differentiable(selected)
+        return means, quats, scales, opac, colors, selected
 
     @staticmethod
-    def backward(ctx, gm, gq, gs, go, gc):  # type: ignore[override]
+    def backward(ctx, gm, gq, gs, go, gc, _gsel):  # type: ignore[override]
         from ..render.fast import extension
 
-        nop, cov, scal, offset, start = ctx.saved_tensors
-        dnop, dcolor, dcov, danchor, dscal, doffset = extension().spawn_backward(
-            gm, gq, gs, go, gc, nop.reshape(-1), cov, scal, offset, start)
-        return dnop.reshape(nop.shape), dcolor, dcov, danchor, dscal, doffset
+        nop, cov, log_scal, offset, start = ctx.saved_tensors
+        dnop, dcolor, dcov, danchor, dlog, doffset = extension().spawn_backward(
+            gm, gq, gs, go, gc, nop.reshape(-1), cov, log_scal, offset, start)
+        return dnop.reshape(nop.shape), dcolor, dcov, danchor, dlog, doffset

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dibrgs_core.models.spawn import spawn, spawn_reference, take_rows
+from dibrgs_core.models.spawn import activate_scaling, spawn, spawn_reference, take_rows
 from dibrgs_core.render import set_backend
 from model_synth import camera_tensors, small_camera, small_model
 
@@ -17,13 +17,14 @@ def _inputs(M: int, k: int, dtype: torch.dtype, seed: int = 0, special: bool = T
     color = torch.rand(M, 3 * k, generator=g, dtype=dtype)
     cov = torch.randn(M, 7 * k, generator=g, dtype=dtype)
     anchor = torch.randn(M, 3, generator=g, dtype=dtype) * 100.0
-    scal = torch.rand(M, 6, generator=g, dtype=dtype) + 0.1
+    log_scal = torch.log(torch.rand(M, 6, generator=g, dtype=dtype) + 0.1)
     offset = torch.randn(M, k, 3, generator=g, dtype=dtype)
     if special and M > 3:
         nop[3 * k + 2] = 0.5
         cov.view(M, k, 7)[3, 2, 3:] = 0.0  # a kept row with a zero quaternion: the identity, no gradient
         nop[: k] = -0.5                    # an anchor with no Gaussian
-    return [t.requires_grad_() for t in (nop, color, cov, anchor, scal, offset)]
+        log_scal[2, 1], log_scal[2, 4] = 25.0, -40.0  # beyond the clamp: a constant scaling, no gradient
+    return [t.requires_grad_() for t in (nop, color, cov, anchor, log_scal, offset)]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -32,7 +33,7 @@ def test_fast_matches_reference_values_and_gradients(dtype):
     fast_in = _inputs(M, k, dtype)
     ref_in = [t.detach().clone().requires_grad_() for t in fast_in]
     a = spawn(*fast_in, backend="fast")
-    b = spawn_reference(*ref_in)
+    b = spawn_reference(*ref_in[:4], activate_scaling(ref_in[4]), ref_in[5])
     assert torch.equal(a.selected, b.selected)
     assert 0 < int(a.selected.sum()) < M * k
     tol = 1e-6 if dtype == torch.float32 else 1e-12
@@ -47,6 +48,8 @@ def test_fast_matches_reference_values_and_gradients(dtype):
     for x, y in zip(fast_in, ref_in):
         torch.testing.assert_close(x.grad, y.grad, rtol=10 * tol, atol=10 * tol)
     assert float(fast_in[2].grad.view(M, k, 7)[3, 2, 3:].abs().sum()) == 0.0
+    assert float(fast_in[4].grad[2, 1]) == 0.0 and float(fast_in[4].grad[2, 4]) == 0.0
+    assert torch.isfinite(a.means).all() and torch.isfinite(a.scales).all()
 
 
 def test_fast_gradients_against_finite_differences():
@@ -103,12 +106,12 @@ def test_extreme_magnitudes_agree_and_stay_finite():
     c[0, 2, 3:] = torch.tensor([3e38, 0.0, 0.0, -3e38])
     c[1, 0, 3:] = torch.tensor([1e-20, 1e-20, 0.0, 0.0])  # shorter than 1e-12: the identity
     anchor = torch.randn(M, 3, generator=torch.Generator().manual_seed(3)) * 1e6
-    scal = torch.exp(torch.tensor([[20.0, 20.0, 20.0, -30.0, -30.0, -30.0]] * M))
+    log_scal = torch.tensor([[20.0, 20.0, 20.0, -30.0, -30.0, -30.0]] * M)
     offset = torch.randn(M, k, 3, generator=torch.Generator().manual_seed(4))
-    fast_in = [t.requires_grad_() for t in (nop, color, cov, anchor, scal, offset)]
+    fast_in = [t.requires_grad_() for t in (nop, color, cov, anchor, log_scal, offset)]
     ref_in = [t.detach().clone().requires_grad_() for t in fast_in]
     a = spawn(*fast_in, backend="fast")
-    b = spawn_reference(*ref_in)
+    b = spawn_reference(*ref_in[:4], activate_scaling(ref_in[4]), ref_in[5])
     h = 2 ** -0.5
     for out in (a, b):
         assert all(bool(torch.isfinite(t).all()) for t in out[:5])

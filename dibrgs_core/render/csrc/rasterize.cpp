@@ -840,17 +840,18 @@ bool adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
 }
 
 // Neural Gaussians of the visible anchors (spawn.h): nop (M k), color (M, 3 k), cov (M, 7 k),
-// anchor (M, 3), scal (M, 6), offset (M, k, 3), one dtype, contiguous. Returns {means (S, 3),
-// quats (S, 4), scales (S, 3), opacities (S), colors (S, 3), start (M + 1) int64}.
+// anchor (M, 3), log_scal (M, 6), offset (M, k, 3), one dtype, contiguous. Returns {means (S, 3),
+// quats (S, 4), scales (S, 3), opacities (S), colors (S, 3), start (M + 1) int64, selected (M k)
+// bool: the rows kept}.
 std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color, torch::Tensor cov,
-                                         torch::Tensor anchor, torch::Tensor scal, torch::Tensor offset) {
+                                         torch::Tensor anchor, torch::Tensor log_scal, torch::Tensor offset) {
   const int64_t M = anchor.size(0), k = offset.dim() == 3 ? offset.size(1) : 0;
-  TORCH_CHECK(anchor.dim() == 2 && anchor.size(1) == 3 && scal.sizes() == torch::IntArrayRef({M, 6}) &&
+  TORCH_CHECK(anchor.dim() == 2 && anchor.size(1) == 3 && log_scal.sizes() == torch::IntArrayRef({M, 6}) &&
                   offset.sizes() == torch::IntArrayRef({M, k, 3}) && nop.numel() == M * k &&
                   color.sizes() == torch::IntArrayRef({M, 3 * k}) && cov.sizes() == torch::IntArrayRef({M, 7 * k}),
-              "spawn_forward: shapes must be nop (M k), color (M, 3 k), cov (M, 7 k), anchor (M, 3), scal (M, 6), "
+              "spawn_forward: shapes must be nop (M k), color (M, 3 k), cov (M, 7 k), anchor (M, 3), log_scal (M, 6), "
               "offset (M, k, 3)");
-  for (const auto* t : {&nop, &color, &cov, &anchor, &scal, &offset})
+  for (const auto* t : {&nop, &color, &cov, &anchor, &log_scal, &offset})
     TORCH_CHECK(t->scalar_type() == anchor.scalar_type() && t->is_contiguous() && t->device().is_cpu(),
                 "spawn_forward: tensors must be contiguous CPU tensors of one dtype");
   auto start = torch::empty({M + 1}, torch::kInt64);
@@ -861,13 +862,14 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
     out = {torch::empty({S, 3}, o), torch::empty({S, 4}, o), torch::empty({S, 3}, o), torch::empty({S}, o),
            torch::empty({S, 3}, o)};
     dibrgs::spawn::forward<scalar_t>(nop.data_ptr<scalar_t>(), color.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
-                                     anchor.data_ptr<scalar_t>(), scal.data_ptr<scalar_t>(),
+                                     anchor.data_ptr<scalar_t>(), log_scal.data_ptr<scalar_t>(),
                                      offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
                                      out[0].data_ptr<scalar_t>(), out[1].data_ptr<scalar_t>(),
                                      out[2].data_ptr<scalar_t>(), out[3].data_ptr<scalar_t>(),
                                      out[4].data_ptr<scalar_t>());
   });
   out.push_back(start);
+  out.push_back(nop.reshape({M * k}) > 0);
   return out;
 }
 
@@ -942,31 +944,31 @@ torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torc
   return out;
 }
 
-// Gradients {nop, color, cov, anchor, scal, offset} of spawn_forward's inputs from those of its
+// Gradients {nop, color, cov, anchor, log_scal, offset} of spawn_forward's inputs from those of its
 // outputs (gmeans, gquats, gscales, gopac, gcolors) and the inputs it saved.
 std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gquats, torch::Tensor gscales,
                                           torch::Tensor gopac, torch::Tensor gcolors, torch::Tensor nop,
-                                          torch::Tensor cov, torch::Tensor scal, torch::Tensor offset,
+                                          torch::Tensor cov, torch::Tensor log_scal, torch::Tensor offset,
                                           torch::Tensor start) {
-  const int64_t M = scal.size(0), k = offset.size(1), S = start.data_ptr<int64_t>()[M];
+  const int64_t M = log_scal.size(0), k = offset.size(1), S = start.data_ptr<int64_t>()[M];
   TORCH_CHECK(gmeans.numel() == 3 * S && gquats.numel() == 4 * S && gscales.numel() == 3 * S && gopac.numel() == S &&
                   gcolors.numel() == 3 * S,
               "spawn_backward: output gradients must match the forward's outputs");
-  const auto dt = scal.scalar_type();
+  const auto dt = log_scal.scalar_type();
   gmeans = gmeans.to(dt).contiguous(), gquats = gquats.to(dt).contiguous(), gscales = gscales.to(dt).contiguous();
   gopac = gopac.to(dt).contiguous(), gcolors = gcolors.to(dt).contiguous();
-  auto dnop = torch::empty_like(nop), dcov = torch::empty_like(cov), dscal = torch::empty_like(scal);
-  auto doffset = torch::empty_like(offset), danchor = torch::empty({M, 3}, scal.options());
-  auto dcolor = torch::empty({M, 3 * k}, scal.options());
+  auto dnop = torch::empty_like(nop), dcov = torch::empty_like(cov), dlog_scal = torch::empty_like(log_scal);
+  auto doffset = torch::empty_like(offset), danchor = torch::empty({M, 3}, log_scal.options());
+  auto dcolor = torch::empty({M, 3 * k}, log_scal.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_spawn_backward", [&] {
     dibrgs::spawn::backward<scalar_t>(
         gmeans.data_ptr<scalar_t>(), gquats.data_ptr<scalar_t>(), gscales.data_ptr<scalar_t>(),
         gopac.data_ptr<scalar_t>(), gcolors.data_ptr<scalar_t>(), nop.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
-        scal.data_ptr<scalar_t>(), offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
+        log_scal.data_ptr<scalar_t>(), offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
         dnop.data_ptr<scalar_t>(), dcolor.data_ptr<scalar_t>(), dcov.data_ptr<scalar_t>(),
-        danchor.data_ptr<scalar_t>(), dscal.data_ptr<scalar_t>(), doffset.data_ptr<scalar_t>());
+        danchor.data_ptr<scalar_t>(), dlog_scal.data_ptr<scalar_t>(), doffset.data_ptr<scalar_t>());
   });
-  return {dnop, dcolor, dcov, danchor, dscal, doffset};
+  return {dnop, dcolor, dcov, danchor, dlog_scal, doffset};
 }
 
 namespace {

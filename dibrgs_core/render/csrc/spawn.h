@@ -5,7 +5,8 @@
 // it dispatch that does not split over threads (issue 17).
 //
 // Row (a, j) is offset j of visible anchor a; it is kept when its opacity nop[a k + j] > 0, in
-// row order, so the kept rows of one anchor are contiguous and start at start[a]:
+// row order, so the kept rows of one anchor are contiguous and start at start[a]; the anchor's
+// scaling is scal = exp(clamp(log_scal[a], -30, 20)) (6 values; the clamp keeps exp finite):
 //   mean  = anchor[a] + offset[a, j] * scal[a, 0:3]
 //   scale = scal[a, 3:6] * sigmoid(cov[a, 7 j + 0..2])
 //   quat  = cov[a, 7 j + 3..6] / |.|   (1, 0, 0, 0) when |.| <= 1e-12, w x y z
@@ -28,6 +29,18 @@ constexpr double QUAT_EPS = 1e-12;  // models/spawn.py's threshold of a zero qua
 template <typename T>
 inline T sigmoid(T x) {
   return T(1) / (T(1) + std::exp(-x));
+}
+
+constexpr double LOG_SCALING_MIN = -30.0, LOG_SCALING_MAX = 20.0;  // models/spawn.py's clamp
+
+// An anchor's scaling from its log (6 values), and the clamp's gradient factor (1 inside, 0 out).
+template <typename T>
+inline void activate(const T* l, T* s, T* inside) {
+  for (int d = 0; d < 6; ++d) {
+    const bool in = l[d] >= T(LOG_SCALING_MIN) && l[d] <= T(LOG_SCALING_MAX);
+    s[d] = std::exp(std::min(std::max(l[d], T(LOG_SCALING_MIN)), T(LOG_SCALING_MAX)));
+    inside[d] = in ? T(1) : T(0);
+  }
 }
 
 // |q| of a quaternion in double: its squares overflow float32 from |q| ~ 1.8e19.
@@ -54,13 +67,14 @@ int64_t count(const T* nop, int64_t M, int64_t k, int64_t* start) {
 }
 
 template <typename T>
-void forward(const T* nop, const T* color, const T* cov, const T* anchor, const T* scal, const T* offset, int64_t M,
-             int64_t k, const int64_t* start, T* means, T* quats, T* scales, T* opac, T* colors) {
+void forward(const T* nop, const T* color, const T* cov, const T* anchor, const T* log_scal, const T* offset,
+             int64_t M, int64_t k, const int64_t* start, T* means, T* quats, T* scales, T* opac, T* colors) {
   at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
       const T* an = anchor + 3 * a;
-      const T* s = scal + 6 * a;
+      T s[6], inside[6];
+      activate(log_scal + 6 * a, s, inside);
       for (int64_t j = 0; j < k; ++j) {
         if (!(nop[a * k + j] > T(0))) continue;
         const T* o = offset + (a * k + j) * 3;
@@ -85,12 +99,13 @@ void forward(const T* nop, const T* color, const T* cov, const T* anchor, const 
 // of the outputs is written (zero where a row was not kept).
 template <typename T>
 void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac, const T* gcolors, const T* nop,
-              const T* cov, const T* scal, const T* offset, int64_t M, int64_t k, const int64_t* start, T* dnop,
-              T* dcolor, T* dcov, T* danchor, T* dscal, T* doffset) {
+              const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k, const int64_t* start, T* dnop,
+              T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
   at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
-      const T* s = scal + 6 * a;
+      T s[6], inside[6];
+      activate(log_scal + 6 * a, s, inside);
       T ga[3] = {0, 0, 0}, gs[6] = {0, 0, 0, 0, 0, 0};
       for (int64_t j = 0; j < k; ++j) {
         const int64_t row = a * k + j;
@@ -131,7 +146,7 @@ void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac
         ++r;
       }
       for (int d = 0; d < 3; ++d) danchor[3 * a + d] = ga[d];
-      for (int d = 0; d < 6; ++d) dscal[6 * a + d] = gs[d];
+      for (int d = 0; d < 6; ++d) dlog_scal[6 * a + d] = gs[d] * s[d] * inside[d];  // d exp = exp
     }
   });
 }
@@ -154,7 +169,7 @@ void visible(const T* anchor, const T* offset, const T* log_scaling, int64_t N, 
         x[i] = cam[3 * i] * p[0] + cam[3 * i + 1] * p[1] + cam[3 * i + 2] * p[2] + cam[9 + i];
       // The largest of exp(clamp(l)) is exp(clamp(largest l)): two exps, not six.
       const T* l = log_scaling + 6 * a;
-      auto act = [](double v) { return std::exp(std::min(std::max(v, -30.0), 20.0)); };
+      auto act = [](double v) { return std::exp(std::min(std::max(v, LOG_SCALING_MIN), LOG_SCALING_MAX)); };
       const double so = act(std::max({l[0], l[1], l[2]})), sg = act(std::max({l[3], l[4], l[5]}));
       double off = 0;
       for (int64_t i = 0; i < 3 * k; ++i) off = std::max(off, std::fabs(static_cast<double>(offset[3 * k * a + i])));
