@@ -178,7 +178,7 @@ def rasterize(
     else:
         out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)
         image, depth_acc, alpha = out[..., :C], out[..., C : C + 1], out[..., C + 1 : C + 2]
-    # A 3-value list read, not a reduction: one operator of dispatch a step for a black background.
+    # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.
     if background is not None and (background.requires_grad or any(background.reshape(-1).tolist())):
         # (H,W,1) @ (1,C): the gradient to alpha is then a matmul, not a slow reduction over the
         # few channels (about 1 ms of a 256x256 step); a fixed black background adds nothing.
