@@ -49,13 +49,12 @@ def test_the_one_loop_step_follows_torch(kw):
     ta.load_state_dict(ours.state_dict())
 
 
-def test_the_step_runs_in_the_extension_when_the_rasterizer_does(monkeypatch):
-    """With the reference path torch's step runs; both give the same values. A spy on the real
-    extension counts its calls."""
+def spy_on_adam_step(monkeypatch) -> list[int]:
+    """The real extension behind a spy: the list it returns gets each adam_step call's tensor count."""
     from dibrgs_core.render import fast
 
     ext = fast.extension()
-    calls = []
+    calls: list[int] = []
 
     class Spy:
         def __getattr__(self, name):
@@ -65,8 +64,15 @@ def test_the_step_runs_in_the_extension_when_the_rasterizer_does(monkeypatch):
             calls.append(len(args[0]))
             return ext.adam_step(*args)
 
-    (a, ta), (b, ours) = pair()
     monkeypatch.setattr(fast, "extension", lambda: Spy())
+    return calls
+
+
+def test_the_step_runs_in_the_extension_when_the_rasterizer_does(monkeypatch):
+    """With the reference path torch's step runs; both give the same values. A spy on the real
+    extension counts its calls."""
+    (a, ta), (b, ours) = pair()
+    calls = spy_on_adam_step(monkeypatch)
     run(3, [(b, ours)])
     assert calls == [len(SHAPES)] * 3
     render.set_backend("reference")
@@ -108,7 +114,6 @@ def test_optimisers_step_together_in_one_call_as_each_alone(monkeypatch):
     """A model's Adam and an AdamW (the IBR projection's) stepped together: one extension call,
     the values of each stepping alone; an optimiser with a step hook takes its own step, hook
     included, and one of another class its own."""
-    from dibrgs_core.render import fast
 
     def make():
         torch.manual_seed(0)
@@ -125,18 +130,7 @@ def test_optimisers_step_together_in_one_call_as_each_alone(monkeypatch):
                 p.grad = torch.randn(p.shape, generator=gen)
 
     alone, together = make(), make()
-    ext = fast.extension()
-    calls = []
-
-    class Spy:
-        def __getattr__(self, name):
-            return getattr(ext, name)
-
-        def adam_step(self, *args):
-            calls.append(len(args[0]))
-            return ext.adam_step(*args)
-
-    monkeypatch.setattr(fast, "extension", lambda: Spy())
+    calls = spy_on_adam_step(monkeypatch)
     for it in range(5):
         grads(alone, it)
         grads(together, it)
