@@ -92,6 +92,7 @@ def test_model_decodes_the_same_on_both_backends():
         torch.testing.assert_close(gf[n], gr[n], rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.stability
 def test_extreme_magnitudes_agree_and_stay_finite():
     """Anchor scalings at the clamp's ends (exp(20), exp(-30)), scale logits of +-1e30, quaternions
     whose squares overflow float32 or underflow it: both paths give the same finite Gaussians and

@@ -290,6 +290,7 @@ def test_outputs_used_alone_give_the_reference_gradients(use):
         torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-7)
 
 
+@pytest.mark.stability
 def test_expected_depth_node_equals_the_torch_formula():
     """render/depth.py: the C++ node and the torch formula give the same depth and gradients,
     0 and a zero gradient where the alpha is 0 (never NaN); float64 gradcheck where it is positive."""
