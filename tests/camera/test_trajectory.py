@@ -180,6 +180,8 @@ def test_scattered_cameras_are_free_and_chords_of_a_circle_are_no_grid():
 @pytest.mark.stability
 @pytest.mark.parametrize("scale,offset", [(1e-3, (0, 0, 0)), (1e3, (0, 0, 0)), (1.0, (4e5, -5e6, 120.0))])
 def test_classes_and_poses_do_not_depend_on_units_or_origin(scale, offset):
+    """An orbit, a row of three nadir photos and a 3x3 grid, scaled by 1e-3..1e3 and moved: the same
+    trajectory class and flight lines, spacings and pseudo poses scaled and moved alike."""
     sets = [orbit_cams(), [nadir(-3.08, 2.17), nadir(-0.13, 2.50), nadir(2.81, 2.42)],
             [nadir(x, y) for x in (-3.0, 0.0, 3.0) for y in (0.6, 2.2, 3.8)]]
     for cams in sets:
