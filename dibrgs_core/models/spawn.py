@@ -10,9 +10,10 @@ For ``M`` visible anchors with ``k`` offsets each, row ``(a, j)`` (``a * k + j``
 * opacity ``nop[a*k + j]``, colour ``color[a, 3j:3j+3]``.
 
 ``scal`` is the activated anchor scaling ``exp(clamp(l_v, -30, 20))`` (:func:`activate_scaling`)
-of the visible anchors' logs ``l_v``, which :func:`spawn` takes. Two paths with the same maths: the C++ one of the rasterizer's extension (``render/csrc/spawn.h``; one parallel
-pass forward and backward) for CPU tensors when the rasterizer's backend resolves to it, and
-the torch formulation (any device, the ``reference`` backend).
+of the visible anchors' logs ``l_v``, which :func:`spawn` takes. Two paths with the same maths:
+the C++ one of the rasterizer's extension (``render/csrc/spawn.h``; one parallel pass forward
+and backward, the activation included) for CPU tensors when the rasterizer's backend resolves to
+it, and the torch formulation (any device, the ``reference`` backend).
 """
 from __future__ import annotations
 
