@@ -49,6 +49,11 @@ def test_fast_matches_reference_values_and_gradients(dtype):
         torch.testing.assert_close(x.grad, y.grad, rtol=10 * tol, atol=10 * tol)
     assert float(fast_in[2].grad.view(M, k, 7)[3, 2, 3:].abs().sum()) == 0.0
     assert float(fast_in[4].grad[2, 1]) == 0.0 and float(fast_in[4].grad[2, 4]) == 0.0
+    # Outside the clamp the gradient is 0 even when what arrives is infinite (as torch's clamp gives).
+    x = [t.detach().clone().requires_grad_() for t in fast_in]
+    c = spawn(*x, backend="fast")
+    c.means.backward(torch.full_like(c.means, float("inf")))
+    assert float(x[4].grad[2, 1]) == 0.0
     assert torch.isfinite(a.means).all() and torch.isfinite(a.scales).all()
 
 

@@ -2,6 +2,8 @@
 gsplat's pure-torch implementation, gradients vs finite differences."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -315,6 +317,10 @@ def test_expected_depth_node_equals_the_torch_formula():
             torch.testing.assert_close(x, y, rtol=1e-6 if dt == torch.float32 else 1e-12, atol=0.0)
         off = alpha == 0
         assert (outs[0][0][off] == 0).all() and (outs[0][1][off] == 0).all() and (outs[0][2][off] == 0).all()
+    # An infinite gradient where nothing covers the pixel still gives exactly 0 there, as in torch.
+    a, w = torch.ones(2, 1, requires_grad=True), torch.tensor([[0.5], [0.0]], requires_grad=True)
+    expected_depth(a, w, True).backward(torch.full((2, 1), math.inf))
+    assert a.grad[1, 0] == 0 and w.grad[1, 0] == 0
     a = (torch.rand(6, 1, dtype=torch.float64) * 5).requires_grad_()
     w = (torch.rand(6, 1, dtype=torch.float64) + 0.1).requires_grad_()
     assert torch.autograd.gradcheck(lambda x, y: expected_depth(x, y, True), (a, w))

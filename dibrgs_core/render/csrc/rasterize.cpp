@@ -750,10 +750,14 @@ std::vector<torch::Tensor> expected_depth_backward(torch::Tensor g, torch::Tenso
     scalar_t *pa = ga.data_ptr<scalar_t>(), *pw = gw.data_ptr<scalar_t>();
     at::parallel_for(0, acc.numel(), 1 << 15, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
-        const bool hit = w[i] > 0;
-        const scalar_t inv = hit ? scalar_t(1) / w[i] : scalar_t(0);
-        pa[i] = gp[i] * inv;
-        pw[i] = hit ? -gp[i] * (a[i] * inv) * inv : scalar_t(0);
+        // Uncovered pixels get exactly 0 (as torch's where does), even for an infinite gradient.
+        if (w[i] > 0) {
+          const scalar_t inv = scalar_t(1) / w[i];
+          pa[i] = gp[i] * inv;
+          pw[i] = -gp[i] * (a[i] * inv) * inv;
+        } else {
+          pa[i] = pw[i] = scalar_t(0);
+        }
       }
     });
   });

@@ -33,13 +33,13 @@ inline T sigmoid(T x) {
 
 constexpr double LOG_SCALING_MIN = -30.0, LOG_SCALING_MAX = 20.0;  // models/spawn.py's clamp
 
-// An anchor's scaling from its log (6 values), and the clamp's gradient factor (1 inside, 0 out).
+// An anchor's scaling from its log (6 values), and whether each log is inside the clamp (where
+// its gradient passes; outside it is 0, not 0 times the gradient, which could be inf).
 template <typename T>
-inline void activate(const T* l, T* s, T* inside) {
+inline void activate(const T* l, T* s, bool* inside) {
   for (int d = 0; d < 6; ++d) {
-    const bool in = l[d] >= T(LOG_SCALING_MIN) && l[d] <= T(LOG_SCALING_MAX);
+    inside[d] = l[d] >= T(LOG_SCALING_MIN) && l[d] <= T(LOG_SCALING_MAX);
     s[d] = std::exp(std::min(std::max(l[d], T(LOG_SCALING_MIN)), T(LOG_SCALING_MAX)));
-    inside[d] = in ? T(1) : T(0);
   }
 }
 
@@ -73,7 +73,8 @@ void forward(const T* nop, const T* color, const T* cov, const T* anchor, const 
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
       const T* an = anchor + 3 * a;
-      T s[6], inside[6];
+      T s[6];
+      bool inside[6];
       activate(log_scal + 6 * a, s, inside);
       for (int64_t j = 0; j < k; ++j) {
         if (!(nop[a * k + j] > T(0))) continue;
@@ -104,7 +105,8 @@ void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac
   at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
-      T s[6], inside[6];
+      T s[6];
+      bool inside[6];
       activate(log_scal + 6 * a, s, inside);
       T ga[3] = {0, 0, 0}, gs[6] = {0, 0, 0, 0, 0, 0};
       for (int64_t j = 0; j < k; ++j) {
@@ -146,7 +148,7 @@ void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac
         ++r;
       }
       for (int d = 0; d < 3; ++d) danchor[3 * a + d] = ga[d];
-      for (int d = 0; d < 6; ++d) dlog_scal[6 * a + d] = gs[d] * s[d] * inside[d];  // d exp = exp
+      for (int d = 0; d < 6; ++d) dlog_scal[6 * a + d] = inside[d] ? gs[d] * s[d] : T(0);  // d exp = exp
     }
   });
 }
