@@ -88,6 +88,12 @@ def decode(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dis
     return decode_reference(feat, ibr, anchor, centre, dist_scale, fusion, heads)
 
 
+def _layers(params: Sequence[Tensor], n: int) -> tuple[list[Tensor], ...]:
+    """W1, b1, W2, b2 of the ``n`` heads and the fusion's [Wref, bref, Wmod, bmod] (or []) from the
+    node's parameter list (per head W1, b1, W2, b2, then the fusion's)."""
+    return (*(list(params[i:4 * n:4]) for i in range(4)), list(params[4 * n:]))
+
+
 class _DecodeFast(torch.autograd.Function):
     """Inputs: feat, anchor, centre, [ibr], per head W1, b1, W2, b2, [Wref, bref, Wmod, bmod]."""
 
@@ -99,8 +105,7 @@ class _DecodeFast(torch.autograd.Function):
         n = len(acts)
         ibr = rest[0] if fused else feat.new_empty(0)
         params = rest[1:] if fused else rest
-        W1, b1, W2, b2 = (list(params[i:4 * n:4]) for i in range(4))
-        fusion = list(params[4 * n:])
+        W1, b1, W2, b2, fusion = _layers(params, n)
         res = extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2, list(acts))
         outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
         ctx.save_for_backward(ibr, x, dist, gate, ref, *hidden, *outs, *params)
@@ -116,8 +121,7 @@ class _DecodeFast(torch.autograd.Function):
         n = len(acts)
         ibr, x, dist, gate, ref, *rest = ctx.saved_tensors
         hidden, outs, params = rest[:n], rest[n:2 * n], rest[2 * n:]
-        W1, b1, W2, b2 = (list(params[i:4 * n:4]) for i in range(4))
-        fusion = list(params[4 * n:])
+        W1, b1, W2, b2, fusion = _layers(params, n)
         want_dibr = fused and ctx.needs_input_grad[4]
         grads = [torch.zeros_like(o) if g is None else g for g, o in zip(gouts, outs)]
         res = extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),

@@ -859,9 +859,11 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
     TORCH_CHECK(t->scalar_type() == anchor.scalar_type() && t->is_contiguous() && t->device().is_cpu(),
                 "spawn_forward: tensors must be contiguous CPU tensors of one dtype");
   auto start = torch::empty({M + 1}, torch::kInt64);
+  auto selected = torch::empty({M * k}, torch::kBool);
   std::vector<torch::Tensor> out;
   AT_DISPATCH_FLOATING_TYPES(anchor.scalar_type(), "dibrgs_spawn_forward", [&] {
-    const int64_t S = dibrgs::spawn::count<scalar_t>(nop.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>());
+    const int64_t S = dibrgs::spawn::count<scalar_t>(nop.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
+                                                     selected.data_ptr<bool>());
     auto o = anchor.options();
     out = {torch::empty({S, 3}, o), torch::empty({S, 4}, o), torch::empty({S, 3}, o), torch::empty({S}, o),
            torch::empty({S, 3}, o)};
@@ -873,7 +875,7 @@ std::vector<torch::Tensor> spawn_forward(torch::Tensor nop, torch::Tensor color,
                                      out[4].data_ptr<scalar_t>());
   });
   out.push_back(start);
-  out.push_back(nop.reshape({M * k}) > 0);
+  out.push_back(selected);
   return out;
 }
 
@@ -1136,9 +1138,8 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
     const size_t k = first_head + 4 * h;
     dW1.push_back(part(k)), db1.push_back(part(k + 1)), dW2.push_back(part(k + 2)), db2.push_back(part(k + 3));
   }
-  const auto none = torch::zeros({0, F, C}, o), none1 = torch::zeros({0, F}, o);
-  auto dWref = w.fusion() ? part(0) : none, dbref = w.fusion() ? part(1) : none1;
-  auto dWmod = w.fusion() ? part(2) : none, dbmod = w.fusion() ? part(3) : none1;
+  torch::Tensor dWref, dbref, dWmod, dbmod;  // read only with fusion
+  if (w.fusion()) dWref = part(0), dbref = part(1), dWmod = part(2), dbmod = part(3);
   dibrgs::decoder::for_blocks(M, nb, [&](int64_t b, int64_t r0, int64_t n) {
     const auto xs = x.narrow(0, r0, n);
     auto dxs = dx.narrow(0, r0, n);

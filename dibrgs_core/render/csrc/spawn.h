@@ -51,13 +51,17 @@ inline double quat_norm(const T* q) {
   return std::sqrt(s);
 }
 
-// start (M + 1): first kept row of each anchor; returns the number of kept rows.
+// start (M + 1): first kept row of each anchor, and selected (M k): whether each row is kept;
+// returns the number of kept rows.
 template <typename T>
-int64_t count(const T* nop, int64_t M, int64_t k, int64_t* start) {
+int64_t count(const T* nop, int64_t M, int64_t k, int64_t* start, bool* selected) {
   at::parallel_for(0, M, 1024, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t n = 0;
-      for (int64_t j = 0; j < k; ++j) n += nop[a * k + j] > T(0);
+      for (int64_t j = 0; j < k; ++j) {
+        selected[a * k + j] = nop[a * k + j] > T(0);
+        n += selected[a * k + j];
+      }
       start[a + 1] = n;
     }
   });
