@@ -8,7 +8,8 @@ oracle for the fast C++ path and implements exactly the same rules:
   square ``floor((m - r) / 16) .. ceil((m + r) / 16)`` (gsplat's rule) - it
   never contributes outside those tiles. Tiles are additionally skipped when
   they cannot contain a pixel with ``alpha >= 1/255`` (the bounding box of
-  the ellipse ``q <= 2 ln(255 o)``, slightly inflated and widened by a pixel);
+  the ellipse ``q <= 2 ln(255 o)``, inflated by what float32 rounding of q
+  may reach, more for thin Gaussians);
   this cull never changes a result, it only saves work.
 * Per pixel, Gaussians in increasing depth (ties by index). With
   ``d = mean2d - (pixel + 0.5)`` and ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``:
@@ -47,16 +48,22 @@ def tile_rects(
     op = opacities.detach().to(torch.float64)
     r = radii.to(torch.float64)
     # Half-extents of {q <= t}: sqrt(t * Sigma_xx), Sigma = conic^-1, for the
-    # level t = 2 ln(255 o), inflated so float32 rounding stays inside.
-    t = 2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300)) * 1.01 + 0.01
+    # level t = 2 ln(255 o), inflated so float32 rounding of q stays inside: 1 %
+    # + 0.01, and about 4 eps cond q more for a thin Gaussian (its terms cancel);
+    # past twice the level, or not positive definite, no cull (the C++ binning's rule).
+    a, b, c = con.unbind(1)
+    h, e = 0.5 * (a + c), 0.5 * (a - c)
+    lam = h - torch.sqrt(e * e + b * b)
+    grow = 8.0 * torch.finfo(torch.float32).eps * (2.0 * h - lam)
+    t = (2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300)) * 1.01 + 0.01) * (1.0 + grow / lam)
+    t = torch.where((lam > 0) & (grow <= lam), t, torch.full_like(t, float("inf")))
     t = torch.where(op * 255.0 >= 1.0, t, torch.full_like(t, -1.0))
-    det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
+    det = a * c - b * b
     det = torch.where(det > 0, det, torch.ones_like(det))
-    sxx = con[:, 2] / det
-    syy = con[:, 0] / det
     tpos = torch.clamp(t, min=0.0)
-    ex = torch.sqrt(tpos * sxx) + 1.0
-    ey = torch.sqrt(tpos * syy) + 1.0
+    # nan (an infinite level times a zero or negative variance): no bound but the radius's
+    ex = torch.nan_to_num(torch.sqrt(tpos * c / det) * (1.0 + 1e-9) + 0.01, nan=float("inf"))
+    ey = torch.nan_to_num(torch.sqrt(tpos * a / det) * (1.0 + 1e-9) + 0.01, nan=float("inf"))
     x0 = torch.maximum(torch.floor((m[:, 0] - r) / TILE), torch.floor((m[:, 0] - ex) / TILE))
     x1 = torch.minimum(torch.ceil((m[:, 0] + r) / TILE), torch.floor((m[:, 0] + ex) / TILE) + 1)
     y0 = torch.maximum(torch.floor((m[:, 1] - r) / TILE), torch.floor((m[:, 1] - ey) / TILE))

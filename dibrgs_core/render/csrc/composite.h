@@ -180,6 +180,19 @@ inline VF vmax(VF a, VF b) {
   return a > b ? a : b;
 #endif
 }
+// Rounded down to an integer (a float's integer values are exact).
+inline VF vfloor(VF x) {
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
+  return (VF)_mm512_roundscale_ps((__m512)x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+#elif DIBRGS_VBYTES == 32 && defined(__AVX__)
+  return (VF)_mm256_floor_ps((__m256)x);
+#elif defined(__SSE4_1__)
+  return (VF)_mm_floor_ps((__m128)x);
+#else
+  for (int i = 0; i < VBYTES / 4; ++i) x[i] = std::floor(x[i]);
+  return x;
+#endif
+}
 inline VD vmin(VD a, VD b) {
 #if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
   return (VD)_mm512_min_pd((__m512d)a, (__m512d)b);
@@ -312,14 +325,17 @@ void make_records(const T* m2, const T* con, const T* op, const T* feat, int64_t
 // offset dy, |dy| <= Y; a degenerate conic reaches every pixel (P = Y = inf).
 struct Chords {
   float P = 0, Q = 0, S = 0, Y = -1;  // default: reaches nothing
+  float pad = 0;  // segment_mask's rounding allowance, less its part from the mean's position
   Chords() = default;
   Chords(double a, double b, double c, double lvl) {
     const double det = a * c - b * b;
     auto fl = [](double v) { return static_cast<float>(std::min(std::max(v, -1e30), 1e30)); };
     if (a > 0 && det > 0 && std::isfinite(det) && std::isfinite(lvl) && lvl >= 0) {
-      P = fl(lvl / a), Q = fl(det / (a * a)), S = fl(-b / a), Y = fl(std::sqrt(lvl * a / det));
+      const double p = lvl / a, s = -b / a, y = std::sqrt(lvl * a / det);
+      P = fl(p), Q = fl(det / (a * a)), S = fl(s), Y = fl(y);
+      pad = fl(0.01 + 5e-4 * std::sqrt(p) + 1e-6 * (1.0 + std::fabs(s)) * y);
     } else {
-      P = Y = std::numeric_limits<float>::infinity(), Q = S = 0.0f;
+      P = Y = pad = std::numeric_limits<float>::infinity(), Q = S = 0.0f;
     }
   }
 };
@@ -346,16 +362,20 @@ inline uint64_t spread_rows(uint64_t x) {
 
 // Row segments of a tile (bit row * MS + segment, for element type T) that a
 // Gaussian's culling ellipse reaches, given its mean relative to the tile's
-// corner: rows whose centre lies within Y + 1 of the mean (bin_tiles' ey),
-// and there the ellipse's chord at the row centre (at its nearest point for
-// rows just outside it), widened by a pixel, against each segment's pixel
-// centres. Like the binning culls it only skips pixels with alpha < 1/255
+// corner: rows whose centre lies within Y + pad of the mean, and there the
+// pixel centres that the ellipse's chord at the row centre (at its nearest
+// point for rows just outside it), widened by pad, holds; pad covers this
+// float arithmetic's rounding (0.01 px, a millionth of the lengths, and near
+// the ellipse's ends, where P - Q dy^2 cancels, sqrt(2 eps P)). A
+// segment is hit when it has such a pixel, so any segment width gives the
+// same tiles. Like the binning culls it only skips pixels with alpha < 1/255
 // (the level is bin_tiles' inflated one).
 template <typename T>
 inline uint64_t segment_mask(const Chords& e, float mxr, float myr) {
   typedef Geo<T> G;
   constexpr int LF = VBYTES / 4;
-  const float Y1 = e.Y + 1.0f;
+  const float pad = e.pad + 1e-6f * (std::fabs(mxr) + std::fabs(myr));
+  const float Y1 = e.Y + pad;
   VF lane;
   for (int i = 0; i < LF; ++i) lane[i] = static_cast<float>(i);
   uint64_t hit[G::MS] = {};
@@ -365,12 +385,14 @@ inline uint64_t segment_mask(const Chords& e, float mxr, float myr) {
     const VIF rowok = (dy <= Y1) & (dy >= -Y1);
     const VF dyc = vmax(vmin(dy, splat<VF>(e.Y)), splat<VF>(-e.Y));
     const VF disc = vmax(e.P - e.Q * dyc * dyc, VF{});
-    const VF hw = vsqrt(disc) + 1.0f;
+    const VF hw = vsqrt(disc) + pad;
     const VF cen = mxr - e.S * dyc;
-    const VF lo = cen - hw, hi = cen + hw;
+    // First and last pixel (centre i + 0.5) inside the chord; none when lo > hi.
+    const VF lo = -vfloor((hw - cen) + 0.5f), hi = vfloor((cen + hw) - 0.5f);
+    const VIF some = rowok & (lo <= hi);
     for (int ms = 0; ms < G::MS; ++ms) {
-      const float s0 = ms * G::VPM * G::L + 0.5f, s1 = s0 + (G::VPM * G::L - 1);
-      hit[ms] |= uint64_t(lanes(rowok & (lo <= s1) & (hi >= s0))) << (j * LF);
+      const float s0 = ms * G::VPM * G::L, s1 = s0 + (G::VPM * G::L - 1);
+      hit[ms] |= uint64_t(lanes(some & (lo <= s1) & (hi >= s0))) << (j * LF);
     }
   }
   uint64_t m = 0;

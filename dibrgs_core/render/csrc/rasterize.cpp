@@ -12,6 +12,7 @@
 #include <array>
 #include <atomic>
 #include <cmath>
+#include <limits>
 #include <mutex>
 #include <new>
 #include <string>
@@ -35,12 +36,20 @@ using dibrgs::TILE;
 namespace {
 
 // The alpha >= 1/255 region is the ellipse q <= 2 ln(255 o) with
-// q = a dx^2 + 2 b dx dy + c dy^2. Culling uses a slightly larger level so that
-// float32 rounding of the per-pixel test can never reach outside it; the
-// culls below only save work, they never change a result.
-inline double cull_level(double o) {
+// q = a dx^2 + 2 b dx dy + c dy^2. Culling uses a larger level so that the
+// kernels' float32 rounding of the per-pixel test can never reach outside it:
+// a fixed 1 % + 0.01, and for a thin Gaussian (its terms cancel) about 4 eps
+// cond q more (cond: the conic's eigenvalue ratio). Past twice the level, or
+// for a conic that is not positive definite, it is infinite: no ellipse cull,
+// the radius alone bounds the tiles. float64 inputs get the same level, so
+// that they give the same tile lists. The culls below only save work, they
+// never change a result.
+inline double cull_level(double o, double a, double b, double c) {
   if (!(o * 255.0 >= 1.0)) return -1.0;
-  return 2.0 * std::log(o * 255.0) * 1.01 + 0.01;
+  const double h = 0.5 * (a + c), e = 0.5 * (a - c), d = std::sqrt(e * e + b * b);  // inf or NaN: no cull
+  const double grow = 8.0 * std::numeric_limits<float>::epsilon() * (h + d);
+  if (!(h - d > 0) || !(grow <= h - d)) return std::numeric_limits<double>::infinity();
+  return (2.0 * std::log(o * 255.0) * 1.01 + 0.01) * (1.0 + grow / (h - d));
 }
 
 // Runs worker(next) on every torch intra-op thread; workers pull tile indices
@@ -202,13 +211,14 @@ template <typename S, typename R>
 inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t i, int64_t tx, int64_t ty, Bin* out) {
   const double r = static_cast<double>(pr[i]);
   const double mx = pm[2 * i], my = pm[2 * i + 1];
-  const double t = cull_level(po[i]);
-  if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) return false;
   const double a = pc[3 * i], b = pc[3 * i + 1], c = pc[3 * i + 2];
+  const double t = cull_level(po[i], a, b, c);
+  if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) return false;
   double det = a * c - b * b;
   if (!(det > 0)) det = 1.0;
-  const double ex = std::sqrt(t * c / det) + 1.0;
-  const double ey = std::sqrt(t * a / det) + 1.0;
+  // Exact in double against the kernels' own mean; the pad only covers the extents' rounding.
+  const double ex = std::sqrt(t * c / det) * (1.0 + 1e-9) + 0.01;
+  const double ey = std::sqrt(t * a / det) * (1.0 + 1e-9) + 0.01;
   auto clampt = [](double v, int64_t hi) {
     return static_cast<int32_t>(std::min(std::max(v, 0.0), static_cast<double>(hi)));
   };
