@@ -16,13 +16,17 @@ from rasterizer_oracle import brute_composite
 W, H = 70, 53
 
 
+def box_means(g: torch.Generator, n: int, size: list[float], low: list[float]) -> torch.Tensor:
+    """n float64 points uniform in the box from ``low`` to ``low + size``."""
+    f64 = torch.float64
+    return torch.rand(n, 3, generator=g, dtype=f64) * torch.tensor(size, dtype=f64) + torch.tensor(low, dtype=f64)
+
+
 def thin_scene(n: int, seed: int, dtype):
     """Needle-like Gaussians at random 3D orientations, many crossing tile and segment borders."""
     g = torch.Generator().manual_seed(seed)
     f64 = torch.float64
-    means = torch.rand(n, 3, generator=g, dtype=f64) * torch.tensor([3.0, 2.4, 1.0], dtype=f64) - torch.tensor(
-        [1.5, 1.2, -4.0], dtype=f64
-    )
+    means = box_means(g, n, [3.0, 2.4, 1.0], [-1.5, -1.2, 4.0])
     quats = torch.randn(n, 4, generator=g, dtype=f64)
     scales = torch.stack(
         [
@@ -80,9 +84,7 @@ def test_segment_masks_change_no_result_for_thin_gaussians():
     g = torch.Generator().manual_seed(7)
     f64 = torch.float64
     n = 300
-    means = torch.rand(n, 3, generator=g, dtype=f64) * torch.tensor([1.0, 0.8, 1.0], dtype=f64) - torch.tensor(
-        [0.5, 0.4, -4.0], dtype=f64
-    )
+    means = box_means(g, n, [1.0, 0.8, 1.0], [-0.5, -0.4, 4.0])
     quats = torch.randn(n, 4, generator=g, dtype=f64)
     scales = torch.stack([torch.rand(n, generator=g, dtype=f64) * 4.5 + 0.5, torch.full((n,), 1e-4, dtype=f64),
                           torch.full((n,), 1e-4, dtype=f64)], -1)
@@ -141,9 +143,7 @@ def test_many_gaussians_stop_early_and_match():
     g = torch.Generator().manual_seed(5)
     f64 = torch.float64
     n = 400
-    means = torch.rand(n, 3, generator=g, dtype=f64) * torch.tensor([2.0, 2.0, 3.0], dtype=f64) - torch.tensor(
-        [1.0, 1.0, -3.0], dtype=f64
-    )
+    means = box_means(g, n, [2.0, 2.0, 3.0], [-1.0, -1.0, 3.0])
     quats = torch.randn(n, 4, generator=g, dtype=f64)
     scales = torch.rand(n, 3, generator=g, dtype=f64) * 0.3 + 0.1
     opac = torch.full((n,), 0.97, dtype=f64)
