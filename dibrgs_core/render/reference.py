@@ -49,16 +49,15 @@ def tile_rects(
     r = radii.to(torch.float64)
     # Half-extents of {q <= t}: sqrt(t * Sigma_xx), Sigma = conic^-1, for the
     # level t = 2 ln(255 o), inflated so float32 rounding of q stays inside: 1 %
-    # + 0.01, and about 4 eps cond q more for a thin Gaussian (its terms cancel);
-    # past twice the level, or not positive definite, no cull (the C++ binning's rule).
+    # + 0.01, and about 4 eps cond q more for a thin Gaussian (its terms cancel;
+    # cond <= (a + c)^2 / det); past twice the level, or not positive definite,
+    # no cull (the C++ binning's rule).
     a, b, c = con.unbind(1)
-    h, e = 0.5 * (a + c), 0.5 * (a - c)
-    lam = h - torch.sqrt(e * e + b * b)
-    grow = 8.0 * torch.finfo(torch.float32).eps * (2.0 * h - lam)
-    t = (2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300)) * 1.01 + 0.01) * (1.0 + grow / lam)
-    t = torch.where((lam > 0) & (grow <= lam), t, torch.full_like(t, float("inf")))
-    t = torch.where(op * 255.0 >= 1.0, t, torch.full_like(t, -1.0))
     det = a * c - b * b
+    grow = 8.0 * torch.finfo(torch.float32).eps * (a + c) ** 2 / det
+    t = (2.0 * torch.log(torch.clamp(op * 255.0, min=1e-300)) * 1.01 + 0.01) * (1.0 + grow)
+    t = torch.where((det > 0) & (grow <= 1.0), t, torch.full_like(t, float("inf")))
+    t = torch.where(op * 255.0 >= 1.0, t, torch.full_like(t, -1.0))
     det = torch.where(det > 0, det, torch.ones_like(det))
     tpos = torch.clamp(t, min=0.0)
     # nan (an infinite level times a zero or negative variance): no bound but the radius's

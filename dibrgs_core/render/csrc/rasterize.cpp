@@ -39,17 +39,16 @@ namespace {
 // q = a dx^2 + 2 b dx dy + c dy^2. Culling uses a larger level so that the
 // kernels' float32 rounding of the per-pixel test can never reach outside it:
 // a fixed 1 % + 0.01, and for a thin Gaussian (its terms cancel) about 4 eps
-// cond q more (cond: the conic's eigenvalue ratio). Past twice the level, or
-// for a conic that is not positive definite, it is infinite: no ellipse cull,
-// the radius alone bounds the tiles. float64 inputs get the same level, so
-// that they give the same tile lists. The culls below only save work, they
-// never change a result.
-inline double cull_level(double o, double a, double b, double c) {
+// cond q more (cond: the conic's eigenvalue ratio, bounded above by
+// (a + c)^2 / det). Past twice the level, or for a conic that is not positive
+// definite, it is infinite: no ellipse cull, the radius alone bounds the tiles.
+// float64 inputs get the same level, so that they give the same tile lists.
+// The culls below only save work, they never change a result.
+inline double cull_level(double o, double a, double c, double det) {
   if (!(o * 255.0 >= 1.0)) return -1.0;
-  const double h = 0.5 * (a + c), e = 0.5 * (a - c), d = std::sqrt(e * e + b * b);  // inf or NaN: no cull
-  const double grow = 8.0 * std::numeric_limits<float>::epsilon() * (h + d);
-  if (!(h - d > 0) || !(grow <= h - d)) return std::numeric_limits<double>::infinity();
-  return (2.0 * std::log(o * 255.0) * 1.01 + 0.01) * (1.0 + grow / (h - d));
+  const double grow = 8.0 * std::numeric_limits<float>::epsilon() * (a + c) * (a + c) / det;
+  if (!(det > 0) || !(grow <= 1.0)) return std::numeric_limits<double>::infinity();  // NaN too
+  return (2.0 * std::log(o * 255.0) * 1.01 + 0.01) * (1.0 + grow);
 }
 
 // Runs worker(next) on every torch intra-op thread; workers pull tile indices
@@ -202,7 +201,7 @@ inline uint64_t depth_key(double d) {
 struct Bin {
   double mx, my;
   dibrgs::Chords ch;
-  int32_t x0, x1, y0, y1, id, pad;
+  int32_t x0, x1, y0, y1, id;
 };
 
 // The tile rectangle and chords of Gaussian i (screen-space inputs of type S, radius of type R);
@@ -212,9 +211,9 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
   const double r = static_cast<double>(pr[i]);
   const double mx = pm[2 * i], my = pm[2 * i + 1];
   const double a = pc[3 * i], b = pc[3 * i + 1], c = pc[3 * i + 2];
-  const double t = cull_level(po[i], a, b, c);
-  if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) return false;
   double det = a * c - b * b;
+  const double t = cull_level(po[i], a, c, det);
+  if (pr[i] <= 0 || t < 0 || !std::isfinite(mx) || !std::isfinite(my)) return false;
   if (!(det > 0)) det = 1.0;
   // Exact in double against the kernels' own mean; the pad only covers the extents' rounding.
   const double ex = std::sqrt(t * c / det) * (1.0 + 1e-9) + 0.01;
@@ -227,7 +226,7 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
   const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
   const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
   if (x1 <= x0 || y1 <= y0) return false;
-  new (out) Bin{mx, my, dibrgs::Chords(a, b, c, t), x0, x1, y0, y1, static_cast<int32_t>(i), 0};
+  new (out) Bin{mx, my, dibrgs::Chords(a, b, c, t), x0, x1, y0, y1, static_cast<int32_t>(i)};
   return true;
 }
 
