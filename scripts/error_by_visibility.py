@@ -24,7 +24,10 @@ sys.path.insert(0, str(REPO))
 
 
 def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
-    """Visibility fractions of the held-out pixels and each run's PSNR per group."""
+    """Visibility fractions of the held-out pixels and each run's PSNR per group, each run on its
+    own split (its ``report.json``: the photos it trained on decide what counts as seen)."""
+    import json
+
     import numpy as np
 
     from dibrgs_core.common.errors import InputError
@@ -32,35 +35,52 @@ def split_errors(scene_dir: Path, works: list[Path], tol: float = 0.01) -> dict:
     from dibrgs_core.data.load import read_any_scene
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
 
-    scene = read_any_scene(scene_dir)  # in the frame the runs trained in (Scene.origin)
-    views = scene.train_views() + scene.test_views()
-    missing = [v.name for v in views if v.depth is None or not (v.depth > 0).any()]
-    if missing:
-        raise InputError(scene_dir, f"views {', '.join(missing)} have no depth; the split needs true depth "
-                                    "(a scene from scripts/make_scene.py has it)")
-    sources = [(v.camera, v.depth) for v in scene.train_views()]
-    counts = {v.name: visibility_count(v.camera, v.depth, sources, tol) for v in scene.test_views()}
-    pixels = SplitError.empty()  # an exact render: only the pixel counts per group matter
-    for v in scene.test_views():
-        pixels.add(v.image[..., :3], v.image[..., :3], counts[v.name])
+    splits: dict[tuple, tuple] = {}  # (train, test) -> (scene, counts, fractions)
+
+    def of_split(train: list[str] | None, test: list[str] | None) -> tuple:
+        key = (tuple(train or ()), tuple(test or ()))
+        if key not in splits:
+            scene = read_any_scene(scene_dir, train_ids=train, test_ids=test)  # in the runs' frame (Scene.origin)
+            views = scene.train_views() + scene.test_views()
+            missing = [v.name for v in views if v.depth is None or not (v.depth > 0).any()]
+            if missing:
+                raise InputError(scene_dir, f"views {', '.join(missing)} have no depth; the split needs true depth "
+                                            "(a scene from scripts/make_scene.py has it)")
+            sources = [(v.camera, v.depth) for v in scene.train_views()]
+            counts = {v.name: visibility_count(v.camera, v.depth, sources, tol) for v in scene.test_views()}
+            pixels = SplitError.empty()  # an exact render: only the pixel counts per group matter
+            for v in scene.test_views():
+                pixels.add(v.image[..., :3], v.image[..., :3], counts[v.name])
+            splits[key] = (scene, counts, pixels.fractions())
+        return splits[key]
+
     runs = []
     for w in works:
         t = load_trained(w)
+        report = w / "report.json"
+        rep = json.loads(report.read_text())["values"].get("scene", {}) if report.is_file() else {}
+        scene, counts, fractions = of_split(rep.get("train"), rep.get("test"))
         acc, per_view = SplitError.empty(), []
         for v in scene.test_views():
             img, _ = t.render(v.camera)
             per_view.append(acc.add(img, v.image, counts[v.name]))
         runs.append({"work": str(w), "method": t.method, "psnr": acc.psnr(), "seen": acc.seen_psnr(),
-                     "whole_image": float(np.mean(per_view))})
-    return {"scene": str(scene_dir), "tol": tol, "views": len(counts), "fractions": pixels.fractions(),
+                     "whole_image": float(np.mean(per_view)), "views": len(counts), "fractions": fractions})
+    first = runs[0] if runs else {"views": 0, "fractions": {}}
+    return {"scene": str(scene_dir), "tol": tol, "views": first["views"], "fractions": first["fractions"],
             "runs": runs}
 
 
 def table(res: dict) -> str:
-    f = res["fractions"]
+    def shares(r):
+        f = r["fractions"]
+        return (f"{r['views']} views; pixels: {f['unseen']:.1%} seen by none, {f['one']:.1%} by one, "
+                f"{f['two_plus']:.1%} by two or more")
+
+    per_run = len({shares(r) for r in res["runs"]}) > 1  # runs of other splits
+    head = "per run, the runs' splits differ" if per_run else shares(res["runs"][0])
     lines = [f"Held-out PSNR (dB) of `{Path(res['scene']).name}` by how many training views see the pixel "
-             f"({res['views']} views; pixels: {f['unseen']:.1%} seen by none, {f['one']:.1%} by one, "
-             f"{f['two_plus']:.1%} by two or more):", "",
+             f"({head}):", "",
              "| run | whole image | all | **seen** | seen by none | by one | by two or more |",
              "|---|---:|---:|---:|---:|---:|---:|"]
 
@@ -71,6 +91,8 @@ def table(res: dict) -> str:
         p = r["psnr"]
         lines.append(f"| {r['work']} | {fmt(r['whole_image'])} | {fmt(p['all'])} | **{fmt(r['seen'])}** | "
                      f"{fmt(p['unseen'])} | {fmt(p['one'])} | {fmt(p['two_plus'])} |")
+        if per_run:
+            lines.append(f"| ({shares(r)}) | | | | | | |")
     return "\n".join(lines)
 
 

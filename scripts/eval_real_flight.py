@@ -126,10 +126,13 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
             return plane_depth(cam, normal, offset) if reference is not None else depths[cam.name]
 
         sources = [(f.cam.cam, surface(f.cam.cam)) for f in train]
+        # What a held-out pixel's count means depends on the run's training photos: runs of other
+        # splits share no counts, not even for a held-out photo they have in common.
+        split_key = tuple((c.name, c.width, c.height) for c, _ in sources)
         acc, per_view = SplitError.empty(), {}
         for f in test:
             cam = f.cam.cam
-            key = (cam.name, cam.width, cam.height)
+            key = (split_key, cam.name, cam.width, cam.height)
             if key not in counts_of:
                 # The plane stands in for the surface: a looser occlusion test than with true depth.
                 counts_of[key] = visibility_count(cam, surface(cam), sources,
@@ -138,8 +141,8 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
             img, _ = t.render(cam)
             gt = f.image.numpy()
             per_view[cam.name] = acc.add(img, gt, count)
-            images.setdefault(cam.name, {"gt": gt, "count": count})[str(w)] = img
-            images[cam.name].setdefault("key", {})[str(w)] = key
+            images.setdefault(cam.name, {"gt": gt, "key": {}})[str(w)] = img
+            images[cam.name]["key"][str(w)] = key
         p = acc.psnr()
         n_seen = acc.n["one"] + acc.n["two_plus"]
         seen = acc.seen_psnr()
@@ -216,17 +219,24 @@ def table(res: dict) -> str:
     def fmt(x):
         return "-" if x is None else f"{x:.2f}"
 
-    r0 = res["runs"][0]
-    f = r0["fractions"]
-    lines = [f"Held-out photos of `{Path(res['scene']).name}`: {r0['seen_fraction']:.1%} of their pixels seen by a "
-             f"training photo ({f['one']:.1%} by one, {f['two_plus']:.1%} by two or more); PSNR in dB.", "",
-             "| run | method | resolution | whole image (mean of views) | seen pixels | by one | by two or more | unseen |",
-             "|---|---|---|---:|---:|---:|---:|---:|"]
-    for r in res["runs"]:
+    def shares(r):
+        f = r["fractions"]
+        return f"{r['seen_fraction']:.1%} ({f['one']:.1%} by one, {f['two_plus']:.1%} by two or more)"
+
+    runs = res["runs"]
+    same = len({shares(r) for r in runs}) == 1  # one split (and resolution) for all runs
+    head = (f"{shares(runs[0])} of their pixels seen by a training photo" if same else
+            "the runs differ in split or resolution: the share of their pixels a training photo sees is per run")
+    lines = [f"Held-out photos of `{Path(res['scene']).name}`: {head}; PSNR in dB.", "",
+             "| run | method | resolution | whole image (mean of views) | seen pixels | by one | by two or more | unseen |"
+             + ("" if same else " pixels seen |"),
+             "|---|---|---|---:|---:|---:|---:|---:|" + ("" if same else "---:|")]
+    for r in runs:
         g = r["groups"]
         res_txt = ", ".join("x".join(map(str, wh)) for wh in r["resolution"]) or "-"  # each size of the held-out photos
         lines.append(f"| {Path(r['work']).name} | {r['method']} | {res_txt} | {fmt(r['psnr'])} | {fmt(r['seen'])} | "
-                     f"{fmt(g['one'])} | {fmt(g['two_plus'])} | {fmt(g['unseen'])} |")
+                     f"{fmt(g['one'])} | {fmt(g['two_plus'])} | {fmt(g['unseen'])} |" + ("" if same else
+                     f" {shares(r)} |"))
     return "\n".join(lines)
 
 
@@ -245,11 +255,14 @@ def side_by_side(res: dict, path: Path, views: list[str] | None = None) -> None:
                              squeeze=False)
     for row, name in zip(axes, names):
         d = imgs[name]
-        unseen = (d["count"] == 0)[..., None]
         row[0].imshow(d["gt"])
         row[0].set_title(f"{name}: ground truth", fontsize=8)
         for ax, r in zip(row[1:], runs):
+            if r["work"] not in d:
+                ax.set_title(f"{r['method']}: not held out", fontsize=8)
+                continue
             img = d[r["work"]]
+            unseen = (res["_counts"][d["key"][r["work"]]] == 0)[..., None]  # by this run's training photos
             shaded = np.where(unseen, 0.35 * img + 0.65 * np.array([0.2, 0.2, 0.5]), img)
             ax.imshow(np.clip(shaded, 0, 1))
             ax.set_title(f"{r['method']}: {r['per_view'][name]:.2f} dB", fontsize=8)

@@ -70,3 +70,40 @@ def test_a_generated_scene_is_scored_with_its_true_depth(scene24, finished_run, 
     bad = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(bare),
                           str(finished_run)], capture_output=True, text=True, timeout=600)
     assert bad.returncode == 2 and "no depth map" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_runs_of_other_splits_are_each_scored_by_their_own_training_photos(scene24, finished_run, tmp_path):
+    """Two runs of other splits that hold out some of the same photos: scored together, each gets
+    the figures it gets alone (which pixels count as seen is the run's own training photos' matter)."""
+    from run_synth import QUICK, dibrgs
+
+    other = tmp_path / "other"
+    rc, err = dibrgs("train", scene24, "--out", other, *QUICK, "--iterations", "6", "--train", "003,010,017")
+    assert rc == 0, err
+
+    def score(*works, md=None):
+        out = tmp_path / f"r{len(works)}.json"
+        res = subprocess.run([sys.executable, str(REPO / "scripts" / "eval_real_flight.py"), str(scene24),
+                              *map(str, works), "--json", str(out), *(["--md", str(md)] if md else [])],
+                             capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr
+        return {Path(r["work"]).name: r for r in json.loads(out.read_text())["runs"]}
+
+    together = score(finished_run, other, md=tmp_path / "t.md")
+    alone = score(other)["other"]
+    assert together["other"]["seen_fraction"] == pytest.approx(alone["seen_fraction"], abs=1e-12)
+    for g in ("one", "two_plus", "unseen"):
+        assert together["other"]["groups"][g] == pytest.approx(alone["groups"][g], abs=1e-9)
+    # The splits see different shares of the held-out pixels: the table gives each run's own.
+    assert together["other"]["fractions"] != together[finished_run.name]["fractions"]
+    assert "differ in split" in (tmp_path / "t.md").read_text()
+    # scripts/error_by_visibility.py on the same runs: each on its own split, as above.
+    ev = tmp_path / "v.json"
+    res = subprocess.run([sys.executable, str(REPO / "scripts" / "error_by_visibility.py"), str(scene24),
+                          str(finished_run), str(other), "--json", str(ev)], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    by_vis = {Path(r["work"]).name: r for r in json.loads(ev.read_text())["runs"]}
+    for name, r in together.items():
+        for g in ("one", "two_plus", "unseen"):
+            assert by_vis[name]["psnr"][g] == pytest.approx(r["groups"][g], abs=1e-6)
+    assert "splits differ" in res.stdout
