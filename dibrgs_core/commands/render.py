@@ -1,6 +1,8 @@
 """``dibrgs render WORK --cameras PATH --out DIR``: render any cameras with a trained model.
 
-PATH is a LEVIR-NVS Cams file, a folder of them, or a JSON camera list. Each
+PATH is a LEVIR-NVS Cams file, a folder of them, a JSON camera list, or a COLMAP
+model (a scene folder or the model's own folder: its posed images' cameras, at the
+photos' full size, undistorted as training reads them). Each
 camera gives ``DIR/NAME.png`` (named after the camera, e.g. ``002.png`` for
 ``Cams/002.txt``) and its z-depth ``DIR/NAME_depth.exr`` (0 where nothing was hit).
 ``DIR`` has one writer at a time (a second render into it is refused).
@@ -17,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render cameras with a trained run", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("work", type=Path, help="run folder of `dibrgs train`")
-    p.add_argument("--cameras", type=Path, required=True, help="Cams file, folder of Cams files or JSON list")
+    p.add_argument("--cameras", type=Path, required=True, help="Cams file, folder of Cams files, JSON list or COLMAP model")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--no-depth", action="store_true", help="skip the depth EXR files")
     add_compute(p)
@@ -32,11 +34,11 @@ def run(args: argparse.Namespace) -> int:
     with locked(args.out, "render"):
         apply_compute(args)
         from ..data.images import write_depth_exr, write_png
-        from ..data.levir import read_cameras
+        from ..data.load import read_any_cameras
         from ..evaluation.evaluate import load_trained
 
         tr = load_trained(args.work)
-        cams = [tr.from_files(c) for c in read_cameras(args.cameras)]  # given in the scene's files' frame
+        cams = [tr.from_files(c) for c in read_any_cameras(args.cameras)]  # given in the scene's files' frame
         if not cams:
             raise InputError(args.cameras, "no cameras found")
         names = [c.name or f"{i:03d}" for i, c in enumerate(cams)]

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
-                        "(LEVIR Cams file/folder or JSON list; intrinsics in the scene's pixels, resized with "
+                        "(LEVIR Cams file/folder, JSON list or COLMAP model; intrinsics in the scene's pixels, resized with "
                         "its images); every pose is used, and the log names those mostly of padding")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
@@ -113,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
                                "pseudo views)")
     with locked(args.out, "train"):  # before torch is imported: a second writer hears at once
         apply_compute(args)
+        if args.pseudo_path:
+            from ..data.load import read_any_cameras
+
+            read_any_cameras(args.pseudo_path)  # a bad path: one line now, not after the geometry stage
         from ..training.methods import TrainingFailed
         from ..training.trainer import Trainer
 

@@ -1,11 +1,15 @@
-"""Reading any supported scene folder: LEVIR-NVS (``Cams/``) or a COLMAP model."""
+"""Reading any supported scene folder (LEVIR-NVS ``Cams/`` or a COLMAP model), or any cameras to render."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
+import numpy as np
+
+from ..camera.pinhole import Camera
+from ..common.digest import Digest
 from ..common.errors import InputError
-from .levir import read_scene
+from .levir import read_cameras, read_scene
 from .scene import Scene
 
 
@@ -36,3 +40,27 @@ def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     if not root.is_dir():
         raise InputError(root, "scene folder does not exist" if not root.exists() else "not a folder")
     return read_any_scene(root, train_ids=train_ids, test_ids=test_ids, load_depth=load_depth)
+
+
+def read_any_cameras(path: str | Path) -> list[Camera]:
+    """Cameras to render, in the frame of the files they come from: a LEVIR-NVS Cams file, a folder
+    of them or a LEVIR scene (its ``Cams/``), a JSON camera list (:func:`~.levir.read_cameras`), or a
+    COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
+    named by its view id, with the pinhole camera training uses - undistorted where the model has
+    distortion - at the photo's full size)."""
+    path = Path(path)
+    if path.is_dir() and not (path / "Cams").is_dir():
+        from .colmap import find_colmap_model, read_colmap_cameras
+
+        if find_colmap_model(path) is not None:
+            return read_colmap_cameras(path)
+    return read_cameras(path)
+
+
+def cameras_digest(cams: Sequence[Camera]) -> str:
+    """Digest of cameras' names, sizes and K / w2c (their content, whatever file or folder held them)."""
+    d = Digest("cameras/1")
+    for c in cams:
+        d.text(c.name or "").json([int(c.width), int(c.height)])
+        d.array(np.asarray(c.K, np.float64)).array(np.asarray(c.w2c, np.float64))
+    return d.hex()

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..common.digest import file_digest
 from ..common.errors import InputError
 from ..common.report import Report
 from .checkpoint import CHECKPOINT, MODEL
@@ -32,7 +31,7 @@ from .config import TrainConfig
 log = logging.getLogger("dibrgs.train")
 
 CONFIG = "config.json"
-#: Report value holding the digest of the user's pseudo-view path file (:func:`file_digest`).
+#: Report value holding the digest of the user's pseudo-view path's cameras (:func:`~dibrgs_core.data.load.cameras_digest`).
 PSEUDO_PATH_DIGEST = "pseudo_path_sha256"
 #: Files and folders one training run writes (its outputs), removed when a fresh run starts.
 RUN_OUTPUTS = (CHECKPOINT, MODEL, CONFIG, "report.json", "train.log", "curve.csv", "curve.png", "metrics.json",
@@ -159,11 +158,13 @@ class ConfigChanges:
         return "; ".join(parts)
 
 
-def _same_file(path: str | None, digest: str | None) -> bool:
-    """Whether ``path`` holds the content whose :func:`file_digest` is ``digest``."""
+def _same_cameras(path: str | None, digest: str | None) -> bool:
+    """Whether ``path`` holds the cameras whose :func:`~dibrgs_core.data.load.cameras_digest` is ``digest``."""
+    from ..data.load import cameras_digest, read_any_cameras
+
     try:
-        return bool(path and digest) and file_digest(path) == digest
-    except OSError:
+        return bool(path and digest) and cameras_digest(read_any_cameras(path)) == digest
+    except (InputError, OSError):
         return False
 
 
@@ -200,7 +201,7 @@ def resumed_config(ck_path: Path, ckpt: dict[str, Any], requested: TrainConfig, 
     saved = TrainConfig.from_dict(ckpt["config"])
     done = int(ckpt["iteration"])
     values = ckpt["report"].get("values", {})
-    same = frozenset({"pseudo_path"}) if _same_file(requested.pseudo_path, values.get(PSEUDO_PATH_DIGEST)) \
+    same = frozenset({"pseudo_path"}) if _same_cameras(requested.pseudo_path, values.get(PSEUDO_PATH_DIGEST)) \
         else frozenset()
     ch = compare_configs(saved.to_dict(), requested.to_dict(), done, same)
     if ch.fixed:

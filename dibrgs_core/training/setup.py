@@ -23,7 +23,7 @@ from ..camera.frame import estimate_up, look_at_target, up_frame
 from ..camera.pinhole import Camera
 from ..common.fileio import atomic_path
 from ..common.report import Report
-from ..common.digest import Digest, file_digest
+from ..common.digest import Digest
 from ..data.scene import Scene, View, views_digest
 from .config import TrainConfig
 from .frames import Frame
@@ -259,7 +259,7 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
         return []
     path = None
     if cfg.pseudo_path:
-        from ..data.levir import read_cameras
+        from ..data.load import cameras_digest, read_any_cameras
 
         # A path's cameras are in the scene's pixels (the add-on copies a scene camera's
         # intrinsics): resized with the images, else the pseudo views would be rendered and
@@ -267,9 +267,10 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
         # preset's budget on a 953 px photo). Their poses are in the world frame of the scene's
         # files, where the add-on draws them: moved into the scene's own frame (Scene.origin).
         origin = ctx.scene.origin if ctx.scene is not None else np.zeros(3)
-        given = [c.translated(-origin) for c in read_cameras(cfg.pseudo_path)]
+        read = read_any_cameras(cfg.pseudo_path)
+        rep.values[PSEUDO_PATH_DIGEST] = cameras_digest(read)
+        given = [c.translated(-origin) for c in read]
         path = [c.scaled(ctx.resolution_scale) if ctx.resolution_scale != 1.0 else c for c in given]
-        rep.values[PSEUDO_PATH_DIGEST] = file_digest(cfg.pseudo_path)
     cams = [f.cam.cam for f in ctx.train_frames]
     train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
     surface, why = decide(cfg.pseudo.surface, cams)

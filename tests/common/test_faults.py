@@ -506,6 +506,10 @@ def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
                      "--pseudo-path", work / "nowhere.json")
     assert rc == 2 and "--pseudo-views does not apply with --pseudo-path" in one_line(err)
     assert not (tmp_path / "p").exists()
+    # A path that holds no cameras is refused before the geometry stage runs.
+    rc, err = dibrgs("train", scene24, "--out", tmp_path / "q", *QUICK, "--pseudo-path", work / "nowhere.json")
+    assert rc == 2 and "nowhere.json: camera path not found" in one_line(err)
+    assert not (tmp_path / "q" / "init").exists()
 
 
 def test_resume_refuses_another_split(scene24, finished_run, tmp_path):

@@ -429,6 +429,50 @@ def test_setup_reports_the_trajectory_and_the_kept_views(tmp_path):
         np.testing.assert_allclose(f.cam.cam.K[:2], full.cam.cam.K[:2] * 0.5)
 
 
+def test_a_user_path_as_a_cams_folder_or_a_colmap_model_gives_the_same_views(tmp_path):
+    """``--pseudo-path`` reads what ``dibrgs render --cameras`` reads: a folder of LEVIR Cams files
+    and a COLMAP model give the pseudo views of the JSON list of the same cameras (a folder used to
+    fail on reading the path's digest, after the geometry stage)."""
+    from dibrgs_core.camera.serialize import camera_to_dict
+    from dibrgs_core.common.report import Report
+    from dibrgs_core.data.colmap import write_colmap_model
+    from dibrgs_core.data.levir import write_cams_file
+    from dibrgs_core.training.config import preset
+    from dibrgs_core.training.frames import views_to_frames
+    from dibrgs_core.training.run_folder import PSEUDO_PATH_DIGEST
+    from dibrgs_core.training.setup import SetupContext, pseudo_frames
+
+    views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
+    path_cams = [cam_at(a, 40) for a in (30, 60)]
+    for i, c in enumerate(path_cams):
+        c.name = f"p{i}"
+    listed = tmp_path / "path.json"
+    listed.write_text(json.dumps([camera_to_dict(c) for c in path_cams]))
+    folder = tmp_path / "cams"
+    folder.mkdir()
+    for c in path_cams:
+        write_cams_file(folder / f"{c.name}.txt", c)
+    model = write_colmap_model(path_cams, tmp_path / "colmap" / "sparse" / "0")
+    got = {}
+    for name, where in (("json", listed), ("cams", folder), ("colmap", model.parent.parent)):
+        cfg = preset("test")
+        cfg.pseudo_path = str(where)
+        rep = Report()
+        ctx = SetupContext(cfg, tmp_path / f"w_{name}", None, views_to_frames(views, 1.0), rep,
+                           np.random.default_rng(0), None)
+        got[name] = (pseudo_frames(ctx, scene_points(step=0.06)), rep)
+        assert rep.values[PSEUDO_PATH_DIGEST] and f"on the path {where}" in {
+            x.step: x for x in rep.decisions}["pseudo_views"].reason
+    ref, _ = got["json"]
+    assert len(ref) == 2 and float(ref[0].mask.mean()) > 0.3
+    for name in ("cams", "colmap"):
+        frames, _ = got[name]
+        assert len(frames) == 2
+        for f, r in zip(frames, ref):
+            np.testing.assert_allclose(f.cam.cam.w2c, r.cam.cam.w2c, atol=1e-6)
+            assert float((f.image - r.image).abs().max()) < 0.02 and float((f.mask != r.mask).float().mean()) < 0.01
+
+
 def test_a_user_path_is_read_in_the_world_frame_of_the_scenes_files(tmp_path):
     """A scene far from its coordinate origin trains in a frame of its own (``Scene.origin``); a
     pseudo path drawn in the files' frame (as the add-on draws it) gives the pseudo views of the
