@@ -66,9 +66,10 @@ def apply_compute(args: argparse.Namespace) -> int:
 
 def add_split(p: argparse.ArgumentParser) -> None:
     p.add_argument("--train", type=name_list, default=None, metavar="NAMES",
-                   help="training views, comma-separated names (with or without extension) or LEVIR ids; "
-                        "overrides the scene's split.json (default without either: 001,008,015 for LEVIR-NVS "
-                        "scenes, else 3 evenly spaced views)")
+                   help="training views, comma-separated names (with or without extension) or LEVIR ids, or "
+                        "'all' (every view but those of --test; nothing held out without --test); overrides "
+                        "the scene's split.json (default without either: 001,008,015 for LEVIR-NVS scenes, "
+                        "else 3 evenly spaced views)")
     p.add_argument("--test", type=name_list, default=None, metavar="NAMES",
                    help="held-out views, as --train (default: split.json's, else the views not trained on)")
 

@@ -216,6 +216,7 @@ def views_digest(views: Iterable[View], depth: bool = False) -> str:
 
 
 SPLIT_FILE = "split.json"
+TRAIN_ALL = "all"  # --train all: every view trains (but those --test names)
 
 
 def orbit_ids(ids: Sequence[str]) -> list[str]:
@@ -293,16 +294,24 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
     In order: ``train_ids`` / ``test_ids`` (the ``--train`` / ``--test`` options; each overrides
     its own part), then ``ROOT/split.json`` (``{"train": [...], "test": [...]}``, names with or
     without extension), then :func:`default_split`. A part not given explicitly comes from the
-    next source, less the views the explicit part names. A name not in the scene is an
-    ``InputError``, as is a view in both parts.
+    next source, less the views the explicit part names. ``train_ids`` ``["all"]`` (in a scene
+    with no view of that name) trains on every view but those of ``test_ids``, and holds out
+    only those (none without them). A name not in the scene is an ``InputError``, as is a view
+    in both parts.
     """
     root = Path(root)
     src: list[str] = []
-    train = match_names(train_ids, ids, None, "--train") if train_ids is not None else None
+    train_ids = None if train_ids is None else list(train_ids)
+    every = train_ids is not None and [str(n).strip().lower() for n in train_ids] == [TRAIN_ALL] \
+        and TRAIN_ALL not in {i.lower() for i in ids}
+    train = match_names(train_ids, ids, None, "--train") if train_ids is not None and not every else None
     test = match_names(test_ids, ids, None, "--test") if test_ids is not None else None
-    if train is not None:
+    if every:
+        train, test = [i for i in ids if i not in (test or [])], test or []
+        src.append(f"--train {TRAIN_ALL}")
+    elif train is not None:
         src.append("--train")
-    if test is not None:
+    if test_ids is not None:
         src.append("--test")
     split_file = root / SPLIT_FILE
     if split_file.exists() and not split_file.is_file():

@@ -175,17 +175,18 @@ class Trainer:
     # -- the curve -------------------------------------------------------------------
     def _curve_point(self, it: int, final: bool = False) -> None:
         """A curve point: the configured subset of held-out views, all of them when ``final``
-        (the subset's mean is reported beside it). Called outside the training clock."""
+        (the subset's mean is reported beside it). Called outside the training clock, and only
+        when the split holds views out."""
         t0 = time.perf_counter()
         sub = curve_views(len(self.test_frames), self.cfg.curve_max_views)
         idx = list(range(len(self.test_frames))) if final else sub
         ps, ss = heldout_scores(self.method.model, [self.test_frames[i] for i in idx], self.bg)
-        p, s = (float(ps.mean()), float(ss.mean())) if len(idx) else (float("nan"), float("nan"))
+        p, s = float(ps.mean()), float(ss.mean())
         self.curve.append({"seconds": round(self.elapsed, 3), "iteration": it, "psnr": p, "ssim": s})
         write_curve(self.work / "curve.csv", self.curve)
         c = self.report.values.setdefault("curve", {"views_per_point": len(sub), "eval_seconds": 0.0})
         c["eval_seconds"] += time.perf_counter() - t0  # this process's points
-        if final and len(idx):
+        if final:
             c.update(views_final=len(idx), final_psnr_on_point_views=float(ps[sub].mean()))
         log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", self.elapsed, it, p, s,
                  len(idx))
@@ -308,7 +309,14 @@ class Trainer:
         self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
                                          "allocator": allocator_policy()}
         self.report.save(self.work / "report.json")
-        if start_it == 0 and not self.curve:
+        n_test = len(self.test_frames)
+        curve = n_test > 0
+        if start_it == 0:
+            self.report.decide("train", "curve", curve, (
+                f"held-out PSNR / SSIM every {cfg.curve_every_s:g} s of training on "
+                f"{len(curve_views(n_test, cfg.curve_max_views))} of {n_test} held-out views, all at the end")
+                if curve else "no held-out views (the split trains on every view): no error against time")
+        if curve and start_it == 0 and not self.curve:
             self._curve_point(0)
             self.next_curve_at = cfg.curve_every_s
         last_ckpt = time.monotonic()
@@ -359,7 +367,7 @@ class Trainer:
                     rate = self.elapsed / max(it - start_it, 1)
                     self._emit({"iteration": it, "total": T, "loss": ema, "eta_s": rate * (T - it),
                                 "elapsed_s": self.elapsed})
-                if self.elapsed >= self.next_curve_at and it < T:
+                if curve and self.elapsed >= self.next_curve_at and it < T:
                     self._curve_point(it)
                     # the next multiple of the interval (0: a point after every iteration)
                     every = cfg.curve_every_s
@@ -368,7 +376,7 @@ class Trainer:
                     self._save_checkpoint(it)
                     last_ckpt = time.monotonic()
         bar.close()
-        if status == "done":
+        if status == "done" and curve:
             if self.curve and self.curve[-1]["iteration"] == it:
                 self.curve.pop()  # the last point evaluates every held-out view
             self._curve_point(it, final=True)
@@ -382,8 +390,9 @@ class Trainer:
         self.report.save(self.work / "report.json")
         if status == "done":
             self.save_model()
-            with contextlib.suppress(Exception):
-                plot_curve(self.work / "curve.png", self.curve, f"{cfg.method} ({cfg.preset} preset)")
+            if self.curve:
+                with contextlib.suppress(Exception):
+                    plot_curve(self.work / "curve.png", self.curve, f"{cfg.method} ({cfg.preset} preset)")
             self._emit({"done": True, "work": str(self.work), "iteration": it, "elapsed_s": self.elapsed})
         else:
             log.info("stopped at iteration %d; `--resume` continues from %s", it, self.work / CHECKPOINT)

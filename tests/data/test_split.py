@@ -83,6 +83,18 @@ def test_split_json_that_is_a_folder(tmp_path):
     assert e.value.path == tmp_path / "split.json"
 
 
+def test_train_all_holds_out_only_what_test_names(tmp_path):
+    """``--train all``: every view trains, split.json's test part included; with --test, all but those."""
+    root = _root(tmp_path, {"train": ["001"], "test": ["002", "003"]})
+    assert make_split(root, LEVIR, ["all"]) == (LEVIR, [], "--train all")
+    assert make_split(root, PHOTOS, ["ALL"], ["DJI_0020.png"]) == (
+        [i for i in PHOTOS if i != "DJI_0020"], ["DJI_0020"], "--train all + --test")
+    # A scene with a view named "all": the name wins.
+    assert make_split(tmp_path / "none", ["all", "b", "c"], ["all"])[:2] == (["all"], ["b", "c"])
+    with pytest.raises(InputError, match="--train: 'all' not in the scene"):
+        make_split(tmp_path, PHOTOS, ["all", "DJI_0019"])
+
+
 def test_bad_command_line_names(tmp_path):
     with pytest.raises(InputError, match=r"--train: 'DJI_9999' not in the scene \(its views: DJI_0018") as e:
         make_split(tmp_path, PHOTOS, ["DJI_0019", "DJI_9999"])

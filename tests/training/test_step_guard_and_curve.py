@@ -175,3 +175,26 @@ def test_curve_time_is_not_training_time(synth, init_cache, tmp_path):
     assert np.median(steps) < 0.7 * per_point, (np.median(steps), per_point)
     assert res.seconds + curve_s <= wall
     assert np.isfinite(res.seconds) and res.seconds > 0
+
+
+def test_a_split_that_holds_nothing_out_trains_without_a_curve(synth, init_cache, tmp_path):
+    """``--train all``: every view trains, no curve point is evaluated (none of NaN), the report
+    says why, the model is saved and ``dibrgs eval`` says in one line there is nothing to score."""
+    from run_synth import dibrgs
+
+    cfg = _cfg(4)
+    cfg.curve_every_s = 0.0  # would be a point after every iteration
+    t = Trainer(synth, tmp_path / "all", cfg, train_ids=["all"])
+    res = t.run()
+    assert res.status == "done" and not t.test_frames and len(t.train_frames) == 21
+    d = {x.step: x for x in t.report.decisions}
+    assert not d["curve"].applied and "no held-out views" in d["curve"].reason
+    assert not (tmp_path / "all" / "curve.csv").exists() and not (tmp_path / "all" / "curve.png").exists()
+    assert (tmp_path / "all" / "model.pt").is_file() and "curve" not in t.report.values
+    rc, err = dibrgs("eval", tmp_path / "all", "--threads", "1")
+    assert rc == 2 and "no held-out views" in err and len(err.strip().splitlines()) == 1
+    # A split with held-out views records the curve as applied.
+    t = Trainer(synth, _work(init_cache, tmp_path / "some"), _cfg(2))
+    t.run()
+    d = {x.step: x for x in t.report.decisions}
+    assert d["curve"].applied and f"of {len(t.test_frames)} held-out views" in d["curve"].reason
