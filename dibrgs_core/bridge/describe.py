@@ -29,7 +29,8 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.scene import in_local_frame, make_split, validate_camera_arrays, view_ids
+from ..data.scene import in_local_frame, validate_camera_arrays
+from ..data.split import make_split, view_ids
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from .colmap_model import read_model
 from .imagesize import image_size

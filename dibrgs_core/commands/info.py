@@ -34,7 +34,7 @@ def summarize(scene) -> dict:
     from ..camera.frame import estimate_up, nadir_angle_deg
     from ..camera.orbit import fit_orbit
     from ..camera.trajectory import classify
-    from ..data.scene import orbit_ids
+    from ..data.split import orbit_ids
 
     cams = scene.cameras
     sizes = scene.sizes()

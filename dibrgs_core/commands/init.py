@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..data.load import load_scene
-    from ..data.scene import require_train_views
+    from ..data.split import require_train_views
 
     with locked(args.out, "init"):  # before torch is imported: a second writer hears at once
         apply_compute(args)

@@ -6,7 +6,7 @@
 * ``--rasterizer``: the compiled C++ rasterizer (``auto``, the default) or the torch reference
   path (``reference``: no compiler needed, about 100x slower);
 * ``--train`` / ``--test``: the split (comma-separated view names or LEVIR ids), overriding
-  ``split.json`` and the default (:func:`dibrgs_core.data.scene.make_split`);
+  ``split.json`` and the default (:func:`dibrgs_core.data.split.make_split`);
 * argparse types that refuse impossible numbers at parse time with one line naming the option.
 
 Commands that write into a folder hold its lock (:func:`locked`) for their whole run.

@@ -20,8 +20,8 @@ when it matches the camera's size; a photo that matches only when turned
 upright (a model made from rotated copies) is turned upright.
 
 View ids are the image file stems (a rig's like-named photos in folders of their own: their paths,
-:func:`~dibrgs_core.data.scene.view_ids`); the split comes from ``--train``/``--test``,
-``split.json`` or :func:`~dibrgs_core.data.scene.default_split`.
+:func:`~dibrgs_core.data.split.view_ids`); the split comes from ``--train``/``--test``,
+``split.json`` or :func:`~dibrgs_core.data.split.default_split`.
 """
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ import numpy as np
 
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
-from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays, view_ids
+from .scene import ImageFile, Scene, View, validate_camera_arrays
+from .split import make_split, view_ids
 from .images import image_size, read_image
 from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 

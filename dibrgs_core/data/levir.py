@@ -9,7 +9,7 @@ Layout of a scene folder::
                      0 or non-finite = no depth). Depths/NNN.exr (channel "Z") also read.
     Track/NNN.txt    optional render-path cameras, same format as Cams/
 
-    split.json       optional {"train": [names], "test": [names]} (see data.scene.make_split)
+    split.json       optional {"train": [names], "test": [names]} (see data.split.make_split)
 
 Views 001-020 form the orbit; view 000 (near nadir) is in neither split by
 default. The standard 3-view protocol trains on the orbit views at indices
@@ -39,7 +39,8 @@ from ..camera.serialize import camera_from_dict
 from ..common.errors import InputError
 from ..common.fileio import write_text
 from .images import DEPTH_EXTS, IMAGE_EXTS, image_size, read_depth, read_image, write_depth_tiff, write_png
-from .scene import ImageFile, Scene, View, make_split, validate_camera_arrays
+from .scene import ImageFile, Scene, View, validate_camera_arrays
+from .split import make_split
 
 log = logging.getLogger("dibrgs.io_levir")
 

@@ -34,7 +34,7 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
                test_ids: Iterable[str] | None = None, load_depth: bool = True) -> Scene:
     """Read a scene folder for a run, with its split (``--train`` / ``--test``, else ``split.json``,
-    else the default; :func:`~dibrgs_core.data.scene.make_split`). ``InputError`` when it does not
+    else the default; :func:`~dibrgs_core.data.split.make_split`). ``InputError`` when it does not
     exist or is no scene."""
     root = Path(root)
     if not root.is_dir():

@@ -33,6 +33,14 @@ def curve_views(n: int, max_views: int | None) -> list[int]:
     return np.unique(np.linspace(0, n - 1, max_views).round().astype(int)).tolist()
 
 
+def curve_decision(n_test: int, every_s: float, max_views: int | None) -> tuple[bool, str]:
+    """Whether a run evaluates curve points (only when its split holds views out), and why."""
+    if not n_test:
+        return False, "no held-out views (the split trains on every view): no error against time"
+    return True, (f"held-out PSNR / SSIM every {every_s:g} s of training on {len(curve_views(n_test, max_views))} "
+                  f"of {n_test} held-out views, all at the end")
+
+
 @torch.no_grad()
 def heldout_scores(model: Any, frames: list[Frame], background: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """PSNR and SSIM of ``model`` on each of ``frames`` (no autograd)."""
@@ -64,6 +72,9 @@ def write_curve(path: Path, rows: list[dict[str, float]]) -> None:
 
 
 def plot_curve(path: Path, rows: list[dict[str, float]], title: str) -> None:
+    """Held-out PSNR and SSIM against training seconds (PNG); nothing without points."""
+    if not rows:
+        return
     import matplotlib
 
     matplotlib.use("Agg")

@@ -45,11 +45,12 @@ from ..common.lock import run_folder_lock
 from ..common.openmp import wait_policy
 from ..common.report import Report
 from ..data.load import load_scene
-from ..data.scene import Scene, origin_decision, require_train_views
+from ..data.scene import Scene, origin_decision
+from ..data.split import require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig, resolve_resolution
-from .curve import curve_views, heldout_scores, plot_curve, write_curve
+from .curve import curve_decision, curve_views, heldout_scores, plot_curve, write_curve
 from .frames import Frame, views_to_frames
 from .guard import all_finite, make_finite, stop_on_signals
 from .losses import photometric_loss
@@ -188,8 +189,7 @@ class Trainer:
         c["eval_seconds"] += time.perf_counter() - t0  # this process's points
         if final:
             c.update(views_final=len(idx), final_psnr_on_point_views=float(ps[sub].mean()))
-        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", self.elapsed, it, p, s,
-                 len(idx))
+        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", self.elapsed, it, p, s, len(idx))
 
     # -- checkpoints ---------------------------------------------------------------
     def _save_checkpoint(self, it: int) -> None:
@@ -205,14 +205,10 @@ class Trainer:
         self.method.load(ck["method"])
         torch.set_rng_state(ck["rng"]["torch"])
         self.rng.bit_generator.state = ck["rng"]["numpy"]
-        self.view_stack = list(ck["view_stack"])
-        self.pseudo_stack = list(ck["pseudo_stack"])
-        self.elapsed = float(ck["elapsed"])
-        self.next_curve_at = float(ck["next_curve_at"])
-        self.curve = list(ck["curve"])
-        self.skipped = int(ck["skipped"])
-        g = ck["report"]["values"].get("growth")
-        if g:
+        self.view_stack, self.pseudo_stack = list(ck["view_stack"]), list(ck["pseudo_stack"])
+        self.elapsed, self.next_curve_at = float(ck["elapsed"]), float(ck["next_curve_at"])
+        self.curve, self.skipped = list(ck["curve"]), int(ck["skipped"])
+        if g := ck["report"]["values"].get("growth"):
             self.report.values["growth"] = g
         return int(ck["iteration"])
 
@@ -309,13 +305,9 @@ class Trainer:
         self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
                                          "allocator": allocator_policy()}
         self.report.save(self.work / "report.json")
-        n_test = len(self.test_frames)
-        curve = n_test > 0
+        curve, why = curve_decision(len(self.test_frames), cfg.curve_every_s, cfg.curve_max_views)
         if start_it == 0:
-            self.report.decide("train", "curve", curve, (
-                f"held-out PSNR / SSIM every {cfg.curve_every_s:g} s of training on "
-                f"{len(curve_views(n_test, cfg.curve_max_views))} of {n_test} held-out views, all at the end")
-                if curve else "no held-out views (the split trains on every view): no error against time")
+            self.report.decide("train", "curve", curve, why)
         if curve and start_it == 0 and not self.curve:
             self._curve_point(0)
             self.next_curve_at = cfg.curve_every_s
@@ -390,9 +382,8 @@ class Trainer:
         self.report.save(self.work / "report.json")
         if status == "done":
             self.save_model()
-            if self.curve:
-                with contextlib.suppress(Exception):
-                    plot_curve(self.work / "curve.png", self.curve, f"{cfg.method} ({cfg.preset} preset)")
+            with contextlib.suppress(Exception):
+                plot_curve(self.work / "curve.png", self.curve, f"{cfg.method} ({cfg.preset} preset)")
             self._emit({"done": True, "work": str(self.work), "iteration": it, "elapsed_s": self.elapsed})
         else:
             log.info("stopped at iteration %d; `--resume` continues from %s", it, self.work / CHECKPOINT)

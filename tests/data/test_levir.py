@@ -12,7 +12,8 @@ from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.camera.serialize import camera_to_dict
 from dibrgs_core.cli import main as dibrgs
 from dibrgs_core.common.errors import InputError
-from dibrgs_core.data.scene import View, default_split
+from dibrgs_core.data.scene import View
+from dibrgs_core.data.split import default_split
 from dibrgs_core.data.levir import read_cameras, read_cams_file, read_scene, write_cams_file, write_scene
 from dibrgs_core.data.images import read_depth, write_depth_exr, write_depth_tiff
 

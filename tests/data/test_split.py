@@ -9,7 +9,7 @@ import pytest
 
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.load import read_any_scene
-from dibrgs_core.data.scene import default_split, make_split
+from dibrgs_core.data.split import default_split, make_split
 
 from paths import shared_file
 
