@@ -305,9 +305,8 @@ class Trainer:
         self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
                                          "allocator": allocator_policy()}
         self.report.save(self.work / "report.json")
-        curve, why = curve_decision(len(self.test_frames), cfg.curve_every_s, cfg.curve_max_views)
-        if start_it == 0:
-            self.report.decide("train", "curve", curve, why)
+        curve = self.report.decide("train", "curve", *curve_decision(len(self.test_frames), cfg.curve_every_s,
+                                                                     cfg.curve_max_views))
         if curve and start_it == 0 and not self.curve:
             self._curve_point(0)
             self.next_curve_at = cfg.curve_every_s
