@@ -8,7 +8,9 @@ checks it against pycolmap on text and binary models.
 
 As the library reads it, the binary model is read when ``cameras.bin`` and
 ``images.bin`` exist, else the text model; ``points3D`` may be missing (the
-points themselves are not read).
+points themselves are not read). Cameras with lens distortion become the pinhole
+camera the library trains them as (:meth:`ColmapCamera.pinhole`: COLMAP's
+undistorter's choice, computed here with numpy; the library asks pycolmap).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
+from ..data.undistort import DISTORTED_MODELS, PINHOLE_MODELS, unsupported_model
 
 #: COLMAP camera models: id -> (name, number of parameters, indices of the distortion parameters).
 MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
@@ -36,10 +39,8 @@ MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
     11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16, tuple(range(4, 16))),
 }
 _BY_NAME = {name: (mid, n, extra) for mid, (name, n, extra) in MODELS.items()}
-#: Models whose focal lengths and principal point come first as (f, cx, cy) ...
+#: Models whose focal lengths and principal point come first as (f, cx, cy).
 _SINGLE_FOCAL = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"}
-#: ... and the perspective models that are pinholes when their distortion is 0 (as in data.colmap).
-PINHOLE_LIKE = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
 
 
 @dataclass
@@ -50,17 +51,102 @@ class ColmapCamera:
     height: int
     params: np.ndarray
 
-    def K(self, where: Path) -> np.ndarray:
-        """3x3 intrinsics; InputError for non-pinhole models or non-zero distortion."""
-        if self.model not in PINHOLE_LIKE:
-            raise InputError(where, f"camera {self.camera_id}: model {self.model} is not a pinhole model")
-        extra = self.params[list(_BY_NAME[self.model][2])]
-        if np.any(extra != 0):
-            raise InputError(where, f"camera {self.camera_id}: model {self.model} has distortion "
-                                    f"{extra.tolist()}; undistort the images first (colmap image_undistorter)")
+    @property
+    def distortion(self) -> np.ndarray:
+        return self.params[list(_BY_NAME[self.model][2])]
+
+    def K(self) -> np.ndarray:
+        """3x3 intrinsics (focal lengths and principal point; distortion not included)."""
         p = self.params
         fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if self.model in _SINGLE_FOCAL else p[:4]
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def pinhole(self, where: Path) -> "ColmapCamera":
+        """The pinhole camera the library trains this one as (``data.colmap``): itself when it has
+        no distortion, else the ``PINHOLE`` camera of its undistorted photos as COLMAP's undistorter
+        chooses it with its default options (focal lengths kept; width, height and principal point
+        scaled so that no blank pixels show, the scale kept within [0.2, 2]). InputError for models
+        that are not perspective (fisheye and others), as the library."""
+        if self.model not in PINHOLE_MODELS and self.model not in DISTORTED_MODELS:
+            raise InputError(where, unsupported_model(self.camera_id, self.model))
+        if not np.any(self.distortion != 0):
+            return self
+        K = self.K()
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        W, H = self.width, self.height
+        xs, ys = np.arange(W) + 0.5, np.arange(H) + 0.5
+        big = np.finfo(np.float64).max
+
+        def border(x, y, axis: int, largest: bool) -> float:
+            """The largest (smallest) undistorted coordinate of a border's pixels; where none can be
+            undistorted (strong distortion has no inverse there), -big (big), as COLMAP."""
+            u, v = _undistort(self.model, self.distortion, (x - cx) / fx, (y - cy) / fy)
+            px = (fx * u + cx, fy * v + cy)[axis][np.isfinite(u) & np.isfinite(v)]
+            return (px.max() if largest else px.min()) if px.size else (-big if largest else big)
+
+        # the scales that show no blank pixel (COLMAP's blank_pixels = 0), within [0.2, 2]
+        scale_x = 1.0 / max(cx / (cx - border(0.5, ys, 0, True)),
+                            (W - 0.5 - cx) / (border(W - 0.5, ys, 0, False) - cx))
+        scale_y = 1.0 / max(cy / (cy - border(xs, 0.5, 1, True)),
+                            (H - 0.5 - cy) / (border(xs, H - 0.5, 1, False) - cy))
+        scale_x, scale_y = (min(max(s, 0.2), 2.0) for s in (scale_x, scale_y))
+        W2, H2 = int(max(1.0, scale_x * W)), int(max(1.0, scale_y * H))
+        return ColmapCamera(self.camera_id, "PINHOLE", W2, H2, np.array([fx, fy, cx * W2 / W, cy * H2 / H]))
+
+
+def _distortion(model: str, k: np.ndarray, u: np.ndarray, v: np.ndarray):
+    """The offsets (du, dv) COLMAP's perspective ``model`` with distortion parameters ``k`` adds to
+    points (u, v) of the normalised image plane, and their Jacobian (d du/du, d du/dv, d dv/du,
+    d dv/dv). Every such model is du = u R(r^2) + 2 p1 u v + p2 (r^2 + 2 u^2), dv alike, with a
+    radial term R (FULL_OPENCV's rational factor minus 1) and tangential p1, p2 (OPENCV's)."""
+    u2, v2, uv = u * u, v * v, u * v
+    r2 = u2 + v2
+    p1 = p2 = 0.0
+    if model == "SIMPLE_RADIAL":
+        R, dR = k[0] * r2, k[0]
+    elif model in ("RADIAL", "OPENCV"):
+        R, dR = k[0] * r2 + k[1] * r2 * r2, k[0] + 2 * k[1] * r2
+        if model == "OPENCV":
+            p1, p2 = k[2], k[3]
+    else:  # FULL_OPENCV: k1, k2, p1, p2, k3, k4, k5, k6
+        k1, k2, p1, p2, k3, k4, k5, k6 = k[:8]
+        N, D = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dN, dD = k1 + r2 * (2 * k2 + 3 * k3 * r2), k4 + r2 * (2 * k5 + 3 * k6 * r2)
+        R, dR = N / D - 1, (dN * D - N * dD) / (D * D)
+    du = u * R + 2 * p1 * uv + p2 * (r2 + 2 * u2)
+    dv = v * R + 2 * p2 * uv + p1 * (r2 + 2 * v2)
+    cross = 2 * uv * dR + 2 * p1 * u + 2 * p2 * v
+    return du, dv, (R + 2 * u2 * dR + 2 * p1 * v + 6 * p2 * u, cross,
+                    cross, R + 2 * v2 * dR + 2 * p2 * u + 6 * p1 * v)
+
+
+def _undistort(model: str, k: np.ndarray, u0: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points of the normalised plane whose distorted images are (u0, v0), found as COLMAP finds
+    them: Newton steps limited to a trust region (a step at most 0.1 max(1, |x|) long), at most
+    100 of them, a point done when its step's squared length is below 1e-10; NaN where that does
+    not converge (strong distortion has no inverse near the image's border)."""
+    u0, v0 = np.broadcast_arrays(np.asarray(u0, np.float64), np.asarray(v0, np.float64))
+    u, v = u0.copy(), v0.copy()
+    active = np.ones(u.shape, bool)
+    with np.errstate(all="ignore"):
+        for _ in range(100):
+            idx = np.flatnonzero(active)
+            if idx.size == 0:
+                break
+            x, y = u.flat[idx], v.flat[idx]
+            dx, dy, (a, b, c, d) = _distortion(model, k, x, y)
+            a, d = a + 1, d + 1
+            rx, ry = x + dx - u0.flat[idx], y + dy - v0.flat[idx]
+            det = a * d - b * c
+            sx, sy = (d * rx - b * ry) / det, (a * ry - c * rx) / det
+            n2, radius2 = sx * sx + sy * sy, np.maximum((x * x + y * y) * 0.01, 0.01)
+            shrink = np.where(n2 > radius2, np.sqrt(radius2 / n2), 1.0)
+            sx, sy = sx * shrink, sy * shrink
+            u.flat[idx], v.flat[idx] = x - sx, y - sy
+            done = ~(sx * sx + sy * sy >= 1e-10)  # converged, or NaN (left as NaN)
+            active.flat[idx[done]] = False
+    u[active], v[active] = np.nan, np.nan  # no convergence: no inverse there
+    return u, v
 
 
 @dataclass

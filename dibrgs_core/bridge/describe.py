@@ -4,7 +4,9 @@ Blender's Python has numpy but no torch, Pillow or pycolmap, so this module
 reads what the add-on needs (cameras, image paths, the train/test split, the
 track) with numpy and the standard library only: Cams files through the
 library's own parser, image sizes from file headers (:mod:`.imagesize`) and
-COLMAP models with :mod:`.colmap_model`. It applies the same rules and
+COLMAP models with :mod:`.colmap_model` (cameras with lens distortion as the
+undistorted pinholes the library trains them as; the image paths are the photos
+as taken). It applies the same rules and
 messages as the library's readers (``data.levir.read_scene``,
 ``data.colmap.read_colmap_scene``), which ``tests/bridge/test_bridge.py`` checks
 on LEVIR and COLMAP (text and binary) scenes. The description is::
@@ -89,7 +91,8 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera
         if im.camera_id not in cams:
             raise InputError(model_dir, f"image {im.name} refers to camera {im.camera_id}, which is not in the model")
         cam = cams[im.camera_id]
-        K, w2c = cam.K(model_dir), im.w2c()
+        pin = cam.pinhole(model_dir)  # undistorted where the camera has distortion, as the library
+        K, w2c = pin.K(), im.w2c()
         validate_camera_arrays(w2c, K, None, model_dir)
         vid = ids[im.name]
         path = img_dir / im.name
@@ -98,7 +101,7 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera
         w, h = image_size(path)
         if (w, h) != (cam.width, cam.height):
             raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
-        views[vid] = Camera(K=K, w2c=w2c, width=cam.width, height=cam.height, name=vid)
+        views[vid] = Camera(K=K, w2c=w2c, width=pin.width, height=pin.height, name=vid)
         paths[vid] = path
     if not views:
         raise InputError(model_dir, "COLMAP model has no posed images")

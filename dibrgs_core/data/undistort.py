@@ -49,11 +49,16 @@ def check_model(cam, where: Path) -> bool:
     if model in PINHOLE_MODELS:
         return False
     if model not in DISTORTED_MODELS:
-        kind = "a fisheye model" if "FISHEYE" in model or model in ("FOV", "EUCM") else "not a perspective model"
-        raise InputError(where, f"camera {cam.camera_id}: {model} is {kind}; only pinhole models and "
-                                f"{', '.join(DISTORTED_MODELS)} (undistorted on load) are supported: undistort "
-                                "the photos first (colmap image_undistorter)")
+        raise InputError(where, unsupported_model(cam.camera_id, model))
     return bool(np.any(distortion(cam) != 0))
+
+
+def unsupported_model(camera_id: int, model: str) -> str:
+    """Why camera ``camera_id`` of COLMAP model ``model`` (neither pinhole nor in ``DISTORTED_MODELS``)
+    is refused: the one message of the library's reader and the add-on's."""
+    kind = "a fisheye model" if "FISHEYE" in model or model in ("FOV", "EUCM") else "not a perspective model"
+    return (f"camera {camera_id}: {model} is {kind}; only pinhole models and {', '.join(DISTORTED_MODELS)} "
+            "(undistorted on load) are supported: undistort the photos first (colmap image_undistorter)")
 
 
 def _options():

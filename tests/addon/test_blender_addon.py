@@ -400,6 +400,30 @@ def test_init_points_of_a_far_scene_land_where_its_cameras_are(fresh, tmp_path):
     assert tuple(hm.location) == pytest.approx(tuple(origin))
 
 
+def test_a_colmap_project_with_lens_distortion_imports_with_the_cameras_training_uses(fresh, tmp_path, monkeypatch):
+    """COLMAP's default camera model has radial distortion: the import gives each view the undistorted
+    pinhole the library trains with (the add-on refused such projects before 2026-11-25)."""
+    from photo_synth import write_distorted_model
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    root = tmp_path / "colmap_project"
+    write_distorted_model(root, "SIMPLE_RADIAL", [80.0, 48.0, 32.0, -0.25])
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    lib = read_any_scene(root, load_depth=False)
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    assert sorted(objs) == sorted(lib.views) == ["v0", "v1", "v2"]
+    for vid, obj in objs.items():
+        want = lib.views[vid].camera
+        cam = sb.camera_from_object(obj, fresh)
+        assert (cam.width, cam.height) == (want.width, want.height) != (96, 64)  # undistorted: another size
+        np.testing.assert_allclose(cam.K, want.K, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(cam.R, want.R, atol=1e-5)
+    assert (fresh.render.resolution_x, fresh.render.resolution_y) == (want.width, want.height)
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""

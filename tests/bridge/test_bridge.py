@@ -21,6 +21,7 @@ from dibrgs_core.bridge.geometry import height_map_mesh
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.camera.serialize import camera_from_dict
 from dibrgs_core.camera.orbit import fit_orbit
+from dibrgs_core.common.errors import InputError
 from dibrgs_core.geometry.height_map import HeightMap
 
 REPO = Path(__file__).resolve().parents[2]
@@ -540,7 +541,6 @@ def test_image_size_from_headers(tmp_path):
             with Image.open(tmp_path / name) as im:
                 assert im.size == size
     (tmp_path / "bad.png").write_bytes(b"not an image at all")
-    from dibrgs_core.common.errors import InputError
 
     with pytest.raises(InputError, match="bad.png: unreadable image header"):
         imagesize.image_size(tmp_path / "bad.png")
@@ -592,10 +592,8 @@ def test_describe_matches_the_library_on_levir_and_colmap(tiny_scene, tmp_path):
     _same_description(desc, scene, atol=1e-8)
 
 
-def test_colmap_reader_takes_pinholes_and_refuses_distortion(tmp_path):
+def test_colmap_reader_takes_pinholes(tmp_path):
     import pycolmap
-
-    from dibrgs_core.common.errors import InputError
 
     rec = pycolmap.Reconstruction()
     for cid, (model, params) in enumerate([("SIMPLE_RADIAL", [50.0, 32.0, 30.0, 0.0]),
@@ -610,12 +608,12 @@ def test_colmap_reader_takes_pinholes_and_refuses_distortion(tmp_path):
         d.mkdir()
         getattr(rec, write)(str(d))
         cams, imgs = colmap_model.read_model(d)
-        np.testing.assert_allclose(cams[1].K(d), [[50, 0, 32], [0, 50, 30], [0, 0, 1]])
+        assert cams[1].pinhole(d) is cams[1]  # no distortion: the camera as it is
+        np.testing.assert_allclose(cams[1].K(), [[50, 0, 32], [0, 50, 30], [0, 0, 1]])
+        assert cams[2].pinhole(d).model == "PINHOLE"  # distorted: undistorted (next test)
         assert sorted(i.name for i in imgs) == ["v1.png", "v2.png"]
         for im in imgs:
             np.testing.assert_allclose(im.w2c()[:3], rec.images[im.image_id].cam_from_world().matrix(), atol=1e-12)
-        with pytest.raises(InputError, match=r"camera 2: model OPENCV has distortion \[0.1, 0.0, 0.0, 0.0\]"):
-            cams[2].K(d)
     (tmp_path / "write_text" / "points3D.txt").unlink()  # not needed: the points are never read
     assert len(colmap_model.read_model(tmp_path / "write_text")[1]) == 2
     (tmp_path / "write_text" / "images.txt").unlink()
@@ -623,8 +621,83 @@ def test_colmap_reader_takes_pinholes_and_refuses_distortion(tmp_path):
         colmap_model.read_model(tmp_path / "write_text")
 
 
+#: (model, distortion) of cameras with lens distortion: mild to strong, down to barrel distortion
+#: so strong (-0.4 here) that the border pixels have no inverse and the scale hits its clamp.
+_DISTORTIONS = [("SIMPLE_RADIAL", [-0.1]), ("SIMPLE_RADIAL", [0.05]), ("SIMPLE_RADIAL", [-0.4]),
+                ("RADIAL", [-0.2, 0.05]), ("OPENCV", [-0.15, 0.03, 0.001, -0.002]), ("OPENCV", [0.1, 0, 0, 0]),
+                ("OPENCV", [-0.3, 0.1, 0.01, 0.0]), ("FULL_OPENCV", [-0.1, 0.02, 0.001, 0.001, 0.003, 0.01, 0, 0])]
+
+
+def _distorted_params(model: str, extra: list[float], W: int, H: int, rng) -> list[float]:
+    f = 0.8 * max(W, H)
+    cx, cy = W / 2 + rng.normal() * W * 0.01, H / 2 + rng.normal() * H * 0.01
+    return ([f, cx, cy] if model in ("SIMPLE_RADIAL", "RADIAL") else [f, f * (1 + 0.01 * rng.normal()), cx, cy]) + extra
+
+
+def test_distorted_cameras_become_pycolmaps_undistorted_pinholes():
+    """Blender's Python has no pycolmap: the numpy undistorted camera is pycolmap's, to the bit, for
+    every distorted model, image shape and strength (the library trains with pycolmap's)."""
+    import pycolmap
+
+    rng = np.random.default_rng(0)
+    for W, H in [(953, 536), (4000, 2250), (1080, 1920), (64, 60), (7, 5)]:
+        for model, extra in _DISTORTIONS:
+            params = _distorted_params(model, extra, W, H, rng)
+            ref = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(),
+                                            pycolmap.Camera(model=model, width=W, height=H, params=params))
+            got = colmap_model.ColmapCamera(1, model, W, H, np.array(params)).pinhole(Path("model"))
+            assert (got.model, got.width, got.height) == ("PINHOLE", ref.width, ref.height), (model, extra, W, H)
+            np.testing.assert_array_equal(got.params, ref.params)
+            np.testing.assert_array_equal(got.K(), ref.calibration_matrix())
+    # The points themselves, inside the image, are where pycolmap unprojects them.
+    for model, extra in _DISTORTIONS:
+        params = _distorted_params(model, extra, 953, 536, rng)
+        cam = colmap_model.ColmapCamera(1, model, 953, 536, np.array(params))
+        xy = rng.uniform([100, 50], [853, 486], (200, 2))
+        K = cam.K()
+        u, v = colmap_model._undistort(model, cam.distortion, (xy[:, 0] - K[0, 2]) / K[0, 0],
+                                       (xy[:, 1] - K[1, 2]) / K[1, 1])
+        ref = pycolmap.Camera(model=model, width=953, height=536, params=params).cam_from_img(xy)
+        np.testing.assert_allclose(np.stack([u, v], 1), np.asarray(ref)[:, :2], rtol=0, atol=1e-9)
+
+
+def test_describe_matches_the_library_on_distorted_colmap_models(tmp_path, monkeypatch):
+    """A COLMAP project as COLMAP leaves it (SIMPLE_RADIAL is its default model) imports into Blender
+    with the cameras training uses (the add-on refused it: "undistort the images first"); fisheye
+    models are refused with the library's message."""
+    import pycolmap
+    from PIL import Image
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    rng = np.random.default_rng(1)
+    W, H = 96, 64
+    root = tmp_path / "project"
+    (root / "images").mkdir(parents=True)
+    rec = pycolmap.Reconstruction()
+    for cid, (model, extra) in enumerate(_DISTORTIONS[:6], start=1):
+        params = _distorted_params(model, extra, W, H, rng)
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=cid))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"v{cid}.png", camera_id=cid, image_id=cid),
+                                         pycolmap.Rigid3d(look_at([10.0 * cid, 5.0, 80.0], [0, 0, 0], [0, 0, 1])[:3, :4]))
+        Image.fromarray(rng.integers(0, 256, (H, W, 3), dtype=np.uint8)).save(root / "images" / f"v{cid}.png")
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(str(root / "sparse" / "0"))
+    desc, scene = describe.describe_scene(root), read_any_scene(root, load_depth=False)
+    _same_description(desc, scene)
+    assert len({(v.camera.width, v.camera.height) for v in scene.views.values()}) > 2  # undistorted: sizes differ
+    rec.cameras[2] = pycolmap.Camera(model="OPENCV_FISHEYE", width=W, height=H, camera_id=2,
+                                     params=[60.0, 60.0, 48.0, 32.0, 0.1, 0.0, 0.0, 0.0])
+    rec.write_binary(str(root / "sparse" / "0"))
+    with pytest.raises(InputError) as lib:
+        read_any_scene(root, load_depth=False)
+    with pytest.raises(InputError) as ours:
+        describe.describe_scene(root)
+    assert str(ours.value) == str(lib.value) and "OPENCV_FISHEYE is a fisheye model" in str(ours.value)
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
-    from dibrgs_core.common.errors import InputError
     from dibrgs_core.data.load import read_any_scene
 
     cases = {}
@@ -657,7 +730,6 @@ def test_reports_decisions_and_metrics(tmp_path):
                                  "per_view": [1, 2], "mean": {"psnr": 25.5, "deep": {"x": 1}}})
     assert m == {"psnr": 25.5, "ssim": 0.8, "mean/psnr": 25.5}
     (tmp_path / "bad.json").write_text("{")
-    from dibrgs_core.common.errors import InputError
     with pytest.raises(InputError, match="bad.json"):
         reports.read_json(tmp_path / "bad.json")
 

@@ -1,0 +1,60 @@
+"""Photos taken through COLMAP cameras with lens distortion, for the readers' tests (the library's,
+which undistorts them with pycolmap, and the add-on's)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from dibrgs_core.camera.pinhole import look_at
+
+W, H = 96, 64  # 3:2, like a drone photo
+
+
+def pattern(w: int, h: int) -> np.ndarray:
+    """A smooth, non-symmetric test image in [0, 1] (bilinear resampling keeps it within a few levels)."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = 0.5 + 0.45 * np.sin(x / 7.0) * np.cos(y / 9.0)
+    g = (x / w) * 0.9 + 0.05
+    b = (y / h) * 0.9 + 0.05
+    return np.stack([r, g, b], -1)
+
+
+def distort_photo(ideal: np.ndarray, K: np.ndarray, cam) -> np.ndarray:
+    """The photo a camera with ``cam``'s distortion takes of the scene whose pinhole (``K``) image is ``ideal``:
+    each distorted pixel looks along pycolmap's ray (cam_from_img) and samples ``ideal`` there."""
+    from scipy.ndimage import map_coordinates
+
+    h, w = cam.height, cam.width
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1)
+    rays = np.nan_to_num(np.asarray(cam.cam_from_img(pix)))  # normalised (x/z, y/z); NaN where not invertible
+    px = K[0, 0] * rays[:, 0] + K[0, 2] - 0.5
+    py = K[1, 1] * rays[:, 1] + K[1, 2] - 0.5
+    out = np.stack([map_coordinates(ideal[..., c], [py, px], order=1, mode="nearest") for c in range(3)], -1)
+    return out.reshape(h, w, 3)
+
+
+def write_distorted_model(root: Path, model: str, params: list[float], n: int = 3) -> tuple[np.ndarray, list]:
+    """A COLMAP text model of ``n`` views sharing one distorted camera, with photos made through that
+    distortion from a known pinhole image; returns (pinhole K, world-to-camera matrices)."""
+    import pycolmap
+
+    f = 80.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    photo = distort_photo(pattern(W, H), K, cam)
+    (root / "images").mkdir(parents=True)
+    w2cs = []
+    for i in range(n):
+        w2c = look_at([10.0 * i, 0.0, 100.0], [10.0 * i, 0.0, 0.0], [0, 1.0, 0])
+        w2cs.append(w2c)
+        img = pycolmap.Image(name=f"v{i}.png", camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(w2c[:3, :4]))
+        Image.fromarray(np.round(photo * 255).astype(np.uint8)).save(root / "images" / f"v{i}.png")
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write_text(str(root / "sparse" / "0"))
+    return K, w2cs
