@@ -15,7 +15,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ._core import camera_blender, geometry, height_map, jobs, pinhole, serialize, path as path_mod
+from ._core import camera_blender, geometry, height_map, imagesize, jobs, pinhole, serialize, path as path_mod
 
 ROOT_COLLECTION = "DIBR-GS"
 TRAIN_COLLECTION = "DIBR-GS Train views"
@@ -146,9 +146,8 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
         obj["dibrgs_split"] = v["split"]
         apply_camera(obj, cam)
         if v["split"] == "train" and v.get("image"):
-            img = bpy.data.images.load(v["image"], check_existing=True)
             bg = obj.data.background_images.new()
-            bg.image = img
+            bg.image = view_photo(v["image"], v.get("orientation", 1))
             bg.alpha = 1.0
             obj.data.show_background_images = True
         objs[v["name"]] = obj
@@ -163,6 +162,29 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     text = bpy.data.texts.get(SCENE_TEXT) or bpy.data.texts.new(SCENE_TEXT)
     text.from_string(json.dumps(desc, indent=1))
     return objs
+
+
+def view_photo(path: str, orientation: int) -> bpy.types.Image:
+    """A view's photo as its camera sees it. Blender loads a file's stored pixels and ignores its
+    EXIF orientation, which the library follows: a photo stored turned gets an upright copy,
+    packed into the .blend (named after the file, replaced on a new import)."""
+    img = bpy.data.images.load(path, check_existing=True)
+    if orientation == 1:
+        return img
+    w, h = img.size
+    px = np.empty(w * h * img.channels, np.float32)  # RGBA: Blender holds every photo so
+    img.pixels.foreach_get(px)
+    up, w2, h2 = imagesize.upright_pixels(px, w, h, orientation)
+    name = f"{Path(path).name} (upright)"
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    out = bpy.data.images.new(name, w2, h2, alpha=True)
+    out.pixels.foreach_set(up)
+    out.pack()
+    if img.users == 0:
+        bpy.data.images.remove(img)
+    return out
 
 
 def scene_description() -> dict[str, Any]:

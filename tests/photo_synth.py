@@ -1,5 +1,5 @@
-"""Photos taken through COLMAP cameras with lens distortion, for the readers' tests (the library's,
-which undistorts them with pycolmap, and the add-on's)."""
+"""Photos as users have them, for the readers' tests (the library's and the add-on's): taken through
+COLMAP cameras with lens distortion, stored turned with an EXIF orientation."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from dibrgs_core.camera.pinhole import look_at
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.data.levir import write_cams_file
 
 W, H = 96, 64  # 3:2, like a drone photo
 
@@ -58,3 +59,29 @@ def write_distorted_model(root: Path, model: str, params: list[float], n: int = 
     (root / "sparse" / "0").mkdir(parents=True)
     rec.write_text(str(root / "sparse" / "0"))
     return K, w2cs
+
+
+def save_turned_jpeg(path: Path, upright: np.ndarray, orientation: int) -> None:
+    """Store ``upright`` (float RGB in [0, 1]) as a JPEG the way a camera held on its side does: the
+    pixels turned, and the EXIF orientation tag (1, 3, 6 or 8) saying how to turn them upright."""
+    im = Image.fromarray(np.round(upright * 255).astype(np.uint8))
+    stored = {1: im, 3: im.transpose(Image.Transpose.ROTATE_180), 6: im.transpose(Image.Transpose.ROTATE_90),
+              8: im.transpose(Image.Transpose.ROTATE_270)}[orientation]
+    exif = stored.getexif()
+    exif[0x0112] = orientation
+    stored.save(path, quality=95, exif=exif)
+
+
+def write_turned_levir_scene(root: Path, orientations: list[int]) -> dict[str, np.ndarray]:
+    """A LEVIR-layout scene of W x H views ``000``, ``001``, ... along a line, the photo of view i a
+    JPEG stored turned with EXIF orientation ``orientations[i]``; returns each view's upright image."""
+    (root / "Images").mkdir(parents=True)
+    K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
+    ups = {}
+    for i, orientation in enumerate(orientations):
+        cam = Camera(K=K, w2c=look_at([20.0 * i, 0, 100], [20.0 * i, 0, 0], [0, 1.0, 0]), width=W, height=H,
+                     name=f"{i:03d}", depth_range=(50.0, 150.0))
+        write_cams_file(root / "Cams" / f"{i:03d}.txt", cam)
+        ups[cam.name] = np.roll(pattern(W, H), 7 * i, axis=1)
+        save_turned_jpeg(root / "Images" / f"{i:03d}.jpg", ups[cam.name], orientation)
+    return ups

@@ -3,16 +3,18 @@
 Blender's Python has numpy but no torch, Pillow or pycolmap, so this module
 reads what the add-on needs (cameras, image paths, the train/test split, the
 track) with numpy and the standard library only: Cams files through the
-library's own parser, image sizes from file headers (:mod:`.imagesize`) and
-COLMAP models with :mod:`.colmap_model` (cameras with lens distortion as the
-undistorted pinholes the library trains them as; the image paths are the photos
-as taken). It applies the same rules and
+library's own parser, image sizes and EXIF orientations from file headers
+(:mod:`.imagesize`) and COLMAP models with :mod:`.colmap_model` (cameras with lens
+distortion as the undistorted pinholes the library trains them as; the image paths
+are the photos as taken). It applies the same rules and
 messages as the library's readers (``data.levir.read_scene``,
 ``data.colmap.read_colmap_scene``), which ``tests/bridge/test_bridge.py`` checks
 on LEVIR and COLMAP (text and binary) scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
-                             "camera": camera_to_dict(...), "image": path}],
+                             "camera": camera_to_dict(...), "image": path,
+                             "orientation": EXIF orientation 1-8 that turns the file's
+                                            stored pixels into the view's image}],
      "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z]}
 
 Cameras are relative to ``origin`` (zeros unless the scene lies far from its coordinate origin:
@@ -35,7 +37,8 @@ from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from .colmap_model import read_model
-from .imagesize import image_size
+from ..data.images import TRANSPOSING
+from .imagesize import image_header
 
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
@@ -58,31 +61,35 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
     out = []
     for name, cam in views.items():
         split = "train" if name in train else "test" if name in test else "other"
-        out.append({"name": name, "split": split, "camera": camera_to_dict(cam),
-                    "image": str(images[name].resolve())})
+        path, orientation = images[name]
+        out.append({"name": name, "split": split, "camera": camera_to_dict(cam), "image": str(path.resolve()),
+                    "orientation": orientation})
     return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
             "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin]}
 
 
-def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]]:
+def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], list[Camera]]:
     img_dir, cam_dir = root / "Images", root / "Cams"
     if not img_dir.is_dir():
         raise InputError(img_dir, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
     images, cams = paired_files(img_dir, cam_dir)
-    views = {stem: read_cams_file(cams[stem], size=image_size(images[stem])) for stem in sorted(images)}
+    headers = {stem: image_header(images[stem]) for stem in sorted(images)}
+    # LEVIR views are the photos as a viewer shows them (the library follows EXIF orientation)
+    views = {stem: read_cams_file(cams[stem], size=(h, w) if o in TRANSPOSING else (w, h))
+             for stem, (w, h, o) in headers.items()}
     check_sizes(views, images, cams)  # each photo at its own size
     track = read_track(root, views)
-    return views, {k: images[k] for k in views}, track
+    return views, {k: (images[k], headers[k][2]) for k in views}, track
 
 
-def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera]]:
+def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], list[Camera]]:
     model_dir = find_colmap_model(root)
     cams, imgs = read_model(model_dir)
     img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images") if d.is_dir()), None)
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
     views: dict[str, Camera] = {}
-    paths: dict[str, Path] = {}
+    paths: dict[str, tuple[Path, int]] = {}
     try:
         ids = view_ids([im.name for im in imgs])
     except ValueError as e:
@@ -98,11 +105,16 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, Path], list[Camera
         path = img_dir / im.name
         if not path.is_file():
             raise InputError(path, "image file missing (listed in the COLMAP model)")
-        w, h = image_size(path)
+        w, h, orientation = image_header(path)
+        # COLMAP ignores EXIF orientation: the stored pixels unless only the upright ones fit (as the library)
+        if (w, h) != (cam.width, cam.height) and orientation in TRANSPOSING and (h, w) == (cam.width, cam.height):
+            w, h = h, w
+        elif (w, h) == (cam.width, cam.height):
+            orientation = 1
         if (w, h) != (cam.width, cam.height):
             raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
         views[vid] = Camera(K=K, w2c=w2c, width=pin.width, height=pin.height, name=vid)
-        paths[vid] = path
+        paths[vid] = (path, orientation)
     if not views:
         raise InputError(model_dir, "COLMAP model has no posed images")
     ids = sorted(views)

@@ -24,7 +24,7 @@ DEPTH_EXTS = (".tiff", ".tif", ".exr")
 
 
 #: EXIF orientations (tag 274) that swap width and height (transposed / rotated by 90 degrees).
-_TRANSPOSING = {5, 6, 7, 8}
+TRANSPOSING = {5, 6, 7, 8}
 
 
 def exif_orientation(im) -> int:
@@ -95,11 +95,12 @@ def _tiff_image(path: Path, orient: bool) -> np.ndarray:
             raise InputError(path, f"floating-point image with values up to {top:g}; expected [0, 1] "
                                    "(reflectance): rescale it, or save it as 8- or 16-bit")
         a = np.clip(a, 0.0, 1.0)  # small negative reflectances (correction noise) are dark, not an error
-    return np.ascontiguousarray(_oriented(a, orientation) if orient else a)
+    return np.ascontiguousarray(oriented(a, orientation) if orient else a)
 
 
-def _oriented(a: np.ndarray, orientation: int) -> np.ndarray:
-    """``a`` (H, W, ...) as a viewer shows it under EXIF/TIFF orientation 1-8 (as Pillow's exif_transpose)."""
+def oriented(a: np.ndarray, orientation: int) -> np.ndarray:
+    """``a`` (H, W, ...), rows top to bottom, as a viewer shows it under EXIF/TIFF orientation 1-8 (as
+    Pillow's exif_transpose)."""
     return {1: lambda x: x, 2: lambda x: x[:, ::-1], 3: lambda x: x[::-1, ::-1], 4: lambda x: x[::-1],
             5: lambda x: np.swapaxes(x, 0, 1), 6: lambda x: np.rot90(x, -1),
             7: lambda x: np.swapaxes(x[::-1, ::-1], 0, 1), 8: lambda x: np.rot90(x, 1)}[orientation](a)
@@ -111,11 +112,11 @@ def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
 
     if Path(path).suffix.lower() in _TIFF_EXTS:
         _, (w, h), orientation = _tiff(Path(path), pixels=False)
-        return (h, w) if orient and orientation in _TRANSPOSING else (w, h)
+        return (h, w) if orient and orientation in TRANSPOSING else (w, h)
     try:
         with Image.open(path) as im:
             w, h = im.size
-            return (h, w) if orient and exif_orientation(im) in _TRANSPOSING else (w, h)
+            return (h, w) if orient and exif_orientation(im) in TRANSPOSING else (w, h)
     except (OSError, UnidentifiedImageError) as e:
         raise InputError(path, f"unreadable image ({e})") from None
 

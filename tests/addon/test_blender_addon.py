@@ -424,6 +424,37 @@ def test_a_colmap_project_with_lens_distortion_imports_with_the_cameras_training
     assert (fresh.render.resolution_x, fresh.render.resolution_y) == (want.width, want.height)
 
 
+def test_photos_stored_turned_import_upright(fresh, tmp_path):
+    """Photos from a camera held on its side (JPEG with an EXIF orientation): Blender loads the stored
+    pixels and ignores the tag, the library turns them upright; the view objects get the library's
+    cameras and the training views' backgrounds show the photos upright."""
+    from photo_synth import write_turned_levir_scene
+
+    from dibrgs_core.data.load import read_any_scene
+
+    root = tmp_path / "turned"
+    write_turned_levir_scene(root, [6, 8, 1, 3])
+    (root / "split.json").write_text('{"train": ["000", "001", "002"], "test": ["003"]}')
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    lib = read_any_scene(root, load_depth=False)
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    for vid, obj in objs.items():
+        want = lib.views[vid].camera
+        cam = sb.camera_from_object(obj, fresh)
+        assert (cam.width, cam.height) == (want.width, want.height) == (96, 64), vid
+        np.testing.assert_allclose(cam.K, want.K, rtol=1e-5, atol=1e-5)
+    for vid in ("000", "001", "002"):
+        img = objs[vid].data.background_images[0].image
+        assert tuple(img.size) == (96, 64), vid
+        px = np.empty(96 * 64 * 4, np.float32)
+        img.pixels.foreach_get(px)
+        shown = px.reshape(64, 96, 4)[::-1, :, :3]
+        assert np.abs(shown - lib.views[vid].image).mean() < 2 / 255, vid  # JPEG decoders may differ by a level
+    assert objs["000"].data.background_images[0].image.packed_file is not None  # the copy is saved with the file
+    assert objs["002"].data.background_images[0].image.filepath  # an upright photo is the file itself
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""

@@ -546,6 +546,91 @@ def test_image_size_from_headers(tmp_path):
         imagesize.image_size(tmp_path / "bad.png")
 
 
+def test_exif_orientation_from_headers_as_the_library_reads_it(tmp_path):
+    """JPEG (APP1), PNG (eXIf) and TIFF (tag 274) orientations, valid, invalid and malformed, as the
+    library's Pillow / tifffile readers take them; the size as a viewer shows the photo."""
+    from PIL import Image
+    import tifffile
+
+    from dibrgs_core.data import images
+
+    rgb = (np.random.default_rng(0).random((37, 53, 3)) * 255).astype(np.uint8)
+    files = []
+    for o in (1, 2, 3, 4, 5, 6, 7, 8, 9, 0):
+        im = Image.fromarray(rgb)
+        exif = im.getexif()
+        exif[0x0112] = o
+        for ext in ("jpg", "png"):
+            im.save(tmp_path / f"o{o}.{ext}", exif=exif)
+            files.append(tmp_path / f"o{o}.{ext}")
+        tifffile.imwrite(tmp_path / f"o{o}.tif", rgb, extratags=[(274, 3, 1, o, True)])
+        files.append(tmp_path / f"o{o}.tif")
+    im = Image.fromarray(rgb)  # an EXIF block that is not TIFF data: as stored
+    im.save(tmp_path / "bad_exif.jpg", exif=b"Exif\x00\x00garbage")
+    files.append(tmp_path / "bad_exif.jpg")
+    for f in files:
+        want = {o: images.image_size(f, orient=o) for o in (True, False)}
+        assert want[False] == (53, 37), f.name
+        assert {o: imagesize.image_size(f, orient=o) for o in (True, False)} == want, f.name
+        o = imagesize.image_header(f)[2]
+        assert o == (int(f.stem[1]) if f.stem[1] in "12345678" else 1), f.name
+        if f.suffix != ".tif":
+            with Image.open(f) as im:
+                im.load()
+                assert o == images.exif_orientation(im), f.name
+    # Blender's pixel order (rows bottom to top, RGBA) turned upright as Pillow turns the photo
+    stored = np.asarray(Image.open(tmp_path / "o6.jpg").convert("RGBA"), np.float32) / 255
+    with Image.open(tmp_path / "o6.jpg") as im:
+        from PIL import ImageOps
+        upright = np.asarray(ImageOps.exif_transpose(im).convert("RGBA"), np.float32) / 255
+    px, w, h = imagesize.upright_pixels(stored[::-1].ravel(), 53, 37, 6)
+    assert (w, h) == (37, 53)
+    np.testing.assert_array_equal(px.reshape(h, w, 4)[::-1], upright)
+
+
+def test_describe_follows_exif_orientation_as_the_library(tmp_path, monkeypatch):
+    """Photos stored turned with an EXIF orientation (a camera held on its side): LEVIR views are
+    the upright photos; COLMAP views the stored pixels unless only the upright ones fit the camera
+    (COLMAP ignores EXIF). The description says how to turn each file into its view's image."""
+    import pycolmap
+    from PIL import Image
+
+    from photo_synth import H, W, write_distorted_model, write_turned_levir_scene
+
+    from dibrgs_core.data.images import oriented, read_image
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    levir = tmp_path / "levir"
+    write_turned_levir_scene(levir, [6, 8, 1, 3])
+    desc, scene = describe.describe_scene(levir), read_any_scene(levir, load_depth=False)
+    _same_description(desc, scene)
+    assert [v["orientation"] for v in desc["views"]] == [6, 8, 1, 3]
+    for v in desc["views"]:  # the file's pixels turned as the description says are the library's image
+        np.testing.assert_array_equal(oriented(read_image(v["image"], orient=False), v["orientation"]),
+                                      scene.views[v["name"]].image)
+    # COLMAP: v0 stored as the camera sees it (its EXIF tag is ignored), v1 and v2 stored turned
+    colmap = tmp_path / "colmap"
+    write_distorted_model(colmap, "PINHOLE", [80.0, 80.0, W / 2, H / 2])
+    rec = pycolmap.Reconstruction(str(colmap / "sparse" / "0"))
+    for i, im in enumerate(sorted(rec.images.values(), key=lambda im: im.name)):
+        png = colmap / "images" / im.name
+        photo = Image.open(png)
+        photo = photo if i == 0 else photo.transpose(Image.Transpose.ROTATE_90)
+        exif = photo.getexif()
+        exif[0x0112] = 6
+        photo.save(png.with_suffix(".jpg"), quality=95, exif=exif)
+        png.unlink()
+        im.name = im.name.replace(".png", ".jpg")
+    rec.write_text(str(colmap / "sparse" / "0"))
+    desc, scene = describe.describe_scene(colmap), read_any_scene(colmap, load_depth=False)
+    _same_description(desc, scene)
+    assert [v["orientation"] for v in desc["views"]] == [1, 6, 6]
+    for v in desc["views"]:
+        np.testing.assert_array_equal(oriented(read_image(v["image"], orient=False), v["orientation"]),
+                                      scene.views[v["name"]].image)
+
+
 def _same_description(desc: dict, scene, atol: float = 1e-12) -> None:
     assert desc["train"] == list(scene.train) and desc["test"] == list(scene.test)
     np.testing.assert_array_equal(desc["origin"], scene.origin)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,12 +12,12 @@ from PIL import Image
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.colmap import read_colmap_cameras, read_colmap_scene
-from dibrgs_core.data.levir import read_scene, write_cams_file
+from dibrgs_core.data.levir import read_scene
 from dibrgs_core.data.load import read_any_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from photo_synth import H, W, pattern, write_distorted_model  # noqa: E402
+from photo_synth import H, W, pattern, write_distorted_model, write_turned_levir_scene  # noqa: E402
 
 DISTORTED = [("SIMPLE_RADIAL", [80.0, W / 2, H / 2, -0.25]),
              ("RADIAL", [80.0, W / 2, H / 2, -0.25, -0.05]),
@@ -103,31 +102,12 @@ def test_fisheye_and_other_models_are_clear_errors(tmp_path, monkeypatch):
 
 
 # -- JPEG photos with an EXIF orientation ------------------------------------------------------
-def _jpeg(path: Path, upright: np.ndarray, orientation: int) -> None:
-    """Store ``upright`` as a JPEG the way a camera held on its side does: the pixels rotated, and the EXIF
-    orientation tag saying how to turn them upright."""
-    im = Image.fromarray(np.round(upright * 255).astype(np.uint8))
-    stored = {1: im, 3: im.transpose(Image.Transpose.ROTATE_180), 6: im.transpose(Image.Transpose.ROTATE_90),
-              8: im.transpose(Image.Transpose.ROTATE_270)}[orientation]
-    exif = stored.getexif()
-    exif[0x0112] = orientation
-    stored.save(path, quality=95, exif=exif)
-
-
 @pytest.mark.parametrize("orientation", [6, 8, 3])
 def test_jpeg_scene_with_exif_rotation(tmp_path, orientation):
     """A LEVIR-layout scene of 3:2 JPEG photos stored rotated with an EXIF orientation: read upright, at
     the cameras' size, with the pixels where the camera says."""
     root = tmp_path / "scene"
-    (root / "Images").mkdir(parents=True)
-    K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
-    ups = {}
-    for i in range(4):
-        cam = Camera(K=K, w2c=look_at([20.0 * i, 0, 100], [20.0 * i, 0, 0], [0, 1.0, 0]), width=W, height=H,
-                     name=f"{i:03d}", depth_range=(50.0, 150.0))
-        write_cams_file(root / "Cams" / f"{i:03d}.txt", cam)
-        ups[cam.name] = np.roll(pattern(W, H), 7 * i, axis=1)
-        _jpeg(root / "Images" / f"{i:03d}.jpg", ups[cam.name], orientation if i != 2 else 1)
+    ups = write_turned_levir_scene(root, [orientation, orientation, 1, orientation])
     (root / "split.json").write_text('{"train": ["000.jpg", "002.JPG", "003"], "test": ["001"]}')
     s = read_scene(root)
     assert list(s.sizes()) == [(W, H)] and s.train == ["000", "002", "003"] and s.test == ["001"]
