@@ -27,8 +27,8 @@ from pathlib import Path
 
 import bpy
 
-from . import operators
-from ._core import jobs, train_config
+from . import operators, scene_build
+from ._core import errors, jobs, split, train_config
 
 CLI_COMMAND = "dibrgs"
 
@@ -40,6 +40,11 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     p.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, renders, the .blend)")
     p.add_argument("--preset", choices=train_config.PRESETS, default="cpu")
     p.add_argument("--method", choices=jobs.METHODS, default="dibrgs")
+    p.add_argument("--train", default=None, metavar="NAMES",
+                   help="training views, as `dibrgs train --train` (comma-separated names or LEVIR ids, or 'all'); "
+                        "overrides the scene's split.json")
+    p.add_argument("--test", default=None, metavar="NAMES",
+                   help="held-out views, as `dibrgs train --test` (or 'none')")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
     p.add_argument("--pseudo-views", type=int, default=0,
                    help="pseudo views sampled along the path (0: the preset's number, 96 for cpu)")
@@ -85,6 +90,8 @@ def main(argv: list[str], prog: str = f"blender -b -c {CLI_COMMAND}") -> int:
         props = bpy.context.scene.dibrgs
         props.work_dir = str(out)
         steps = [("import", lambda: bpy.ops.dibrgs.import_scene(directory=str(args.scene.resolve())))]
+        if args.train is not None or args.test is not None:
+            steps.append(("split", lambda: _choose_split(args.train, args.test)))
         if not args.no_init:
             steps.append(("initialise", lambda: bpy.ops.dibrgs.initialise(blocking=True)))
         steps.append(("train", lambda: bpy.ops.dibrgs.train(blocking=True)))
@@ -108,7 +115,7 @@ def main(argv: list[str], prog: str = f"blender -b -c {CLI_COMMAND}") -> int:
                 break
             if "FINISHED" not in result:
                 print(f"{prog}: {name} failed: {props.error or result}", file=sys.stderr)
-                return 1
+                return 2 if name == "split" else 1  # a --train / --test the scene does not have
             print(f"[DIBR-GS] {props.message}", flush=True)
         if interrupted.signal:
             kept = " (the checkpoint is kept: run again with --resume to continue)" if (
@@ -126,6 +133,25 @@ def main(argv: list[str], prog: str = f"blender -b -c {CLI_COMMAND}") -> int:
             job.runner.wait(interval_s=0.1)
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _choose_split(train: str | None, test: str | None) -> set[str]:
+    """Move the view cameras into the collections of the split ``--train`` / ``--test`` name (the
+    rules of ``dibrgs train``'s options), as a user would in the panel."""
+    desc = scene_build.scene_description(imported=True)
+    names = [v["name"] for v in desc["views"]]
+    try:
+        tr, te, _ = split.make_split(Path(desc["root"]), names, _names(train), _names(test))
+    except errors.InputError as e:
+        bpy.context.scene.dibrgs.error = str(e)
+        return {"CANCELLED"}
+    scene_build.move_to_split(bpy.context, tr, te)
+    bpy.context.scene.dibrgs.message = f"split: train {tr}, held out {te}"
+    return {"FINISHED"}
+
+
+def _names(s: str | None) -> list[str] | None:
+    return None if s is None else [x.strip() for x in s.split(",") if x.strip()]
 
 
 def _empty_file() -> None:

@@ -259,6 +259,13 @@ class Run:
     def blender(self) -> Path:
         return self.work / "blender"
 
+    @property
+    def split(self) -> tuple[list[str], list[str]] | None:
+        """(training, held-out) views when the user moved view cameras, else None (the scene's own split)."""
+        if self.desc.get("split_source") != scene_build.SPLIT_MOVED:
+            return None
+        return list(self.desc["train"]), list(self.desc["test"])
+
     def write_cameras(self, name: str, cams: list["pinhole.Camera"]) -> Path:
         """``cams`` (Blender's, relative to the description's origin) as ``blender/NAME`` for the
         command line, in the scene files' frame."""
@@ -280,6 +287,9 @@ def _run(context) -> Run:
         desc = scene_build.scene_description()
     except ValueError as e:
         raise UserError(str(e)) from None
+    if not desc["train"]:
+        raise UserError(f"no view camera in the '{scene_build.TRAIN_COLLECTION}' collection: move the cameras "
+                        "to train on there")
     return Run(python=python, work=_work(props), scene=Path(desc["root"]), desc=desc)
 
 
@@ -470,7 +480,8 @@ class DIBRGS_OT_initialise(_JobOperator, bpy.types.Operator):
 
     def build(self, context) -> Job:
         run = _run(context)
-        step = run.step("Initialise", jobs.init_command(run.python, run.scene, run.work, settings(context).weights))
+        step = run.step("Initialise", jobs.init_command(run.python, run.scene, run.work, settings(context).weights,
+                                                        run.split))
 
         def finish(ctx) -> str:
             n = results.load_init(ctx, run.work / "init")
@@ -499,7 +510,7 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
             pseudo_json = run.write_cameras("pseudo_path.json", pseudo)
         opts = jobs.TrainOptions(preset=props.preset, method=props.method, iterations=props.iterations or None,
                                  pseudo_views=props.pseudo_count or None, pseudo_path=pseudo_json,
-                                 resume=props.resume, weights=settings(context).weights)
+                                 resume=props.resume, weights=settings(context).weights, split=run.split)
         steps = [run.step("Training", jobs.train_command(run.python, run.scene, run.work, opts), progress=True)]
         more, finish_results = _result_steps(context, run)
 

@@ -42,6 +42,8 @@ class DIBRGS_PT_main(bpy.types.Panel):
         col.prop(props, "scene_dir")
         op = col.operator("dibrgs.import_scene", icon="IMPORT")
         op.directory = props.scene_dir
+        if scene_build.SCENE_TEXT in bpy.data.texts:  # move view cameras between the collections to change it
+            col.label(text=scene_build.split_summary(), icon="OUTLINER_COLLECTION")
         col.prop(props, "work_dir")
 
         box = layout.box()

@@ -136,6 +136,8 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     scene = context.scene
     for name in SPLIT_COLLECTIONS.values():
         clear_collection(name)
+    for obj in [o for o in bpy.data.objects if "dibrgs_view" in o]:  # view cameras moved out of them
+        remove_object(obj)
     root = _root(scene)
     objs: dict[str, bpy.types.Object] = {}
     for v in desc["views"]:
@@ -143,7 +145,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
         coll = collection(scene, SPLIT_COLLECTIONS[v["split"]], root)
         obj = new_camera_object(v["name"], coll)
         obj["dibrgs_view"] = v["name"]
-        obj["dibrgs_split"] = v["split"]
+        obj["dibrgs_split"] = v["split"]  # as imported
         apply_camera(obj, cam)
         if v["split"] == "train" and v.get("image"):
             bg = obj.data.background_images.new()
@@ -151,10 +153,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
             bg.alpha = 1.0
             obj.data.show_background_images = True
         objs[v["name"]] = obj
-    for name in SPLIT_COLLECTIONS.values():  # an empty split keeps no collection
-        coll = bpy.data.collections.get(name)
-        if coll is not None and not coll.objects:
-            bpy.data.collections.remove(coll)
+    _drop_empty_split_collections()
     train = [objs[n] for n in desc["train"] if n in objs]
     scene.camera = train[0] if train else next(iter(objs.values()))
     active = next(v for v in desc["views"] if v["name"] == scene.camera["dibrgs_view"])
@@ -187,12 +186,85 @@ def view_photo(path: str, orientation: int) -> bpy.types.Image:
     return out
 
 
-def scene_description() -> dict[str, Any]:
-    """The description stored by :func:`build_scene` (ValueError if no scene was imported)."""
+#: ``split_source`` of a description whose split the user changed by moving view cameras.
+SPLIT_MOVED = "moved in Blender"
+
+
+def scene_description(imported: bool = False) -> dict[str, Any]:
+    """The description stored by :func:`build_scene` (ValueError if no scene was imported), with the
+    split its view cameras' collections hold now, or as imported with ``imported``.
+
+    The user chooses the split by moving view cameras: those in the Train views collection train,
+    those in Held-out views are held out, and a view whose camera is elsewhere (or deleted) is left
+    out. A split that differs from the imported one has ``split_source`` :data:`SPLIT_MOVED`.
+    """
     text = bpy.data.texts.get(SCENE_TEXT)
     if text is None:
         raise ValueError("import a scene first")
-    return json.loads(text.as_string())
+    desc = json.loads(text.as_string())
+    if imported:
+        return desc
+    where = _view_splits()
+    train = [v["name"] for v in desc["views"] if where.get(v["name"]) == "train"]
+    test = [v["name"] for v in desc["views"] if where.get(v["name"]) == "test"]
+    if (train, test) == (desc["train"], desc["test"]):
+        return desc
+    for v in desc["views"]:
+        v["split"] = "train" if v["name"] in train else "test" if v["name"] in test else "other"
+    return dict(desc, train=train, test=test, split_source=SPLIT_MOVED)
+
+
+def _object_split(obj: bpy.types.Object) -> str:
+    names = {c.name for c in obj.users_collection}
+    return "train" if TRAIN_COLLECTION in names else "test" if TEST_COLLECTION in names else "other"
+
+
+def _view_splits() -> dict[str, str]:
+    """View id -> "train" / "test" / "other" by the collections its camera objects are in (a view
+    trains when any of its cameras, duplicates included, is in Train views)."""
+    rank = {"train": 0, "test": 1, "other": 2}
+    out: dict[str, str] = {}
+    for obj in bpy.data.objects:
+        if "dibrgs_view" in obj:
+            k, split = str(obj["dibrgs_view"]), _object_split(obj)
+            if k not in out or rank[split] < rank[out[k]]:
+                out[k] = split
+    return out
+
+
+def split_summary() -> str:
+    """The split the view cameras hold, in a line for the panel (without parsing the description)."""
+    splits = list(_view_splits().values())
+    moved = any(o.get("dibrgs_split") != _object_split(o) for o in bpy.data.objects if "dibrgs_view" in o)
+    text = f"Split: {splits.count('train')} training, {splits.count('test')} held-out"
+    if splits.count("other"):
+        text += f", {splits.count('other')} left out"
+    return text + (" (moved in Blender)" if moved else " (as imported)")
+
+
+def move_to_split(context: bpy.types.Context, train: list[str], test: list[str]) -> None:
+    """Put the view cameras in the collections of a split: ``train`` in Train views, ``test`` in
+    Held-out views, every other view in Other views (as :func:`scene_description` reads them)."""
+    scene = context.scene
+    root = _root(scene)
+    for obj in [o for o in bpy.data.objects if "dibrgs_view" in o]:
+        name = str(obj["dibrgs_view"])
+        split = "train" if name in train else "test" if name in test else "other"
+        target = collection(scene, SPLIT_COLLECTIONS[split], root)
+        for coll in list(obj.users_collection):
+            if coll is not target:
+                coll.objects.unlink(obj)
+        if target not in obj.users_collection:
+            target.objects.link(obj)
+    _drop_empty_split_collections()
+
+
+def _drop_empty_split_collections() -> None:
+    """An empty split keeps no collection."""
+    for name in SPLIT_COLLECTIONS.values():
+        coll = bpy.data.collections.get(name)
+        if coll is not None and not coll.objects:
+            bpy.data.collections.remove(coll)
 
 
 def scene_origin() -> tuple[float, float, float]:

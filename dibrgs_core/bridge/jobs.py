@@ -95,7 +95,8 @@ class Weights:
 class TrainOptions:
     """What the add-on passes to ``dibrgs train`` (``iterations=None`` / ``pseudo_views=None``:
     the preset's; ``pseudo_path``: cameras of a path the user edited, else None and training
-    samples pseudo views along the trajectory itself)."""
+    samples pseudo views along the trajectory itself; ``split``: (training, held-out) view ids
+    the user chose in Blender, else None and the scene's own split holds)."""
 
     preset: str = "cpu"
     method: str = "dibrgs"
@@ -104,6 +105,7 @@ class TrainOptions:
     pseudo_path: Path | None = None
     resume: bool = False
     weights: Weights = field(default_factory=Weights)
+    split: tuple[list[str], list[str]] | None = None
     extra: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -129,14 +131,33 @@ def train_command(python: str, scene: Path, work: Path, opts: TrainOptions) -> l
         args += ["--pseudo-views", str(opts.pseudo_views)]
     if opts.resume:
         args.append("--resume")
+    args += split_flags(opts.split)
     args += opts.weights.flags("depth_model", "dino_resnet", "dino_vit")
     args += list(opts.extra)
     return dibrgs_command(python, "train", *args)
 
 
-def init_command(python: str, scene: Path, work: Path, weights: Weights | None = None) -> list[str]:
-    """``dibrgs init SCENE --out WORK`` (writes ``WORK/init/``)."""
-    return dibrgs_command(python, "init", scene, "--out", work, *(weights or Weights()).flags("depth_model"))
+def init_command(python: str, scene: Path, work: Path, weights: Weights | None = None,
+                 split: tuple[list[str], list[str]] | None = None) -> list[str]:
+    """``dibrgs init SCENE --out WORK`` (writes ``WORK/init/``), with ``split`` as for :class:`TrainOptions`."""
+    return dibrgs_command(python, "init", scene, "--out", work, *split_flags(split),
+                          *(weights or Weights()).flags("depth_model"))
+
+
+def split_flags(split: tuple[list[str], list[str]] | None) -> list[str]:
+    """``--train A,B --test C`` for (training, held-out) view ids (``--test none`` for none), or
+    nothing for None. ValueError for no training view or a view id the option cannot hold."""
+    if split is None:
+        return []
+    train, test = split
+    if not train:
+        raise ValueError("no training view")
+    bad = [n for n in [*train, *test] if "," in n or n != n.strip() or not n]
+    bad += [n for n in train if not test and n.lower() == "none"]  # "--test none" would name that view
+    if bad:
+        raise ValueError(f"view {bad[0]!r} cannot be named in --train / --test here (a comma, outer spaces, or "
+                         "'none' with nothing held out): give the scene a split.json instead")
+    return ["--train", ",".join(train), "--test", ",".join(test) or "none"]
 
 
 def render_command(python: str, work: Path, cameras: Path, out: Path) -> list[str]:

@@ -71,7 +71,8 @@ def add_split(p: argparse.ArgumentParser) -> None:
                         "the scene's split.json (default without either: 001,008,015 for LEVIR-NVS scenes, "
                         "else 3 evenly spaced views)")
     p.add_argument("--test", type=name_list, default=None, metavar="NAMES",
-                   help="held-out views, as --train (default: split.json's, else the views not trained on)")
+                   help="held-out views, as --train, or 'none' (nothing held out) (default: split.json's, else "
+                        "the views not trained on)")
 
 
 @contextlib.contextmanager

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 
 SPLIT_FILE = "split.json"
 TRAIN_ALL = "all"  # --train all: every view trains (but those --test names)
+TEST_NONE = "none"  # --test none: nothing held out
 
 
 def orbit_ids(ids: Sequence[str]) -> list[str]:
@@ -70,6 +71,11 @@ def match_names(names: Iterable[str | int], ids: Sequence[str], where: str | Pat
     return out
 
 
+def _only(names: Iterable[str | int], word: str, ids: Sequence[str]) -> bool:
+    """Whether ``names`` is the one keyword ``word`` (any case) in a scene with no view of that name."""
+    return [str(n).strip().lower() for n in names] == [word] and word not in {i.lower() for i in ids}
+
+
 def read_split_file(path: Path) -> tuple[list | None, list | None]:
     """The ``train`` / ``test`` name lists of a ``split.json`` (``InputError`` naming it when malformed)."""
     try:
@@ -96,16 +102,16 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
     without extension), then :func:`default_split`. A part not given explicitly comes from the
     next source, less the views the explicit part names. ``train_ids`` ``["all"]`` (in a scene
     with no view of that name) trains on every view but those of ``test_ids``, and holds out
-    only those (none without them). A name not in the scene is an ``InputError``, as is a view
-    in both parts.
+    only those (none without them); ``test_ids`` ``["none"]`` holds nothing out. A name not in
+    the scene is an ``InputError``, as is a view in both parts.
     """
     root = Path(root)
     src: list[str] = []
     train_ids = None if train_ids is None else list(train_ids)
-    every = train_ids is not None and [str(n).strip().lower() for n in train_ids] == [TRAIN_ALL] \
-        and TRAIN_ALL not in {i.lower() for i in ids}
+    every = train_ids is not None and _only(train_ids, TRAIN_ALL, ids)
     train = match_names(train_ids, ids, None, "--train") if train_ids is not None and not every else None
-    test = match_names(test_ids, ids, None, "--test") if test_ids is not None else None
+    nothing = test_ids is not None and _only(test_ids, TEST_NONE, ids)
+    test = [] if nothing else match_names(test_ids, ids, None, "--test") if test_ids is not None else None
     if every:
         train, test = [i for i in ids if i not in (test or [])], test or []
         src.append(f"--train {TRAIN_ALL}")

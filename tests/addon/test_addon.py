@@ -64,6 +64,24 @@ def test_initialise_imports_points_height_map_and_decisions(tiny_scene, fresh):
         assert sb.HEIGHT_NAME not in bpy.data.objects
 
 
+def test_initialise_uses_the_split_of_the_moved_view_cameras(tiny_scene, fresh):
+    """A view camera moved into Train views trains (the real `dibrgs init` subprocess gets --train /
+    --test); one moved out of the split collections is left out."""
+    bpy.ops.dibrgs.import_scene(directory=str(tiny_scene))
+    sb = _mod("scene_build")
+    objs = {o["dibrgs_view"]: o for o in bpy.data.objects if "dibrgs_view" in o}
+    imported = sb.scene_description(imported=True)
+    train, held = bpy.data.collections[sb.TRAIN_COLLECTION], bpy.data.collections[sb.TEST_COLLECTION]
+    moved_in, moved_out = imported["test"][0], imported["train"][-1]
+    held.objects.unlink(objs[moved_in])
+    train.objects.link(objs[moved_in])
+    train.objects.unlink(objs[moved_out])
+    assert bpy.ops.dibrgs.initialise(blocking=True) == {"FINISHED"}
+    rep = json.loads((Path(fresh.dibrgs.work_dir) / "init" / "init_report.json").read_text())
+    want = sorted([*imported["train"][:-1], moved_in])
+    assert rep["values"]["train"] == want != imported["train"]
+
+
 def test_failing_training_is_reported_with_its_log(tiny_scene, fresh, tmp_path):
     broken = tmp_path / "broken_scene"
     shutil.copytree(tiny_scene, broken)
@@ -86,6 +104,22 @@ def test_batch_mode_rejects_bad_arguments(tmp_path):
         r = subprocess.run(run + args, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "usage:" in r.stderr, (args, r.stderr)
     assert not (tmp_path / "o").exists()
+
+
+def test_batch_mode_takes_the_split_of_train_and_test(tiny_scene, tmp_path):
+    """`--train` / `--test` move the view cameras as a user would (the rules of `dibrgs train`'s
+    options); a name the scene lacks is exit 2 naming it, before anything runs."""
+    run = [sys.executable, str(REPO / "scripts" / "run.py"), "--scene", str(tiny_scene), "--no-init",
+           "--preset", "test", "--iterations", "1"]
+    r = subprocess.run(run + ["--out", str(tmp_path / "bad"), "--train", "001,999"], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 2 and "split failed" in r.stderr and "'999' not in the scene" in r.stderr, r.stderr
+    assert not (tmp_path / "bad" / "config.json").exists()
+    r = subprocess.run(run + ["--out", str(tmp_path / "o"), "--train", "001,004,008", "--test", "none"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    assert cfg["run"]["train"] == ["001", "004", "008"] and cfg["run"]["test"] == []
 
 
 # ---------------------------------------------------------------------------

@@ -507,6 +507,43 @@ def test_photos_stored_turned_import_upright(fresh, tmp_path):
     assert objs["002"].data.background_images[0].image.filepath  # an upright photo is the file itself
 
 
+def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch):
+    """A camera moved into Train views trains, into Held-out views is held out, elsewhere is left out;
+    jobs get that split, the path follows its training cameras, a re-import starts afresh."""
+    monkeypatch.setenv("DIBRGS_PYTHON", sys.executable)
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
+    sb, ops = _mod("scene_build"), _mod("operators")
+    assert sb.split_summary().endswith("(as imported)") and ops._run(bpy.context).split is None
+    objs = _view_objects()
+    train, held, root = (bpy.data.collections[n] for n in (sb.TRAIN_COLLECTION, sb.TEST_COLLECTION, sb.ROOT_COLLECTION))
+    held.objects.unlink(objs["004"])
+    train.objects.link(objs["004"])  # trains now
+    train.objects.unlink(objs["015"])
+    root.objects.link(objs["015"])  # left out
+    dup = objs["010"].copy()  # a duplicate in Train makes its view train
+    train.objects.link(dup)
+    desc = sb.scene_description()
+    assert desc["train"] == ["001", "004", "008", "010"] and desc["split_source"] == sb.SPLIT_MOVED
+    # 000 (the near-nadir view of a LEVIR scene) is left out by the scene's own split
+    assert desc["test"] == [f"{i:03d}" for i in range(2, 21) if i not in (4, 8, 10, 15)]
+    assert {v["name"]: v["split"] for v in desc["views"]}["015"] == "other"
+    assert sb.scene_description(imported=True)["train"] == ["001", "008", "015"]
+    assert sb.split_summary() == "Split: 4 training, 15 held-out, 2 left out (moved in Blender)"
+    assert ops._run(bpy.context).split == (desc["train"], desc["test"])
+    assert [c.name for c in sb.described_cameras(desc, "train")] == ["001", "004", "008", "010"]
+    assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}  # drawn along the cameras that train now
+    # nothing in Train views: the jobs refuse, saying what to do
+    for o in list(train.objects):
+        train.objects.unlink(o)
+        root.objects.link(o)
+    with pytest.raises(_mod("operators").UserError, match="no view camera in the 'DIBR-GS Train views'"):
+        ops._run(bpy.context)
+    # a re-import brings the scene's own split back, and no camera of the old import stays
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
+    assert sorted(_view_objects()) == sorted(objs) and len([o for o in bpy.data.objects if "dibrgs_view" in o]) == 21
+    assert sb.scene_description()["train"] == ["001", "008", "015"] and ops._run(bpy.context).split is None
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""

@@ -322,6 +322,27 @@ def test_compositor_plan_rejects_bad_input():
 # ---------------------------------------------------------------------------
 # commands and the subprocess runner
 # ---------------------------------------------------------------------------
+def test_a_split_chosen_in_blender_reaches_init_and_train(tmp_path):
+    """(training, held-out) views from the add-on become --train / --test (--test none: nothing held
+    out), which the command line reads back as the same split; no split: the scene's own."""
+    from dibrgs_core.cli import build_parser
+    from dibrgs_core.data.split import make_split
+
+    ids = ["DJI_0018", "DJI_0019", "DJI_0020", "DJI_0027"]
+    for split in ((["DJI_0019", "DJI_0020"], ["DJI_0018"]), (["DJI_0019", "DJI_0020"], []),
+                  (["DJI_0019", "DJI_0020"], ["none"])):
+        ids = ids + ["none"] if "none" in split[1] else ids  # a view named "none" wins over the keyword
+        for cmd in (jobs.train_command("py", tmp_path, tmp_path / "w", jobs.TrainOptions(split=split)),
+                    jobs.init_command("py", tmp_path, tmp_path / "w", split=split)):
+            args = build_parser().parse_args(cmd[3:])
+            assert make_split(tmp_path, ids, args.train, args.test)[:2] == split
+    assert "--train" not in jobs.train_command("py", tmp_path, tmp_path, jobs.TrainOptions())
+    assert "--test" not in jobs.init_command("py", tmp_path, tmp_path)
+    for bad in ((["a,b"], []), ([" a"], []), ([], ["a"]), (["a", "None"], [])):
+        with pytest.raises(ValueError):
+            jobs.split_flags(bad)
+
+
 def test_train_command_carries_the_options(tmp_path):
     opts = jobs.TrainOptions(preset="test", method="3dgs", iterations=50, pseudo_path=tmp_path / "p.json",
                              resume=True, weights=jobs.Weights(depth_model="/w/da", lpips="/w/lpips"))

@@ -95,6 +95,16 @@ def test_train_all_holds_out_only_what_test_names(tmp_path):
         make_split(tmp_path, PHOTOS, ["all", "DJI_0019"])
 
 
+def test_test_none_holds_nothing_out(tmp_path):
+    """``--test none``: the training part as given (or split.json's), nothing held out, the other views left out."""
+    root = _root(tmp_path, {"train": ["001"], "test": ["002", "003"]})
+    assert make_split(root, LEVIR, ["001", "005"], ["none"]) == (["001", "005"], [], "--train + --test")
+    assert make_split(root, LEVIR, None, ["None"])[:2] == (["001"], [])
+    assert make_split(tmp_path / "v", ["none", "b", "c"], ["b"], ["none"])[:2] == (["b"], ["none"])  # a view's name wins
+    with pytest.raises(InputError, match="--test: 'none' not in the scene"):
+        make_split(root, LEVIR, ["001"], ["none", "002"])
+
+
 def test_bad_command_line_names(tmp_path):
     with pytest.raises(InputError, match=r"--train: 'DJI_9999' not in the scene \(its views: DJI_0018") as e:
         make_split(tmp_path, PHOTOS, ["DJI_0019", "DJI_9999"])
