@@ -46,6 +46,8 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     p.add_argument("--test", default=None, metavar="NAMES",
                    help="held-out views, as `dibrgs train --test` (or 'none')")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
+    p.add_argument("--resolution-scale", type=float, default=0.0,
+                   help="scale of the photos, in (0, 4] (0: the preset's; cpu: long side at most 512 px)")
     p.add_argument("--pseudo-views", type=int, default=0,
                    help="pseudo views sampled along the path (0: the preset's number, 96 for cpu)")
     p.add_argument("--fly-frames", type=int, default=0, help="render a fly-through of this many frames (0: none)")
@@ -56,6 +58,8 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.iterations < 0 or args.pseudo_views < 0 or args.fly_frames < 0:
         p.error("--iterations, --pseudo-views and --fly-frames must be >= 0")
+    if not 0 <= args.resolution_scale <= 4:
+        p.error("--resolution-scale must be in (0, 4], or 0 for the preset's")
     if not args.scene.is_dir():
         p.error(f"--scene {args.scene}: not a folder")
     return args
@@ -101,6 +105,7 @@ def main(argv: list[str], prog: str = f"blender -b -c {CLI_COMMAND}") -> int:
             if name == "train":  # the import sets the preferences' preset; the command line wins
                 props.preset, props.method = args.preset, args.method
                 props.iterations, props.pseudo_count = args.iterations, args.pseudo_views
+                props.resolution_scale = args.resolution_scale
                 props.resume = args.resume
                 props.fly_frames = max(args.fly_frames, 2)
             print(f"[DIBR-GS] {name} ...", flush=True)

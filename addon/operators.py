@@ -509,6 +509,7 @@ class DIBRGS_OT_train(_JobOperator, bpy.types.Operator):
                                               "pseudo")
             pseudo_json = run.write_cameras("pseudo_path.json", pseudo)
         opts = jobs.TrainOptions(preset=props.preset, method=props.method, iterations=props.iterations or None,
+                                 resolution_scale=props.resolution_scale or None,
                                  pseudo_views=props.pseudo_count or None, pseudo_path=pseudo_json,
                                  resume=props.resume, weights=settings(context).weights, split=run.split)
         steps = [run.step("Training", jobs.train_command(run.python, run.scene, run.work, opts), progress=True)]

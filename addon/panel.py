@@ -80,6 +80,7 @@ class DIBRGS_PT_main(bpy.types.Panel):
         col.prop(props, "preset")
         col.prop(props, "method")
         col.prop(props, "iterations")
+        col.prop(props, "resolution_scale")
         col.prop(props, "resume")
         if job is not None:
             fraction, text = job_progress(job)

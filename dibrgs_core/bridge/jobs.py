@@ -93,14 +93,15 @@ class Weights:
 
 @dataclass
 class TrainOptions:
-    """What the add-on passes to ``dibrgs train`` (``iterations=None`` / ``pseudo_views=None``:
-    the preset's; ``pseudo_path``: cameras of a path the user edited, else None and training
+    """What the add-on passes to ``dibrgs train`` (``iterations`` / ``resolution_scale`` /
+    ``pseudo_views`` None: the preset's; ``pseudo_path``: cameras of a path the user edited, else None and training
     samples pseudo views along the trajectory itself; ``split``: (training, held-out) view ids
     the user chose in Blender, else None and the scene's own split holds)."""
 
     preset: str = "cpu"
     method: str = "dibrgs"
     iterations: int | None = None
+    resolution_scale: float | None = None
     pseudo_views: int | None = None
     pseudo_path: Path | None = None
     resume: bool = False
@@ -115,6 +116,8 @@ class TrainOptions:
             raise ValueError(f"unknown method {self.method!r}; expected one of {METHODS}")
         if self.iterations is not None and self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.resolution_scale is not None and not 0 < self.resolution_scale <= 4:
+            raise ValueError(f"resolution_scale must be in (0, 4], got {self.resolution_scale}")
         if self.pseudo_views is not None and self.pseudo_views < 1:
             raise ValueError(f"pseudo_views must be >= 1, got {self.pseudo_views}")
 
@@ -125,6 +128,8 @@ def train_command(python: str, scene: Path, work: Path, opts: TrainOptions) -> l
                        "--progress-json"]
     if opts.iterations is not None:
         args += ["--iterations", str(opts.iterations)]
+    if opts.resolution_scale is not None:
+        args += ["--resolution-scale", repr(float(opts.resolution_scale))]
     if opts.pseudo_path is not None:
         args += ["--pseudo-path", str(opts.pseudo_path)]
     elif opts.pseudo_views is not None:

@@ -100,7 +100,8 @@ def test_failing_training_is_reported_with_its_log(tiny_scene, fresh, tmp_path):
 def test_batch_mode_rejects_bad_arguments(tmp_path):
     run = [sys.executable, str(REPO / "scripts" / "run.py")]
     for args in ([], ["--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
-                 ["--scene", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", "fast"]):
+                 ["--scene", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", "fast"],
+                 ["--scene", str(tmp_path), "--out", str(tmp_path / "o"), "--resolution-scale", "nan"]):
         r = subprocess.run(run + args, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "usage:" in r.stderr, (args, r.stderr)
     assert not (tmp_path / "o").exists()
@@ -115,11 +116,12 @@ def test_batch_mode_takes_the_split_of_train_and_test(tiny_scene, tmp_path):
                        text=True, timeout=300)
     assert r.returncode == 2 and "split failed" in r.stderr and "'999' not in the scene" in r.stderr, r.stderr
     assert not (tmp_path / "bad" / "config.json").exists()
-    r = subprocess.run(run + ["--out", str(tmp_path / "o"), "--train", "001,004,008", "--test", "none"],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(run + ["--out", str(tmp_path / "o"), "--train", "001,004,008", "--test", "none",
+                              "--resolution-scale", "0.5"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     cfg = json.loads((tmp_path / "o" / "config.json").read_text())
     assert cfg["run"]["train"] == ["001", "004", "008"] and cfg["run"]["test"] == []
+    assert cfg["config"]["resolution_scale"] == 0.5  # the panel's field, passed on by the batch
 
 
 # ---------------------------------------------------------------------------

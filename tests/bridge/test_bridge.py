@@ -362,6 +362,12 @@ def test_train_command_carries_the_options(tmp_path):
 
     args = build_parser().parse_args(sampled[sampled.index("train"):])
     assert config_from_args(args).pseudo.n_views == 7
+    assert config_from_args(args).resolution_scale is None  # the preset's pixel budget
+    scaled = jobs.train_command("py", tmp_path, tmp_path, jobs.TrainOptions(resolution_scale=0.75))
+    assert config_from_args(build_parser().parse_args(scaled[scaled.index("train"):])).resolution_scale == 0.75
+    for bad in (0.0, 5.0, float("nan")):
+        with pytest.raises(ValueError):
+            jobs.TrainOptions(resolution_scale=bad)
     assert "--lpips /w/lpips" in " ".join(jobs.eval_command("py", tmp_path, opts.weights))
     with pytest.raises(ValueError):
         jobs.TrainOptions(preset="fast")
