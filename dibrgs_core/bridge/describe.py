@@ -36,7 +36,7 @@ from ..data.colmap import find_colmap_model
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
-from .colmap_model import read_model
+from .colmap_model import ColmapCamera, read_model
 from ..data.images import TRANSPOSING
 from .imagesize import image_header
 
@@ -90,6 +90,7 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]],
         raise InputError(root / "images", "image folder not found")
     views: dict[str, Camera] = {}
     paths: dict[str, tuple[Path, int]] = {}
+    pinholes: dict[int, ColmapCamera] = {}  # one a camera: a project of many photos shares a few
     try:
         ids = view_ids([im.name for im in imgs])
     except ValueError as e:
@@ -98,7 +99,9 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]],
         if im.camera_id not in cams:
             raise InputError(model_dir, f"image {im.name} refers to camera {im.camera_id}, which is not in the model")
         cam = cams[im.camera_id]
-        pin = cam.pinhole(model_dir)  # undistorted where the camera has distortion, as the library
+        if im.camera_id not in pinholes:  # undistorted where the camera has distortion, as the library
+            pinholes[im.camera_id] = cam.pinhole(model_dir)
+        pin = pinholes[im.camera_id]
         K, w2c = pin.K(), im.w2c()
         validate_camera_arrays(w2c, K, None, model_dir)
         vid = ids[im.name]
