@@ -36,7 +36,7 @@ def curve_views(n: int, max_views: int | None) -> list[int]:
 def curve_decision(n_test: int, every_s: float, max_views: int | None) -> tuple[bool, str]:
     """Whether a run evaluates curve points (only when its split holds views out), and why."""
     if not n_test:
-        return False, "no held-out views (the split trains on every view): no error against time"
+        return False, "no held-out views in the split: no error against time"
     return True, (f"held-out PSNR / SSIM every {every_s:g} s of training on {len(curve_views(n_test, max_views))} "
                   f"of {n_test} held-out views, all at the end")
 
