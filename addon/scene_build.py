@@ -178,7 +178,8 @@ def view_photo(path: str, orientation: int) -> bpy.types.Image:
     old = bpy.data.images.get(name)
     if old is not None:
         bpy.data.images.remove(old)
-    out = bpy.data.images.new(name, w2, h2, alpha=True)
+    out = bpy.data.images.new(name, w2, h2, alpha=True, float_buffer=img.is_float)
+    out.colorspace_settings.name = img.colorspace_settings.name  # shown as the photo would be (float: linear)
     out.pixels.foreach_set(up)
     out.pack()
     if img.users == 0:
