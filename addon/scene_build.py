@@ -145,7 +145,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
         coll = collection(scene, SPLIT_COLLECTIONS[v["split"]], root)
         obj = new_camera_object(v["name"], coll)
         obj["dibrgs_view"] = v["name"]
-        obj["dibrgs_split"] = v["split"]  # as imported
+        obj["dibrgs_split"] = v["split"]
         apply_camera(obj, cam)
         if v["split"] == "train" and v.get("image"):
             bg = obj.data.background_images.new()
@@ -215,11 +215,6 @@ def scene_description(imported: bool = False) -> dict[str, Any]:
     return dict(desc, train=train, test=test, split_source=SPLIT_MOVED)
 
 
-def _object_split(obj: bpy.types.Object) -> str:
-    names = {c.name for c in obj.users_collection}
-    return "train" if TRAIN_COLLECTION in names else "test" if TEST_COLLECTION in names else "other"
-
-
 def _view_splits() -> dict[str, str]:
     """View id -> "train" / "test" / "other" by the collections its camera objects are in (a view
     trains when any of its cameras, duplicates included, is in Train views)."""
@@ -227,20 +222,20 @@ def _view_splits() -> dict[str, str]:
     out: dict[str, str] = {}
     for obj in bpy.data.objects:
         if "dibrgs_view" in obj:
-            k, split = str(obj["dibrgs_view"]), _object_split(obj)
+            names = {c.name for c in obj.users_collection}
+            split = "train" if TRAIN_COLLECTION in names else "test" if TEST_COLLECTION in names else "other"
+            k = str(obj["dibrgs_view"])
             if k not in out or rank[split] < rank[out[k]]:
                 out[k] = split
     return out
 
 
 def split_summary() -> str:
-    """The split the view cameras hold, in a line for the panel (without parsing the description)."""
-    splits = list(_view_splits().values())
-    moved = any(o.get("dibrgs_split") != _object_split(o) for o in bpy.data.objects if "dibrgs_view" in o)
-    text = f"Split: {splits.count('train')} training, {splits.count('test')} held-out"
-    if splits.count("other"):
-        text += f", {splits.count('other')} left out"
-    return text + (" (moved in Blender)" if moved else " (as imported)")
+    """The split the view cameras hold, in a line for the panel."""
+    desc = scene_description()
+    n, left = len(desc["train"]), len(desc["views"]) - len(desc["train"]) - len(desc["test"])
+    text = f"Split: {n} training, {len(desc['test'])} held-out" + (f", {left} left out" if left else "")
+    return text + (" (moved in Blender)" if desc.get("split_source") == SPLIT_MOVED else " (as imported)")
 
 
 def move_to_split(context: bpy.types.Context, train: list[str], test: list[str]) -> None:
