@@ -94,9 +94,9 @@ class Weights:
 @dataclass
 class TrainOptions:
     """What the add-on passes to ``dibrgs train`` (``iterations`` / ``resolution_scale`` /
-    ``pseudo_views`` None: the preset's; ``pseudo_path``: cameras of a path the user edited, else None and training
-    samples pseudo views along the trajectory itself; ``split``: (training, held-out) view ids
-    the user chose in Blender, else None and the scene's own split holds)."""
+    ``pseudo_views`` None: the preset's; ``pseudo_path``: cameras of a path the user edited, else
+    None and training samples pseudo views along the trajectory itself; ``split``: (training,
+    held-out) view ids the user chose in Blender, else None and the scene's own split holds)."""
 
     preset: str = "cpu"
     method: str = "dibrgs"
