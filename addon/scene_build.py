@@ -149,7 +149,7 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
         apply_camera(obj, cam)
         if v["split"] == "train" and v.get("image"):
             bg = obj.data.background_images.new()
-            bg.image = view_photo(v["image"], v.get("orientation", 1))
+            bg.image = view_photo(v["name"], v["image"], v.get("orientation", 1))
             bg.alpha = 1.0
             obj.data.show_background_images = True
         objs[v["name"]] = obj
@@ -163,10 +163,11 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     return objs
 
 
-def view_photo(path: str, orientation: int) -> bpy.types.Image:
-    """A view's photo as its camera sees it. Blender loads a file's stored pixels and ignores its
-    EXIF orientation, which the library follows: a photo stored turned gets an upright copy,
-    packed into the .blend (named after the file, replaced on a new import)."""
+def view_photo(view: str, path: str, orientation: int) -> bpy.types.Image:
+    """The photo of ``view`` as its camera sees it. Blender loads a file's stored pixels and ignores
+    its EXIF orientation, which the library follows: a photo stored turned gets an upright copy,
+    packed into the .blend (named after the view, whose id is unique where file names may not be:
+    a rig's like-named photos; replaced on a new import)."""
     img = bpy.data.images.load(path, check_existing=True)
     if orientation == 1:
         return img
@@ -174,7 +175,7 @@ def view_photo(path: str, orientation: int) -> bpy.types.Image:
     px = np.empty(w * h * img.channels, np.float32)  # RGBA: Blender holds every photo so
     img.pixels.foreach_get(px)
     up, w2, h2 = imagesize.upright_pixels(px, w, h, orientation)
-    name = f"{Path(path).name} (upright)"
+    name = f"DIBR-GS {view} upright"
     old = bpy.data.images.get(name)
     if old is not None:
         bpy.data.images.remove(old)

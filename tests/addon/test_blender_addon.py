@@ -505,6 +505,11 @@ def test_photos_stored_turned_import_upright(fresh, tmp_path):
         assert np.abs(shown - ups[vid]).mean() < 0.02, vid  # JPEG loss only; a turned photo would be far off
     assert objs["000"].data.background_images[0].image.packed_file is not None  # the copy is saved with the file
     assert objs["002"].data.background_images[0].image.filepath  # an upright photo is the file itself
+    # a new import replaces the copies (named by view: a rig's photos may share file names)
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    copies = sorted(i.name for i in bpy.data.images if i.name.endswith(" upright"))
+    assert copies == ["DIBR-GS 000 upright", "DIBR-GS 001 upright"]
+    assert _view_objects()["001"].data.background_images[0].image.name == "DIBR-GS 001 upright"
 
 
 def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch):
