@@ -1,7 +1,10 @@
 """Photos as users have them, for the readers' tests (the library's and the add-on's): taken through
-COLMAP cameras with lens distortion, stored turned with an EXIF orientation."""
+COLMAP cameras with lens distortion, stored turned with an EXIF orientation, described by a
+transforms.json."""
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -85,3 +88,30 @@ def write_turned_levir_scene(root: Path, orientations: list[int]) -> dict[str, n
         ups[cam.name] = np.roll(pattern(W, H), 7 * i, axis=1)
         save_turned_jpeg(root / "Images" / f"{i:03d}.jpg", ups[cam.name], orientation)
     return ups
+
+
+def opengl_c2w(w2c: np.ndarray) -> list[list[float]]:
+    """The transforms.json matrix of an OpenCV world-to-camera (computed here, not by the reader)."""
+    c2w = np.linalg.inv(w2c)
+    c2w[:3, 1:3] *= -1.0  # OpenCV's y down, z forward -> OpenGL's y up, z back
+    return c2w.tolist()
+
+
+def levir_as_transforms(levir: Path, out: Path, per_frame: bool = False, extra: dict | None = None) -> None:
+    """The LEVIR scene ``levir`` rewritten as ``out/transforms.json`` (photos copied to out/images)."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    (out / "images").mkdir(parents=True)
+    frames = []
+    for vid, v in scene.views.items():
+        shutil.copyfile(levir / "Images" / f"{vid}.png", out / "images" / f"{vid}.png")
+        c = v.camera
+        fr = {"file_path": f"images/{vid}" + ("" if per_frame else ".png"), "transform_matrix": opengl_c2w(c.w2c)}
+        if per_frame:
+            fr.update(fl_x=c.K[0, 0], fl_y=c.K[1, 1], cx=c.K[0, 2], cy=c.K[1, 2], w=c.width, h=c.height)
+        frames.append(fr)
+    c = next(iter(scene.views.values())).camera
+    top = {} if per_frame else {"fl_x": c.K[0, 0], "fl_y": c.K[1, 1], "cx": c.K[0, 2], "cy": c.K[1, 2],
+                                "w": c.width, "h": c.height}
+    (out / "transforms.json").write_text(json.dumps({**top, **(extra or {}), "frames": frames}))

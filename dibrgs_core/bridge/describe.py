@@ -29,6 +29,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
@@ -38,23 +40,29 @@ from ..data.split import make_split, view_ids
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from .colmap_model import ColmapCamera, read_model
 from ..data.images import TRANSPOSING
+from ..data.load import NOT_A_SCENE
+from ..data.transforms import find_transforms, layout_split, read_frames, stored_or_upright
 from .imagesize import image_header
 
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
-    """The description of the LEVIR-NVS or COLMAP scene at ``root`` (its ``split.json``, else the default split)."""
+    """The description of the LEVIR-NVS, COLMAP or transforms scene at ``root`` (its ``split.json``,
+    else the layout's own split, else the default)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
+    layout = None
     if (root / "Cams").is_dir():
         views, images, track = _levir(root)
     elif find_colmap_model(root) is not None:
         views, images, track = _colmap(root)
+    elif find_transforms(root):
+        views, images, layout = _transforms(root)
+        track = []
     else:
-        raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
-                               "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
+        raise InputError(root, NOT_A_SCENE)
     try:
-        train, test, source = make_split(root, list(views), None)
+        train, test, source = make_split(root, list(views), None, layout=layout)
     except ValueError as e:
         raise InputError(root, str(e)) from None
     origin, views, track = in_local_frame(views, track)
@@ -122,3 +130,23 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]],
         raise InputError(model_dir, "COLMAP model has no posed images")
     ids = sorted(views)
     return {k: views[k] for k in ids}, paths, []
+
+
+def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], tuple | None]:
+    frames = read_frames(root)
+    try:
+        ids = view_ids([f.name for f in frames])
+    except ValueError as e:
+        raise InputError(root, str(e)) from None
+    views: dict[str, Camera] = {}
+    paths: dict[str, tuple[Path, int]] = {}
+    for f in frames:
+        w, h, orientation = image_header(f.photo)
+        (W, H), turned = stored_or_upright(f, (w, h), (h, w) if orientation in TRANSPOSING else (w, h))
+        model, params = f.camera_model(W, H)
+        pin = ColmapCamera(0, model, W, H, np.asarray(params, np.float64)).pinhole(f.photo)
+        validate_camera_arrays(f.w2c, pin.K(), None, f.photo)
+        vid = ids[f.name]
+        views[vid] = Camera(K=pin.K(), w2c=f.w2c, width=pin.width, height=pin.height, name=vid)
+        paths[vid] = (f.photo, orientation if turned else 1)
+    return {k: views[k] for k in sorted(views)}, paths, layout_split(frames, ids)

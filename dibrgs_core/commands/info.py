@@ -1,4 +1,4 @@
-"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder or COLMAP model).
+"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model or transforms.json).
 
 Prints the number of views, resolution (photos of several sizes: the most common, and ``sizes``
 lists each size's views), train/test split and where it came from
@@ -24,7 +24,7 @@ from .options import add_split
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a JSON summary of a scene", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS layout or COLMAP model)")
+    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS layout, COLMAP model or transforms.json)")
     add_split(p)
     p.set_defaults(func=run)
 

@@ -27,7 +27,7 @@ log = logging.getLogger("dibrgs.train")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train DIBR-GS or the 3DGS baseline", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS or COLMAP layout)")
+    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS, COLMAP or transforms.json layout)")
     p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
     p.add_argument("--preset", default="cpu", choices=choices(PresetName),
                    help="; ".join(f"{k}: {v}" for k, v in PRESET_SUMMARY.items()))

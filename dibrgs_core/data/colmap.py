@@ -145,7 +145,7 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     undistorted = sum(p[4] for p in photos)
     views: dict[str, View] = {}
     for cam, path, ccam, oriented, distorted in photos:  # each photo at its own size
-        pixels, size = ImageFile.checked(path, partial(_read_photo, path, ccam, oriented, distorted))
+        pixels, size = ImageFile.checked(path, partial(read_photo, path, ccam, oriented, distorted))
         if size != (cam.width, cam.height):
             raise InputError(path, f"image is {size[0]}x{size[1]} but its COLMAP camera is {cam.width}x{cam.height}")
         views[cam.name] = View(camera=cam, image=pixels)
@@ -174,7 +174,7 @@ def _orientation(path: Path, width: int, height: int) -> bool:
     return False
 
 
-def _read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray:
+def read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray:
     """A photo as its view holds it: read in the pixel order of its pycolmap camera ``ccam``,
     undistorted when ``distorted``."""
     if distorted:

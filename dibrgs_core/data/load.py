@@ -27,8 +27,16 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 
     if find_colmap_model(root) is not None:
         return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
-    raise InputError(root, "not a scene: expected LEVIR-NVS Images/ + Cams/ or a COLMAP model "
-                           "(cameras/images/points3D .bin or .txt in sparse/0, sparse/ or the folder)")
+    from .transforms import find_transforms, read_transforms_scene
+
+    if find_transforms(root):
+        return read_transforms_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
+    raise InputError(root, NOT_A_SCENE)
+
+
+#: What a scene folder holds (the library's and the add-on's readers say it alike).
+NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model (cameras/images/points3D "
+               ".bin or .txt in sparse/0, sparse/ or the folder) or a transforms.json (instant-ngp, nerfstudio)")
 
 
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
@@ -44,16 +52,19 @@ def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
 
 def read_any_cameras(path: str | Path) -> list[Camera]:
     """Cameras to render, in the frame of the files they come from: a LEVIR-NVS Cams file, a folder
-    of them or a LEVIR scene (its ``Cams/``), a JSON camera list (:func:`~.levir.read_cameras`), or a
+    of them or a LEVIR scene (its ``Cams/``), a JSON camera list (:func:`~.levir.read_cameras`), a
     COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
     named by its view id, with the pinhole camera training uses - undistorted where the model has
-    distortion - at the photo's full size)."""
+    distortion - at the photo's full size), or a transforms layout's folder (likewise)."""
     path = Path(path)
     if path.is_dir() and not (path / "Cams").is_dir():
         from .colmap import find_colmap_model, read_colmap_cameras
+        from .transforms import find_transforms, read_transforms_cameras
 
         if find_colmap_model(path) is not None:
             return read_colmap_cameras(path)
+        if find_transforms(path):
+            return read_transforms_cameras(path)
     return read_cameras(path)
 
 

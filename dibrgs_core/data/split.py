@@ -94,12 +94,14 @@ def read_split_file(path: Path) -> tuple[list | None, list | None]:
 
 
 def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
-               test_ids: Iterable[str] | None = None) -> tuple[list[str], list[str], str]:
+               test_ids: Iterable[str] | None = None,
+               layout: tuple[list[str], list[str], str] | None = None) -> tuple[list[str], list[str], str]:
     """Train and test ids of a scene, and where they came from.
 
     In order: ``train_ids`` / ``test_ids`` (the ``--train`` / ``--test`` options; each overrides
     its own part), then ``ROOT/split.json`` (``{"train": [...], "test": [...]}``, names with or
-    without extension), then :func:`default_split`. A part not given explicitly comes from the
+    without extension), then the ``layout``'s own (train, test, source) when it has one (a
+    transforms layout's part files), then :func:`default_split`. A part not given explicitly comes from the
     next source, less the views the explicit part names. ``train_ids`` ``["all"]`` (in a scene
     with no view of that name) trains on every view but those of ``test_ids``, and holds out
     only those (none without them); ``test_ids`` ``["none"]`` holds nothing out. A name not in
@@ -135,6 +137,12 @@ def make_split(root: Path, ids: Sequence[str], train_ids: Iterable[str] | None,
             used = True
         if used:
             src.append(str(split_file))
+    if (train is None or test is None) and layout is not None:
+        if train is None:
+            train = [i for i in layout[0] if i not in (test or [])]
+        if test is None:
+            test = [i for i in layout[1] if train_ids is None or i not in train]
+        src.append(layout[2])
     if train is None or test is None:
         if train is None:
             d_train, _ = default_split(ids)

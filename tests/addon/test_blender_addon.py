@@ -552,6 +552,31 @@ def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch)
     assert sb.scene_description()["train"] == ["001", "008", "015"] and ops._run(bpy.context).split is None
 
 
+def test_a_transforms_json_scene_imports_with_its_cameras(scene64, fresh, tmp_path):
+    """The generated scene written as a transforms.json (OpenGL camera-to-world, as instant-ngp and
+    nerfstudio write it): every view object has the Cams file's camera."""
+    root = tmp_path / "ngp"
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for cams in sorted((scene64 / "Cams").glob("*.txt")):
+        w2c, K = _cams_file(cams)
+        (root / "images" / f"{cams.stem}.png").symlink_to(scene64 / "Images" / f"{cams.stem}.png")
+        c2w = np.linalg.inv(w2c)
+        c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{cams.stem}.png", "transform_matrix": c2w.tolist()})
+    (root / "transforms.json").write_text(json.dumps({"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2],
+                                                      "cy": K[1, 2], "w": 64, "h": 64, "frames": frames}))
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
+    for vid, obj in objs.items():
+        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
+        cam = sb.camera_from_object(obj, fresh)
+        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""

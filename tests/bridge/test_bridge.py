@@ -809,6 +809,36 @@ def test_describe_matches_the_library_on_distorted_colmap_models(tmp_path, monke
     assert str(ours.value) == str(lib.value) and "OPENCV_FISHEYE is a fisheye model" in str(ours.value)
 
 
+def test_describe_matches_the_library_on_transforms_layouts(tiny_scene, tmp_path, monkeypatch):
+    """transforms.json (shared and per-frame intrinsics, OPENCV distortion) and Blender's part files:
+    the add-on's reader gives the library's cameras, split and EXIF handling."""
+    import json
+
+    from photo_synth import levir_as_transforms
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    ngp = tmp_path / "ngp"
+    levir_as_transforms(tiny_scene, ngp, per_frame=True)
+    _same_description(describe.describe_scene(ngp), read_any_scene(ngp, load_depth=False))
+    dist = tmp_path / "ns"
+    levir_as_transforms(tiny_scene, dist, extra={"k1": -0.2, "k2": 0.04, "p1": 0.001, "p2": 0.0, "k3": 0.01})
+    desc, scene = describe.describe_scene(dist), read_any_scene(dist, load_depth=False)
+    _same_description(desc, scene)
+    assert camera_from_dict(desc["views"][0]["camera"]).width != 64  # undistorted
+    parts = tmp_path / "parts"
+    levir_as_transforms(tiny_scene, parts)
+    data = json.loads((parts / "transforms.json").read_text())
+    (parts / "transforms.json").unlink()
+    for part, frames in (("train", data["frames"][1::3]), ("test", data["frames"][2::3])):
+        (parts / f"transforms_{part}.json").write_text(json.dumps({**data, "frames": frames}))
+    desc, scene = describe.describe_scene(parts), read_any_scene(parts, load_depth=False)
+    _same_description(desc, scene)
+    assert desc["split_source"] == scene.split_source == "transforms_train.json + transforms_test.json"
+    assert len(desc["train"]) == 7 and len(desc["test"]) == 7
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     from dibrgs_core.data.load import read_any_scene
 
