@@ -214,7 +214,7 @@ def test_mean_volume_equals_torch_prod(backend, dtype, n):
     w = (t / unit).prod(dim=1).mean()
     (3.0 * w).backward()
     tol = 1e-6 if dtype == torch.float32 else 1e-13
-    assert v.dtype == dtype and abs(float(v) - float(w)) <= tol * float(w)
+    assert v.dtype == dtype and abs(v.item() - w.item()) <= tol * w.item()
     torch.testing.assert_close(s.grad, t.grad, rtol=tol * 10, atol=0.0)
 
 
@@ -230,7 +230,7 @@ def test_mean_volume_is_the_same_in_any_units(backend, units):
     va, vb = mean_volume(a, 1.0), mean_volume(b, units)
     va.backward()
     vb.backward()
-    assert torch.isfinite(vb) and abs(float(va) - float(vb)) <= 1e-5 * float(va)
+    assert torch.isfinite(vb) and abs(va.item() - vb.item()) <= 1e-5 * va.item()
     torch.testing.assert_close(b.grad * units, a.grad, rtol=1e-5, atol=0.0)
 
 
