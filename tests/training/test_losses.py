@@ -240,7 +240,7 @@ def test_mean_volume_of_no_gaussians_is_zero(backend):
     s = torch.zeros(0, 3, requires_grad=True)
     v = mean_volume(s, 2.0)
     v.backward()
-    assert float(v) == 0.0 and s.grad.shape == (0, 3)
+    assert v.item() == 0.0 and s.grad.shape == (0, 3)
 
 
 def test_mean_volume_gradcheck():
