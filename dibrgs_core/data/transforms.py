@@ -136,6 +136,9 @@ def _read_file(path: Path, part: str | None) -> list[Frame]:
                                "undistort fisheye and equirectangular photos first)")
     keys = ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y", *_DISTORTION_KEYS)
     top = {key: v for key in keys if (v := _number(data, key, path, None)) is not None}
+    if _number(data, "k4", path, None) or any(isinstance(fr, dict) and _number(fr, "k4", path, k)
+                                              for k, fr in enumerate(data["frames"])):
+        raise InputError(path, "k4 is a fisheye coefficient (OPENCV_FISHEYE): undistort the photos first")
     size = (_number(data, "w", path, None), _number(data, "h", path, None))
     out = []
     for k, fr in enumerate(data["frames"]):
