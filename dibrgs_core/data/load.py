@@ -1,6 +1,7 @@
 """Reading any supported scene folder (LEVIR-NVS ``Cams/`` or a COLMAP model), or any cameras to render."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -55,7 +56,8 @@ def read_any_cameras(path: str | Path) -> list[Camera]:
     of them or a LEVIR scene (its ``Cams/``), a JSON camera list (:func:`~.levir.read_cameras`), a
     COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
     named by its view id, with the pinhole camera training uses - undistorted where the model has
-    distortion - at the photo's full size), or a transforms layout's folder (likewise)."""
+    distortion - at the photo's full size), or a transforms layout's folder or one of its files
+    (likewise)."""
     path = Path(path)
     if path.is_dir() and not (path / "Cams").is_dir():
         from .colmap import find_colmap_model, read_colmap_cameras
@@ -65,7 +67,20 @@ def read_any_cameras(path: str | Path) -> list[Camera]:
             return read_colmap_cameras(path)
         if find_transforms(path):
             return read_transforms_cameras(path)
+    if path.is_file() and path.suffix.lower() == ".json" and _has_frames(path):
+        from .transforms import read_transforms_cameras
+
+        return read_transforms_cameras(path)
     return read_cameras(path)
+
+
+def _has_frames(path: Path) -> bool:
+    """Whether a JSON file is a transforms file (an object with "frames"), not a camera list."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False  # the camera-list reader says what is wrong with it
+    return isinstance(data, dict) and "frames" in data
 
 
 def cameras_digest(cams: Sequence[Camera]) -> str:

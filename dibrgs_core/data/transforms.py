@@ -236,14 +236,15 @@ def read_transforms_scene(root: str | Path, train_ids: Iterable[str] | None = No
     return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source)
 
 
-def read_transforms_cameras(root: str | Path) -> list[Camera]:
-    """The cameras of a transforms layout (sorted by view id), as its scene's views have them,
-    from the photos' headers (the pixels are not read)."""
-    frames = read_frames(root)
+def read_transforms_cameras(path: str | Path) -> list[Camera]:
+    """The cameras of a transforms layout's folder or of one transforms file (sorted by view id),
+    as a scene's views have them, from the photos' headers (the pixels are not read)."""
+    path = Path(path)
+    frames = _read_file(path, None) if path.is_file() else read_frames(path)
     try:
         ids = view_ids([f.name for f in frames])
     except ValueError as e:
-        raise InputError(root, str(e)) from None
+        raise InputError(path, str(e)) from None
     return sorted((_camera(f, ids[f.name])[0] for f in frames), key=lambda c: c.name)
 
 

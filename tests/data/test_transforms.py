@@ -31,11 +31,12 @@ def test_transforms_json_reads_the_cameras_of_the_same_views(tiny_scene, tmp_pat
     # as cameras to render (`dibrgs render --cameras FOLDER`): the views' cameras, from the headers
     from dibrgs_core.data.load import read_any_cameras
 
-    cams = read_any_cameras(out)
-    assert [c.name for c in cams] == list(ngp.views)
-    for c in cams:
-        np.testing.assert_array_equal(c.K, ngp.views[c.name].camera.K)
-        np.testing.assert_array_equal(c.w2c, ngp.views[c.name].camera.w2c)
+    for where in (out, out / "transforms.json"):  # the folder or the file
+        cams = read_any_cameras(where)
+        assert [c.name for c in cams] == list(ngp.views)
+        for c in cams:
+            np.testing.assert_array_equal(c.K, ngp.views[c.name].camera.K)
+            np.testing.assert_array_equal(c.w2c, ngp.views[c.name].camera.w2c)
 
 
 def test_opengl_axes_put_the_world_where_the_photo_shows_it(tmp_path):
