@@ -207,6 +207,12 @@ class DIBRGS_OT_import_scene(bpy.types.Operator):
         n = {s: sum(v["split"] == s for v in desc["views"]) for s in ("train", "test", "other")}
         props.message = (f"Imported {len(objs)} views from {root.name}: {n['train']} training, "
                          f"{n['test']} held-out, {n['other']} other; pseudo-view path: {plan.kind}")
+        turned = sum(v.get("orientation", 1) != 1 for v in desc["views"])
+        undistorted = sum(bool(v.get("undistorted")) for v in desc["views"])
+        if undistorted:  # the background shows the photo as taken, a few pixels off at the edges
+            props.message += f"; {undistorted} cameras undistorted as training reads them"
+        if turned:
+            props.message += f"; {turned} photos turned upright by their EXIF orientation"
         _set_error(props, "")
         self.report({"INFO"}, props.message)
         return {"FINISHED"}

@@ -14,7 +14,9 @@ on LEVIR and COLMAP (text and binary) scenes. The description is::
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
                              "orientation": EXIF orientation 1-8 that turns the file's
-                                            stored pixels into the view's image}],
+                                            stored pixels into the view's image,
+                                            "undistorted": whether the camera is the
+                                            undistorted pinhole of a distorted one}],
      "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z]}
 
 Cameras are relative to ``origin`` (zeros unless the scene lies far from its coordinate origin:
@@ -69,14 +71,14 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
     out = []
     for name, cam in views.items():
         split = "train" if name in train else "test" if name in test else "other"
-        path, orientation = images[name]
+        path, orientation, undistorted = images[name]
         out.append({"name": name, "split": split, "camera": camera_to_dict(cam), "image": str(path.resolve()),
-                    "orientation": orientation})
+                    "orientation": orientation, "undistorted": undistorted})
     return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
             "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin]}
 
 
-def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], list[Camera]]:
+def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], list[Camera]]:
     img_dir, cam_dir = root / "Images", root / "Cams"
     if not img_dir.is_dir():
         raise InputError(img_dir, "missing folder (a LEVIR-NVS scene needs Images/ and Cams/)")
@@ -87,17 +89,17 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], 
              for stem, (w, h, o) in headers.items()}
     check_sizes(views, images, cams)  # each photo at its own size
     track = read_track(root, views)
-    return views, {k: (images[k], headers[k][2]) for k in views}, track
+    return views, {k: (images[k], headers[k][2], False) for k in views}, track
 
 
-def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], list[Camera]]:
+def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], list[Camera]]:
     model_dir = find_colmap_model(root)
     cams, imgs = read_model(model_dir)
     img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images") if d.is_dir()), None)
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
     views: dict[str, Camera] = {}
-    paths: dict[str, tuple[Path, int]] = {}
+    paths: dict[str, tuple[Path, int, bool]] = {}
     pinholes: dict[int, ColmapCamera] = {}  # one a camera: a project of many photos shares a few
     try:
         ids = view_ids([im.name for im in imgs])
@@ -125,21 +127,21 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]],
         if (w, h) != (cam.width, cam.height):
             raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
         views[vid] = Camera(K=K, w2c=w2c, width=pin.width, height=pin.height, name=vid)
-        paths[vid] = (path, orientation)
+        paths[vid] = (path, orientation, pin is not cam)
     if not views:
         raise InputError(model_dir, "COLMAP model has no posed images")
     ids = sorted(views)
     return {k: views[k] for k in ids}, paths, []
 
 
-def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int]], tuple | None]:
+def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], tuple | None]:
     frames = read_frames(root)
     try:
         ids = view_ids([f.name for f in frames])
     except ValueError as e:
         raise InputError(root, str(e)) from None
     views: dict[str, Camera] = {}
-    paths: dict[str, tuple[Path, int]] = {}
+    paths: dict[str, tuple[Path, int, bool]] = {}
     for f in frames:
         w, h, orientation = image_header(f.photo)
         (W, H), turned = stored_or_upright(f, (w, h), (h, w) if orientation in TRANSPOSING else (w, h))
@@ -148,5 +150,5 @@ def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, in
         validate_camera_arrays(f.w2c, pin.K(), None, f.photo)
         vid = ids[f.name]
         views[vid] = Camera(K=pin.K(), w2c=f.w2c, width=pin.width, height=pin.height, name=vid)
-        paths[vid] = (f.photo, orientation if turned else 1)
+        paths[vid] = (f.photo, orientation if turned else 1, model != "PINHOLE")
     return {k: views[k] for k in sorted(views)}, paths, layout_split(frames, ids)

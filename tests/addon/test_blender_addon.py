@@ -465,6 +465,7 @@ def test_a_colmap_project_with_lens_distortion_imports_with_the_cameras_training
         np.testing.assert_allclose(cam.K, want.K(), rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(cam.center, [10.0 * int(vid[1]), 0, 100], atol=1e-4)
     assert (fresh.render.resolution_x, fresh.render.resolution_y) == (want.width, want.height)
+    assert "3 cameras undistorted as training reads them" in fresh.dibrgs.message
 
 
 def test_photos_stored_turned_import_upright(fresh, tmp_path):
@@ -503,6 +504,7 @@ def test_photos_stored_turned_import_upright(fresh, tmp_path):
         img.pixels.foreach_get(px)
         shown = px.reshape(64, 96, 4)[::-1, :, :3]
         assert np.abs(shown - ups[vid]).mean() < 0.02, vid  # JPEG loss only; a turned photo would be far off
+    assert "3 photos turned upright by their EXIF orientation" in fresh.dibrgs.message
     assert objs["000"].data.background_images[0].image.packed_file is not None  # the copy is saved with the file
     assert objs["002"].data.background_images[0].image.filepath  # an upright photo is the file itself
     # a new import replaces the copies (named by view: a rig's photos may share file names)

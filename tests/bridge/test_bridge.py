@@ -773,7 +773,7 @@ def test_distorted_cameras_become_pycolmaps_undistorted_pinholes():
         np.testing.assert_allclose(np.stack([u, v], 1), np.asarray(ref)[:, :2], rtol=0, atol=1e-9)
 
 
-def test_describe_matches_the_library_on_distorted_colmap_models(tmp_path, monkeypatch):
+def test_describe_matches_the_library_on_distorted_colmap_models(tiny_scene, tmp_path, monkeypatch):
     """A COLMAP project as COLMAP leaves it (SIMPLE_RADIAL is its default model) imports into Blender
     with the cameras training uses (the add-on refused it: "undistort the images first"); fisheye
     models are refused with the library's message."""
@@ -799,6 +799,8 @@ def test_describe_matches_the_library_on_distorted_colmap_models(tmp_path, monke
     desc, scene = describe.describe_scene(root), read_any_scene(root, load_depth=False)
     _same_description(desc, scene)
     assert len({(v.camera.width, v.camera.height) for v in scene.views.values()}) > 2  # undistorted: sizes differ
+    assert all(v["undistorted"] for v in desc["views"])
+    assert not any(v["undistorted"] for v in describe.describe_scene(tiny_scene)["views"])
     rec.cameras[2] = pycolmap.Camera(model="OPENCV_FISHEYE", width=W, height=H, camera_id=2,
                                      params=[60.0, 60.0, 48.0, 32.0, 0.1, 0.0, 0.0, 0.0])
     rec.write_binary(str(root / "sparse" / "0"))
