@@ -20,7 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render cameras with a trained run", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("work", type=Path, help="run folder of `dibrgs train`")
-    p.add_argument("--cameras", type=Path, required=True, help="Cams file, folder of Cams files, JSON list, COLMAP model, or transforms.json (its folder or the file)")
+    p.add_argument("--cameras", type=Path, required=True,
+                   help="Cams file, folder of Cams files, JSON list, COLMAP model, or transforms.json (its folder "
+                        "or the file)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--no-depth", action="store_true", help="skip the depth EXR files")
     add_compute(p)

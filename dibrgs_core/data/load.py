@@ -1,4 +1,5 @@
-"""Reading any supported scene folder (LEVIR-NVS ``Cams/`` or a COLMAP model), or any cameras to render."""
+"""Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model or a transforms.json), or
+any cameras to render."""
 from __future__ import annotations
 
 import json
@@ -16,9 +17,9 @@ from .scene import Scene
 
 def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
                    test_ids: Iterable[str] | None = None) -> Scene:
-    """Read a LEVIR-NVS folder (``Cams/``) or a COLMAP model (``sparse/0``, ``sparse`` or the folder
-    itself), in a frame of its own when it lies far from its coordinate origin (``Scene.origin``,
-    :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
+    """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
+    itself) or a transforms layout (:mod:`.transforms`), in a frame of its own when it lies far from
+    its coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
