@@ -4,12 +4,13 @@ Blender's Python has numpy but no torch, Pillow or pycolmap, so this module
 reads what the add-on needs (cameras, image paths, the train/test split, the
 track) with numpy and the standard library only: Cams files through the
 library's own parser, image sizes and EXIF orientations from file headers
-(:mod:`.imagesize`) and COLMAP models with :mod:`.colmap_model` (cameras with lens
+(:mod:`.imagesize`), COLMAP models with :mod:`.colmap_model` (cameras with lens
 distortion as the undistorted pinholes the library trains them as; the image paths
-are the photos as taken). It applies the same rules and
-messages as the library's readers (``data.levir.read_scene``,
-``data.colmap.read_colmap_scene``), which ``tests/bridge/test_bridge.py`` checks
-on LEVIR and COLMAP (text and binary) scenes. The description is::
+are the photos as taken) and transforms layouts through the library's own parser
+(``data.transforms``). It applies the same rules and messages as the library's
+readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
+``data.transforms.read_transforms_scene``), which ``tests/bridge/test_bridge.py``
+checks on LEVIR, COLMAP (text and binary) and transforms scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
@@ -37,13 +38,13 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
+from ..data.images import TRANSPOSING
+from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
+from ..data.load import NOT_A_SCENE
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
-from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
-from .colmap_model import ColmapCamera, read_model
-from ..data.images import TRANSPOSING
-from ..data.load import NOT_A_SCENE
 from ..data.transforms import find_transforms, layout_split, read_frames, stored_or_upright
+from .colmap_model import ColmapCamera, read_model
 from .imagesize import image_header
 
 
