@@ -12,9 +12,9 @@ Conventions (the layout's own): ``transform_matrix`` is camera-to-world with Ope
 axes. Intrinsics ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` (pixels, the principal point
 in COLMAP's convention: the image spans [0, w]) at the top level or per frame; without focal
 lengths, ``camera_angle_x`` (and ``camera_angle_y``) in radians give them from the width; without a
-principal point, the image centre. Distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3``) of the
-``OPENCV`` model is undistorted on load as COLMAP's (``OPENCV`` / ``FULL_OPENCV``); fisheye and
-other models are refused. ``file_path`` is relative to the JSON's folder, with or without the
+principal point, the image centre. Distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3``) of a
+perspective ``camera_model`` (``OPENCV``, the default, or a pinhole or radial one) is undistorted
+on load as COLMAP's (``OPENCV`` / ``FULL_OPENCV``); fisheye and other models are refused. ``file_path`` is relative to the JSON's folder, with or without the
 photo's extension. Photos keep their stored pixel order (as the layout's tools read them) unless
 only the upright photo fits the given size.
 """
@@ -45,6 +45,8 @@ TRANSFORMS_FILE = "transforms.json"
 PART_FILES = {"train": "transforms_train.json", "test": "transforms_test.json", "val": "transforms_val.json"}
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+#: ``camera_model`` values of perspective cameras, whose distortion is k1, k2, p1, p2 (k3).
+_PERSPECTIVE = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "PERSPECTIVE")
 
 
 def find_transforms(root: str | Path) -> list[Path]:
@@ -131,9 +133,9 @@ def _read_file(path: Path, part: str | None) -> list[Frame]:
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise InputError(path, "expected an object with a \"frames\" list")
     model = str(data.get("camera_model", "OPENCV")).upper()
-    if model not in ("OPENCV", "PINHOLE"):
-        raise InputError(path, f"camera_model {model} is not supported (pinhole and OPENCV cameras are; "
-                               "undistort fisheye and equirectangular photos first)")
+    if model not in _PERSPECTIVE:
+        raise InputError(path, f"camera_model {model} is not supported (perspective cameras are: "
+                               f"{', '.join(_PERSPECTIVE)}; undistort fisheye and equirectangular photos first)")
     keys = ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y", *_DISTORTION_KEYS)
     top = {key: v for key in keys if (v := _number(data, key, path, None)) is not None}
     if _number(data, "k4", path, None) or any(isinstance(fr, dict) and _number(fr, "k4", path, k)
@@ -144,7 +146,7 @@ def _read_file(path: Path, part: str | None) -> list[Frame]:
     for k, fr in enumerate(data["frames"]):
         if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
             raise InputError(path, f"frame {k}: needs file_path and transform_matrix")
-        if str(fr.get("camera_model", model)).upper() not in ("OPENCV", "PINHOLE"):
+        if str(fr.get("camera_model", model)).upper() not in _PERSPECTIVE:
             raise InputError(path, f"frame {k}: camera_model {fr['camera_model']} is not supported")
         intr = dict(top)
         intr.update({key: v for key in keys if (v := _number(fr, key, path, k)) is not None})
