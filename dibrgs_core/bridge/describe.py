@@ -43,7 +43,7 @@ from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
-from ..data.transforms import find_transforms, layout_split, read_frames, stored_or_upright
+from ..data.transforms import find_transforms, frames_and_ids, layout_split, stored_or_upright
 from .colmap_model import ColmapCamera, read_model
 from .imagesize import image_header
 
@@ -136,11 +136,7 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, b
 
 
 def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], tuple | None]:
-    frames = read_frames(root)
-    try:
-        ids = view_ids([f.name for f in frames])
-    except ValueError as e:
-        raise InputError(root, str(e)) from None
+    frames, ids = frames_and_ids(root)
     views: dict[str, Camera] = {}
     paths: dict[str, tuple[Path, int, bool]] = {}
     for f in frames:

@@ -209,16 +209,23 @@ def layout_split(frames: list[Frame], ids: dict[str, str]) -> tuple[list[str], l
     return train, test, " + ".join(PART_FILES[p] for p in ("train", "test") if any(f.part == p for f in frames))
 
 
+def frames_and_ids(path: str | Path) -> tuple[list[Frame], dict[str, str]]:
+    """The frames of a transforms layout's folder (or of one transforms file) and the view id of
+    each frame's ``name`` (:func:`~.split.view_ids`)."""
+    path = Path(path)
+    frames = _read_file(path, None) if path.is_file() else read_frames(path)
+    try:
+        return frames, view_ids([f.name for f in frames])
+    except ValueError as e:
+        raise InputError(path, str(e)) from None
+
+
 def read_transforms_scene(root: str | Path, train_ids: Iterable[str] | None = None,
                           test_ids: Iterable[str] | None = None) -> Scene:
     """Read a transforms layout and its photos as a :class:`~.scene.Scene` (no depth): every photo
     decoded (and undistorted: pycolmap, cached) once to check it, then left in its file."""
     root = Path(root)
-    frames = read_frames(root)
-    try:
-        ids = view_ids([f.name for f in frames])
-    except ValueError as e:
-        raise InputError(root, str(e)) from None
+    frames, ids = frames_and_ids(root)
     views: dict[str, View] = {}
     undistorted = 0
     for f in frames:
@@ -241,12 +248,7 @@ def read_transforms_scene(root: str | Path, train_ids: Iterable[str] | None = No
 def read_transforms_cameras(path: str | Path) -> list[Camera]:
     """The cameras of a transforms layout's folder or of one transforms file (sorted by view id),
     as a scene's views have them, from the photos' headers (the pixels are not read)."""
-    path = Path(path)
-    frames = _read_file(path, None) if path.is_file() else read_frames(path)
-    try:
-        ids = view_ids([f.name for f in frames])
-    except ValueError as e:
-        raise InputError(path, str(e)) from None
+    frames, ids = frames_and_ids(path)
     return sorted((_camera(f, ids[f.name])[0] for f in frames), key=lambda c: c.name)
 
 
