@@ -107,6 +107,7 @@ def test_batch_mode_rejects_bad_arguments(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_batch_mode_takes_the_split_of_train_and_test(tiny_scene, tmp_path):
     """`--train` / `--test` move the view cameras as a user would (the rules of `dibrgs train`'s
     options); a name the scene lacks is exit 2 naming it, before anything runs."""
