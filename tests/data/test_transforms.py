@@ -4,6 +4,7 @@ distortion undistorted as COLMAP's, the split of part files, clear errors."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -146,3 +147,31 @@ def test_bad_transforms_files_are_one_clear_error(tmp_path):
         (root / "transforms.json").write_text(text)
         with pytest.raises(InputError, match=msg):
             read_any_scene(root)
+
+
+def test_the_real_flight_through_scripts_colmap_to_transforms(tmp_path):
+    """brighton_north written by scripts/colmap_to_transforms.py reads back with its COLMAP cameras
+    and split; with nerfstudio's axes, the same cameras in a world turned about the origin."""
+    import subprocess
+    import sys
+
+    from paths import shared_file
+
+    repo = Path(__file__).resolve().parents[2]
+    scene = shared_file("data/brighton_north")
+    want = read_any_scene(scene, load_depth=False)
+    for axes in ([], ["--nerfstudio-axes"]):
+        out = tmp_path / ("ns" if axes else "plain")
+        r = subprocess.run([sys.executable, str(repo / "scripts" / "colmap_to_transforms.py"), str(scene), str(out),
+                            *axes], capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        got = read_any_scene(out, load_depth=False)
+        assert (got.train, got.test) == (want.train, want.test) and "split.json" in got.split_source
+        turn = np.eye(4) if not axes else np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+        for vid, v in got.views.items():
+            w = want.views[vid].camera
+            np.testing.assert_allclose(v.camera.K, w.K, rtol=1e-12)
+            np.testing.assert_allclose(v.camera.w2c @ turn, w.w2c, atol=1e-9)  # world point X: turn @ X here
+    r = subprocess.run([sys.executable, str(repo / "scripts" / "colmap_to_transforms.py"), str(scene), str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "exists" in r.stderr
