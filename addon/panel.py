@@ -43,7 +43,10 @@ class DIBRGS_PT_main(bpy.types.Panel):
         op = col.operator("dibrgs.import_scene", icon="IMPORT")
         op.directory = props.scene_dir
         if scene_build.SCENE_TEXT in bpy.data.texts:  # move view cameras between the collections to change it
-            col.label(text=scene_build.split_summary(), icon="OUTLINER_COLLECTION")
+            try:
+                col.label(text=scene_build.split_summary(), icon="OUTLINER_COLLECTION")
+            except (ValueError, KeyError, TypeError):  # the stored description was edited by hand
+                col.label(text="Split: the imported description is damaged; import again", icon="ERROR")
         col.prop(props, "work_dir")
 
         box = layout.box()

@@ -536,6 +536,7 @@ def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch)
     assert {v["name"]: v["split"] for v in desc["views"]}["015"] == "other"
     assert sb.scene_description(imported=True)["train"] == ["001", "008", "015"]
     assert sb.split_summary() == "Split: 4 training, 15 held-out, 2 left out (moved in Blender)"
+    assert sb.split_summary() in _panel_labels()
     assert ops._run(bpy.context).split == (desc["train"], desc["test"])
     assert [c.name for c in sb.described_cameras(desc, "train")] == ["001", "004", "008", "010"]
     assert bpy.ops.dibrgs.reset_path() == {"FINISHED"}  # drawn along the cameras that train now
@@ -547,6 +548,10 @@ def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch)
         root.objects.link(o)
     with pytest.raises(_mod("operators").UserError, match="no view camera in the 'DIBR-GS Train views'"):
         ops._run(bpy.context)
+    text = bpy.data.texts[sb.SCENE_TEXT].as_string()
+    bpy.data.texts[sb.SCENE_TEXT].from_string("{")  # a description edited by hand: the panel still draws
+    assert "Split: the imported description is damaged; import again" in _panel_labels()
+    bpy.data.texts[sb.SCENE_TEXT].from_string(text)
     # a re-import brings the scene's own split back, and no camera of the old import stays
     assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
     assert sorted(_view_objects()) == [f"{i:03d}" for i in range(21)]
