@@ -38,7 +38,7 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model
-from ..data.images import TRANSPOSING
+from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE
 from ..data.scene import in_local_frame, validate_camera_arrays
@@ -86,8 +86,7 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bo
     images, cams = paired_files(img_dir, cam_dir)
     headers = {stem: image_header(images[stem]) for stem in sorted(images)}
     # LEVIR views are the photos as a viewer shows them (the library follows EXIF orientation)
-    views = {stem: read_cams_file(cams[stem], size=(h, w) if o in TRANSPOSING else (w, h))
-             for stem, (w, h, o) in headers.items()}
+    views = {stem: read_cams_file(cams[stem], size=upright_size(w, h, o)) for stem, (w, h, o) in headers.items()}
     check_sizes(views, images, cams)  # each photo at its own size
     track = read_track(root, views)
     return views, {k: (images[k], headers[k][2], False) for k in views}, track
@@ -120,15 +119,11 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, b
         if not path.is_file():
             raise InputError(path, "image file missing (listed in the COLMAP model)")
         w, h, orientation = image_header(path)
-        # COLMAP ignores EXIF orientation: the stored pixels unless only the upright ones fit (as the library)
-        if (w, h) != (cam.width, cam.height) and orientation in TRANSPOSING and (h, w) == (cam.width, cam.height):
-            w, h = h, w
-        elif (w, h) == (cam.width, cam.height):
-            orientation = 1
-        if (w, h) != (cam.width, cam.height):
+        turned = turned_to_fit((w, h), upright_size(w, h, orientation), (cam.width, cam.height))
+        if turned is None:
             raise InputError(path, f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}")
         views[vid] = Camera(K=K, w2c=w2c, width=pin.width, height=pin.height, name=vid)
-        paths[vid] = (path, orientation, pin is not cam)
+        paths[vid] = (path, orientation if turned else 1, pin is not cam)
     if not views:
         raise InputError(model_dir, "COLMAP model has no posed images")
     ids = sorted(views)
@@ -141,7 +136,7 @@ def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, in
     paths: dict[str, tuple[Path, int, bool]] = {}
     for f in frames:
         w, h, orientation = image_header(f.photo)
-        (W, H), turned = stored_or_upright(f, (w, h), (h, w) if orientation in TRANSPOSING else (w, h))
+        (W, H), turned = stored_or_upright(f, (w, h), upright_size(w, h, orientation))
         model, params = f.camera_model(W, H)
         pin = ColmapCamera(0, model, W, H, np.asarray(params, np.float64)).pinhole(f.photo)
         validate_camera_arrays(f.w2c, pin.K(), None, f.photo)

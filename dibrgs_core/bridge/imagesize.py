@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from ..data.images import TRANSPOSING, oriented
+from ..data.images import oriented, upright_size
 
 # JPEG start-of-frame markers (baseline, progressive, lossless, ...): every
 # 0xC0-0xCF except DHT (C4), JPG (C8) and DAC (CC).
@@ -26,7 +26,7 @@ def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
     """(width, height) of a PNG, JPEG or TIFF file as a viewer shows it (EXIF orientation applied)
     with ``orient``, as stored without; InputError naming the file otherwise."""
     w, h, orientation = image_header(path)
-    return (h, w) if orient and orientation in TRANSPOSING else (w, h)
+    return upright_size(w, h, orientation) if orient else (w, h)
 
 
 def image_header(path: str | Path) -> tuple[int, int, int]:

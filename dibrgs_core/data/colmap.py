@@ -38,7 +38,7 @@ from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
-from .images import image_size, read_image
+from .images import image_size, read_image, turned_to_fit
 from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 
 log = logging.getLogger("dibrgs.io_colmap")
@@ -165,13 +165,12 @@ def _orientation(path: Path, width: int, height: int) -> bool:
     """Whether to apply the photo's EXIF orientation: only when the stored pixels do not match the
     COLMAP camera's size and the upright photo does (COLMAP itself ignores EXIF orientation)."""
     raw = image_size(path, orient=False)
-    if raw == (width, height):
+    if raw == (width, height):  # the usual case: one header read
         return False
-    upright = image_size(path, orient=True)
-    if upright == (width, height):
+    turned = bool(turned_to_fit(raw, image_size(path, orient=True), (width, height)))
+    if turned:
         log.info("%s: turned upright by its EXIF orientation to match its COLMAP camera", path.name)
-        return True
-    return False
+    return turned
 
 
 def read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray:

@@ -27,6 +27,22 @@ DEPTH_EXTS = (".tiff", ".tif", ".exr")
 TRANSPOSING = {5, 6, 7, 8}
 
 
+def upright_size(width: int, height: int, orientation: int) -> tuple[int, int]:
+    """(width, height) of a photo stored ``width`` x ``height``, as a viewer shows it under EXIF
+    orientation ``orientation`` (1-8)."""
+    return (height, width) if orientation in TRANSPOSING else (width, height)
+
+
+def turned_to_fit(stored: tuple[int, int], upright: tuple[int, int], size: tuple[int, int]) -> bool | None:
+    """Whether a photo must be turned upright (by its EXIF orientation) to be a camera's ``size``,
+    for tools that read the stored pixel order (COLMAP, the NeRF tools): False when its stored
+    pixels fit, True when only the upright ones do (a model made from turned copies), None when
+    neither does."""
+    if stored == size:
+        return False
+    return True if upright == size else None
+
+
 def exif_orientation(im) -> int:
     """EXIF orientation (1-8) of an open PIL image; 1 (as stored) when absent or invalid."""
     try:
@@ -112,11 +128,11 @@ def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
 
     if Path(path).suffix.lower() in _TIFF_EXTS:
         _, (w, h), orientation = _tiff(Path(path), pixels=False)
-        return (h, w) if orient and orientation in TRANSPOSING else (w, h)
+        return upright_size(w, h, orientation) if orient else (w, h)
     try:
         with Image.open(path) as im:
             w, h = im.size
-            return (h, w) if orient and exif_orientation(im) in TRANSPOSING else (w, h)
+            return upright_size(w, h, exif_orientation(im)) if orient else (w, h)
     except (OSError, UnidentifiedImageError) as e:
         raise InputError(path, f"unreadable image ({e})") from None
 

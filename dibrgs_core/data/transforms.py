@@ -33,7 +33,7 @@ import numpy as np
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from .colmap import read_photo
-from .images import IMAGE_EXTS, image_size
+from .images import IMAGE_EXTS, image_size, turned_to_fit
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
 from .undistort import undistorted_camera
@@ -192,12 +192,13 @@ def stored_or_upright(frame: Frame, stored: tuple[int, int], upright: tuple[int,
     """(the view's size, whether its photo is turned upright by its EXIF orientation): the stored
     pixels unless the JSON gives a size that only the upright photo has (the layout's tools read
     the stored order, as COLMAP does)."""
-    if frame.size is None or frame.size == stored:
+    if frame.size is None:
         return stored, False
-    if frame.size == upright:
-        return upright, True
-    raise InputError(frame.photo, f"image is {stored[0]}x{stored[1]} but its transforms entry says "
-                                  f"{frame.size[0]}x{frame.size[1]}")
+    turned = turned_to_fit(stored, upright, frame.size)
+    if turned is None:
+        raise InputError(frame.photo, f"image is {stored[0]}x{stored[1]} but its transforms entry says "
+                                      f"{frame.size[0]}x{frame.size[1]}")
+    return frame.size, turned
 
 
 def layout_split(frames: list[Frame], ids: dict[str, str]) -> tuple[list[str], list[str], str] | None:
