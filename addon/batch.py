@@ -47,7 +47,8 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
                    help="held-out views, as `dibrgs train --test` (or 'none')")
     p.add_argument("--iterations", type=int, default=0, help="0: the preset's")
     p.add_argument("--resolution-scale", type=float, default=0.0,
-                   help="scale of the photos, in (0, 4] (0: the preset's; cpu: long side at most 512 px)")
+                   help=f"scale of the photos, in (0, {jobs.MAX_RESOLUTION_SCALE:g}] (0: the preset's; cpu: long side "
+                        "at most 512 px)")
     p.add_argument("--pseudo-views", type=int, default=0,
                    help="pseudo views sampled along the path (0: the preset's number, 96 for cpu)")
     p.add_argument("--fly-frames", type=int, default=0, help="render a fly-through of this many frames (0: none)")
@@ -58,8 +59,8 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.iterations < 0 or args.pseudo_views < 0 or args.fly_frames < 0:
         p.error("--iterations, --pseudo-views and --fly-frames must be >= 0")
-    if not 0 <= args.resolution_scale <= 4:
-        p.error("--resolution-scale must be in (0, 4], or 0 for the preset's")
+    if not 0 <= args.resolution_scale <= jobs.MAX_RESOLUTION_SCALE:
+        p.error(f"--resolution-scale must be in (0, {jobs.MAX_RESOLUTION_SCALE:g}], or 0 for the preset's")
     if not args.scene.is_dir():
         p.error(f"--scene {args.scene}: not a folder")
     return args

@@ -5,6 +5,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty,
                        IntProperty, PointerProperty, StringProperty)
 
+from ._core import jobs
 from .preferences import PRESET_ITEMS
 
 METHOD_ITEMS = [("dibrgs", "DIBR-GS", "The full method"),
@@ -63,7 +64,8 @@ class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default="dibrgs")
     iterations: IntProperty(name="Iterations", default=0, min=0,
                             description="0: the preset's number of iterations")
-    resolution_scale: FloatProperty(name="Resolution scale", default=0.0, min=0.0, max=4.0, step=10, precision=2,
+    resolution_scale: FloatProperty(name="Resolution scale", default=0.0, min=0.0, max=jobs.MAX_RESOLUTION_SCALE,
+                                    step=10, precision=2,
                                     description="scale of the photos for training and rendering (1: full "
                                                 "size); 0: the preset's (cpu: long side at most 512 px)")
     resume: BoolProperty(name="Resume", default=False, description="Continue from the run folder's checkpoint")

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
+from ..common.limits import MAX_RESOLUTION_SCALE
 from ..common.modes import MethodName, choices
 from ..training.config import PRESETS
 from .progress import Progress, parse_progress_line
@@ -116,8 +117,8 @@ class TrainOptions:
             raise ValueError(f"unknown method {self.method!r}; expected one of {METHODS}")
         if self.iterations is not None and self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
-        if self.resolution_scale is not None and not 0 < self.resolution_scale <= 4:
-            raise ValueError(f"resolution_scale must be in (0, 4], got {self.resolution_scale}")
+        if self.resolution_scale is not None and not 0 < self.resolution_scale <= MAX_RESOLUTION_SCALE:
+            raise ValueError(f"resolution_scale must be in (0, {MAX_RESOLUTION_SCALE:g}], got {self.resolution_scale}")
         if self.pseudo_views is not None and self.pseudo_views < 1:
             raise ValueError(f"pseudo_views must be >= 1, got {self.pseudo_views}")
 
