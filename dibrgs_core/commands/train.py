@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
-                        "(LEVIR Cams file/folder, JSON list or COLMAP model; intrinsics in the scene's pixels, resized with "
+                        "(anything `dibrgs render --cameras` takes: LEVIR Cams file/folder, JSON list, COLMAP model or "
+                        "transforms.json; intrinsics in the scene's pixels, resized with "
                         "its images); every pose is used, and the log names those mostly of padding")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
