@@ -130,8 +130,9 @@ class Gaussians3D(nn.Module):
         """Every Gaussian with its SH coefficients (view-independent)."""
         center = torch.tensor(np.mean([c.center for c in cams], 0), dtype=torch.float32)
         means, quats, scales, opac, _ = self.activated(center)
-        return {"means": means, "quats": quats, "scales": scales, "opacities": opac,
-                "sh_dc": self.sh_dc[:, 0], "sh_rest": self.sh_rest}
+        g = {"means": means, "quats": quats, "scales": scales, "opacities": opac,
+             "sh_dc": self.sh_dc[:, 0], "sh_rest": self.sh_rest}
+        return {k: v.detach() for k, v in g.items()}  # parameters themselves would carry requires_grad
 
     def sizes(self) -> dict[str, int]:
         return {"anchors": 0, "gaussians": self.num_gaussians}
