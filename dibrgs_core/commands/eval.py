@@ -22,6 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="local LPIPS weights (lpips package layout: full LPIPS state dict, or the linear heads "
                         "weights/v0.1/vgg.pth with --lpips-backbone)")
     p.add_argument("--lpips-backbone", default=None, help="torchvision vgg16/alexnet state dict for the heads-only file")
+    p.add_argument("--scene", type=Path, default=None,
+                   help="the scene folder, when it has moved since training (default: where the run found it; "
+                        "its content must be the same)")
     p.add_argument("--fps-repeats", type=positive_int, default=3, help="passes over the held-out views when timing")
     add_compute(p)
     p.set_defaults(func=run)
@@ -38,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
         apply_compute(args)
         from ..evaluation.evaluate import evaluate
 
-        m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats)
+        m = evaluate(args.work, args.lpips, args.lpips_backbone, fps_repeats=args.fps_repeats,
+                     scene_root=args.scene)
     summary = {k: m[k] for k in ("psnr", "ssim", "lpips", "avge", "fps", "views")}
     print(dumps(summary, indent=None))
     return 0

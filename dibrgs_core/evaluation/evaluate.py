@@ -97,7 +97,7 @@ def avge(psnr: float, ssim: float, lpips: float) -> float:
 # ---------------------------------------------------------------------------
 # Evaluation
 # ---------------------------------------------------------------------------
-def run_split(work: Path, scene_root: str) -> tuple[list[str] | None, list[str] | None, str | None]:
+def run_split(work: Path) -> tuple[list[str] | None, list[str] | None, str | None]:
     """(train, test, scene digest) the run in ``work`` recorded in its ``config.json`` (Nones when
     it recorded none: runs from before the split was recorded use the scene's own split)."""
     import json
@@ -128,11 +128,14 @@ def run_scale(work: str | Path, tr: Trained, scene: Any) -> float:
 
 
 def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_backbone: str | Path | None = None,
-             fps_repeats: int = 3, write_renders: bool = True) -> dict[str, Any]:
+             fps_repeats: int = 3, write_renders: bool = True, scene_root: str | Path | None = None
+             ) -> dict[str, Any]:
     """Evaluate ``WORK`` on its run's held-out views; writes ``metrics.json`` and ``renders/``.
 
-    ``metrics.json`` is strict JSON: a metric that is infinite (PSNR of a render identical to its
-    image) or undefined is ``null``, with the reason under ``undefined``."""
+    The scene is the folder the run trained on, or ``scene_root`` when it has moved since (its
+    content must be the same: the run's recorded digest is checked). ``metrics.json`` is strict
+    JSON: a metric that is infinite (PSNR of a render identical to its image) or undefined is
+    ``null``, with the reason under ``undefined``."""
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
     from tqdm import tqdm
 
@@ -143,14 +146,25 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     work = Path(work)
     tr = load_trained(work)
     lp = load_lpips(lpips_weights, lpips_backbone) if lpips_weights else None
-    train, test, digest = run_split(work, tr.scene)
-    scene = load_scene(tr.scene, train, test, load_depth=False)
+    root = Path(scene_root) if scene_root is not None else Path(tr.scene)
+    if not root.is_dir():
+        raise InputError(root, "--scene: no such folder" if scene_root is not None else
+                         f"the scene {work} trained on is not there any more; if it moved, give its new folder "
+                         "with --scene")
+    train, test, digest = run_split(work)
+    try:
+        scene = load_scene(root, train, test, load_depth=False)
+    except InputError as e:
+        if scene_root is None:
+            raise
+        raise InputError(root, f"this is not the scene {work} was trained on ({e.problem})") from e
     if digest is not None and scene.digest() != digest:
-        raise InputError(tr.scene, f"the scene changed since {work} was trained on it (its digest was {digest}, "
-                                   f"now {scene.digest()}); train again to evaluate on it")
+        what = "the scene changed since" if scene_root is None else "this is not the scene"
+        raise InputError(root, f"{what} {work} was trained on (its digest was {digest}, now {scene.digest()}); "
+                               "train again to evaluate on it")
     frames = views_to_frames(scene.test_views(), run_scale(work, tr, scene))
     if not frames:
-        raise InputError(tr.scene, "the run's split has no held-out views to evaluate")
+        raise InputError(root, "the run's split has no held-out views to evaluate")
     per_view: dict[str, dict[str, Any]] = {}
     undefined: dict[str, str] = {}
     renders = []

@@ -568,6 +568,32 @@ def test_unreadable_model_file(finished_run, tmp_path, what):
     assert not (tmp_path / "g.ply").exists() and not (work / "metrics.json").exists()
 
 
+def test_eval_after_the_scene_moved(scene24, other_scene24, finished_run, tmp_path):
+    """A run folder outlives its scene's place (another disk, a colleague's machine): ``eval`` says
+    to give the new folder, ``--scene`` evaluates there, and another scene is refused by content."""
+    work = copy_run(finished_run, tmp_path / "w")
+    st = torch.load(work / MODEL, weights_only=False)
+    old = tmp_path / "old_place"
+    st["scene"] = str(Path(shutil.copytree(scene24, old)).resolve())
+    torch.save(st, work / MODEL)
+    new = Path(shutil.move(old, tmp_path / "new place"))
+    rc, err = dibrgs("eval", work, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and str(old) in line and "--scene" in line and not (work / "metrics.json").exists()
+    rc, err = dibrgs("eval", work, "--scene", new, "--threads", "1")
+    assert rc == 0, err
+    m = strict_json(work / "metrics.json")
+    ref = copy_run(finished_run, tmp_path / "ref")  # the same run evaluated where it trained
+    rc, err = dibrgs("eval", ref, "--threads", "1", "--fps-repeats", "1")
+    assert rc == 0, err
+    assert m["psnr"] == pytest.approx(strict_json(ref / "metrics.json")["psnr"], abs=1e-9)
+    # Another scene with the same view names: refused by its content, metrics left as they were.
+    rc, err = dibrgs("eval", work, "--scene", other_scene24, "--threads", "1")
+    assert rc == 2 and "not the scene" in one_line(err) and strict_json(work / "metrics.json") == m
+    rc, err = dibrgs("eval", work, "--scene", tmp_path / "nowhere", "--threads", "1")
+    assert rc == 2 and "--scene: no such folder" in one_line(err)
+
+
 def test_out_is_a_file_or_under_a_file(scene24, finished_run, tmp_path):
     f = tmp_path / "file"
     f.write_text("keep me")
