@@ -91,6 +91,11 @@ class MvsConfig:
             moving objects match by chance in small scattered patches that a
             two-view consistency check lets through.
         speckle_tol: relative depth step that still connects two neighbouring pixels.
+        max_sources: each view is swept against at most this many others, those that see
+            most of it from a useful angle (:mod:`~dibrgs_core.geometry.view_selection`), and
+            checked for consistency against the same ones; with this many others or fewer,
+            all of them (0 = always all: time grows with the square of the view count). COLMAP
+            takes up to 20; 8 keeps a survey of 80 photos at minutes on two CPU cores.
     """
 
     num_depths: int = 96
@@ -114,6 +119,7 @@ class MvsConfig:
     sgm_p2: float = 1.0
     speckle_px: int = 50
     speckle_tol: float = 0.01
+    max_sources: int = 8
 @dataclass
 class InitConfig:
     """Initialisation options; lengths are in paper (LEVIR-NVS) units, multiplied by the scene scale.

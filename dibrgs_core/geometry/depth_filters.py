@@ -45,8 +45,10 @@ def speckle_mask(depth: np.ndarray, tol: float, min_px: int) -> np.ndarray:
 
 
 def consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: float, min_views: int,
-                        max_reproj_px: float = 1.0) -> list[MvsResult]:
-    """Keep depths that at least ``min_views`` other views confirm (forward-backward check).
+                        max_reproj_px: float = 1.0, sources: Sequence[Sequence[int]] | None = None
+                        ) -> list[MvsResult]:
+    """Keep depths that at least ``min_views`` other views confirm (forward-backward check);
+    ``sources[i]``: the views that may confirm view i's (default: all others).
 
     A pixel's 3D point is projected into view j, lifted again with j's own
     depth there and projected back: j confirms it when that round trip lands
@@ -67,9 +69,10 @@ def consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: fl
         uv0, _ = ci.project(X)
         votes = np.zeros(d.size, np.int32)
         blocks = np.zeros(d.size, bool)
-        for j, (cj, rj) in enumerate(zip(cams, results)):
+        for j in (sources[i] if sources is not None else range(len(cams))):
             if j == i:
                 continue
+            cj, rj = cams[j], results[j]
             uv, z = cj.project(X)
             u = np.floor(uv[:, 0]).astype(np.int64)
             v = np.floor(uv[:, 1]).astype(np.int64)

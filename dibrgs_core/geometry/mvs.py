@@ -34,6 +34,7 @@ from .config import MvsConfig
 from .depth_filters import MvsResult, consistency_filter, speckle_mask
 from .sgm import semi_global
 from .sweep_range import depth_range_for, scene_heights, sweep_up
+from .view_selection import select_sources
 
 log = logging.getLogger("dibrgs.mvs")
 
@@ -187,7 +188,7 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
 
 def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_points: np.ndarray | None,
                fallback_distance: float, config: MvsConfig | None = None, progress: bool = True) -> list[MvsResult]:
-    """Plane-sweep depth for every view against all the others.
+    """Plane-sweep depth for every view against the others (at most ``config.max_sources`` of them).
 
     Camera translations are re-expressed relative to the mean camera centre
     (precision with georeferenced coordinates); depths do not change.
@@ -212,10 +213,14 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
         heights = scene_heights(cams, up, cfg, pts)
         log.info("MVS height planes: %s", "every height the depth ranges allow (ground unknown)" if heights is None
                  else f"{cfg.height_below:g} below to {cfg.height_above:g} above the ground, in flying heights")
+    sources = select_sources(cams, pts, ranges, cfg.max_sources)
+    if any(len(s) < len(cams) - 1 for s in sources):
+        log.info("MVS sources: each of %d views against at most %d others (those that see most of it from a "
+                 "useful angle)", len(cams), cfg.max_sources)
     out = []
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
         near, far = ranges[i]
-        srcs = [(cams[j], images[j]) for j in range(len(cams)) if j != i]
+        srcs = [(cams[j], images[j]) for j in sources[i]]
         res = plane_sweep(cams[i], images[i], srcs, near, far, cfg, up=up, height_range=heights)
         log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid", cams[i].name, near, far,
                  "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean())
@@ -225,7 +230,8 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
                            for k, a in enumerate((r.depth, r.confidence, r.ncc))))
                for r in out for keep in [speckle_mask(r.depth, cfg.speckle_tol, cfg.speckle_px)]]
     if cfg.min_consistent_views > 0 and len(cams) > 1:
-        out = consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px)
+        out = consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px,
+                                 sources)
     if f < 1.0:
         out = [MvsResult(*(_upsample(a, c) for a in (r.depth, r.confidence, r.ncc))) for r, c in zip(out, full)]
     return out
