@@ -4,8 +4,9 @@ and exposes ``register(subparsers)``; those modules import torch lazily so
 
 Every error a user can act on ends the command with one line on stderr naming the file or
 option and what to do, and a non-zero exit (:mod:`dibrgs_core.common.errors`: 2 bad input or
-option, 1 the operating system refused, 75 the run folder is busy, 130 interrupted); a bug
-gives one line too, and ``--debug`` shows the traceback of either.
+option, 1 the operating system refused, 75 the run folder is busy, 130 interrupted, 143
+terminated by SIGTERM outside training, which checkpoints and stops instead); a bug gives one line
+too, and ``--debug`` shows the traceback of either.
 """
 from __future__ import annotations
 
@@ -14,11 +15,13 @@ import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
+import threading
 import traceback
 
 from .common.allocator import keep_freed_memory
-from .common.errors import EXIT_INPUT, explain, exit_code
+from .common.errors import EXIT_INPUT, EXIT_TERMINATED, Terminated, explain, exit_code
 from .common.openmp import set_wait_policy
 
 COMMANDS = ["demo", "info", "init", "train", "eval", "render", "export", "check"]
@@ -53,18 +56,40 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    try:
-        rc = args.func(args)
-    except KeyboardInterrupt:
-        print(f"dibrgs {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # `dibrgs info ... | head`: the reader left, nothing to report
-        with contextlib.suppress(OSError):
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 141
-    except Exception as e:  # the one path from an exception to a message
-        return report_error(f"dibrgs {args.command}", e, args.debug)
+    with _sigterm_raises():
+        try:
+            rc = args.func(args)
+        except KeyboardInterrupt:
+            print(f"dibrgs {args.command}: interrupted", file=sys.stderr)
+            return 130
+        except Terminated:
+            print(f"dibrgs {args.command}: terminated (SIGTERM)", file=sys.stderr)
+            return EXIT_TERMINATED
+        except BrokenPipeError:  # `dibrgs info ... | head`: the reader left, nothing to report
+            with contextlib.suppress(OSError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141
+        except Exception as e:  # the one path from an exception to a message
+            return report_error(f"dibrgs {args.command}", e, args.debug)
     return int(rc or 0)
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """While inside, SIGTERM raises :class:`Terminated` in the main thread (as Ctrl-C raises
+    KeyboardInterrupt); the previous handler afterwards (``main`` may be called in-process)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
 
 
 def report_error(prefix: str, exc: BaseException, debug: bool = False) -> int:

@@ -18,6 +18,7 @@ from pathlib import Path
 EXIT_INPUT = 2      # bad input or option (InputError)
 EXIT_OS = 1         # the operating system refused (OSError) or an internal error
 EXIT_BUSY = 75      # the run folder is in use by another process (EX_TEMPFAIL: try again later)
+EXIT_TERMINATED = 143  # SIGTERM outside training's checkpointing stop (128 + 15, as the shell reports it)
 
 
 class InputError(Exception):
@@ -27,6 +28,12 @@ class InputError(Exception):
         self.path = None if path is None else Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived (a scheduler's time limit, ``timeout``, ``kill``): unwinds like Ctrl-C, so
+    temporary files are removed and locks released; not an ``Exception``, so nothing catches it
+    as an error."""
 
 
 class RunFolderBusy(InputError):

@@ -35,6 +35,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..camera.pinhole import Camera
+from ..common.colmap_lib import import_pycolmap
 from ..common.errors import InputError
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
@@ -60,7 +61,7 @@ def read_colmap_cameras(root: str | Path) -> list[Camera]:
 
 
 def _load(root: str | Path):
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     root = Path(root)
     if not root.exists():
@@ -84,7 +85,7 @@ def _without_points(model_dir: Path):
     pycolmap through a copy with an empty points file."""
     import tempfile
 
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     ext = ".bin" if (model_dir / "cameras.bin").is_file() else ".txt"
     with tempfile.TemporaryDirectory(prefix="dibrgs-colmap-") as tmp:
@@ -185,7 +186,7 @@ def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool
                        points: np.ndarray | None = None, colors: np.ndarray | None = None) -> Path:
     """Write cameras (one PINHOLE camera each, image name ``<name>.png``) and optional
     3D points (no tracks) as a COLMAP model in ``out_dir``."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -31,6 +31,7 @@ from typing import Iterable
 import numpy as np
 
 from ..camera.pinhole import Camera
+from ..common.colmap_lib import import_pycolmap
 from ..common.errors import InputError
 from .colmap import read_photo
 from .images import IMAGE_EXTS, image_size, turned_to_fit
@@ -262,7 +263,7 @@ def _camera(f: Frame, name: str) -> tuple[Camera, object, bool]:
     if model == "PINHOLE":
         K, size = np.array([[params[0], 0.0, params[2]], [0.0, params[1], params[3]], [0.0, 0.0, 1.0]]), (W, H)
     else:
-        import pycolmap
+        pycolmap = import_pycolmap()
 
         ccam = pycolmap.Camera(model=model, width=W, height=H, params=params)
         pin = undistorted_camera(ccam)

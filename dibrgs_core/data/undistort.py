@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..common.colmap_lib import import_pycolmap
 from ..common.digest import Digest, file_digest
 from ..common.errors import InputError
 from ..common.fileio import atomic_path
@@ -62,14 +63,14 @@ def unsupported_model(camera_id: int, model: str) -> str:
 
 
 def _options():
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     return pycolmap.UndistortCameraOptions()
 
 
 def undistorted_camera(cam):
     """The pinhole pycolmap camera the undistorted photos of ``cam`` have."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     return pycolmap.undistort_camera(_options(), cam)
 
@@ -89,7 +90,7 @@ class Undistorted:
 def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], np.ndarray]) -> Undistorted:
     """The undistorted photo at ``path`` taken with pycolmap camera ``cam``; ``read()`` gives the
     photo (float RGB in [0, 1], in the pixel order the camera describes) when it is not cached."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     out_cam = undistorted_camera(cam)
     key = (Digest(_VERSION).text(file_digest(path)).text(model_name(cam)).array(np.asarray(cam.params, np.float64))

@@ -21,6 +21,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from ..camera.pinhole import Camera
+from ..common.colmap_lib import import_pycolmap
 from ..data.images import to_uint8
 from .config import SfmConfig
 
@@ -32,7 +33,7 @@ def colmap_logging() -> Iterator[None]:
     """COLMAP's own INFO lines (some sixty a reconstruction, written to stderr by its logger) only
     when this package logs at DEBUG (``dibrgs -v``): otherwise they drown the stages' decisions.
     Its warnings and errors always show; the previous level is restored afterwards."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     before = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = pycolmap.logging.INFO if log.isEnabledFor(logging.DEBUG) else pycolmap.logging.WARNING
@@ -83,7 +84,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
     Returns a :class:`SparseCloud` (possibly empty; never raises for "too few
     matches").
     """
-    import pycolmap
+    pycolmap = import_pycolmap()
     from PIL import Image
 
     cfg = config or SfmConfig()

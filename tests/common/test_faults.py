@@ -708,6 +708,39 @@ def _without_root_rights() -> tuple[str, ...]:
     return ("setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner")
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_sigterm_before_training_ends_cleanly(tmp_path):
+    """SIGTERM (a scheduler's time limit, `timeout`) while the geometry is built from a COLMAP
+    scene: pycolmap is loaded then, and its logging library used to answer with a stack dump
+    ("*** Aborted at ...", read as a crash) and a kill. Now one line, exit 143, the lock released
+    and no temporary or half-written files."""
+    from paths import REPO, shared_file
+
+    scene = shared_file("data/brighton_north")
+    work = tmp_path / "w"
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.Popen([sys.executable, "-m", "dibrgs_core", "train", str(scene), "--out", str(work),
+                          "--preset", "test", "--threads", "1"], stderr=subprocess.PIPE, text=True, env=env,
+                         cwd=REPO)
+    lines = []
+    for line in p.stderr:
+        lines.append(line)
+        if "geometry initialisation" in line:
+            break
+    time.sleep(1.0)
+    p.send_signal(signal.SIGTERM)
+    rest = p.stderr.read()
+    p.wait(timeout=120)
+    err = "".join(lines) + rest
+    assert p.returncode == 143, err[-3000:]
+    assert err.strip().splitlines()[-1] == "dibrgs train: terminated (SIGTERM)", err[-3000:]
+    assert "Aborted at" not in err and "stack trace" not in err and "Traceback" not in err
+    assert not (work / LOCK_NAME).exists()
+    assert not (work / "init" / "init_report.json").exists() and not (work / MODEL).exists()
+    no_temp_files(work)
+
+
 def test_a_folder_the_user_cannot_write(scene24, tmp_path):
     locked = tmp_path / "locked"
     locked.mkdir()
