@@ -161,6 +161,13 @@ class InitConfig:
             (16 GB, 3.4 min for three 8 MP photos) that the voxel grid then
             thins to a few tens of thousands; at 1,024 px a pixel is still
             finer than the voxel.
+        max_overlap_pairs: the overlap removal compares every two points closer than
+            ``eps_xy`` horizontally; their number grows with the square of the cloud's density
+            (81 views of one ground at 512 px: over a billion, 21 GB). Above about this many
+            (estimated from a grid of side ``eps_xy``), the fused cloud is thinned first to a
+            random share that stays within it: redundant points many views measured, far finer
+            than the ``voxel`` the cloud is reduced to afterwards. Three or nine photos stay far
+            below (0.4-2 million).
     """
 
     depth_prior: DepthPrior = "auto"
@@ -173,6 +180,7 @@ class InitConfig:
     dip_min_points: int = 8
     eps_xy: float = 0.1
     eps_z: float = 1.0
+    max_overlap_pairs: int = 40_000_000
     voxel: float = 1.0
     height_cell: float = 10.0
     height_percentile: float = 95.0

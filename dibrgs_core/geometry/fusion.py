@@ -125,6 +125,18 @@ def dip_cells(local: np.ndarray, cell: float, alpha: float = 0.05, min_points: i
     return DipResult(flags, len(starts), tested, multi)
 
 
+def neighbour_pairs_estimate(xy: np.ndarray, eps: float) -> float:
+    """About how many pairs of the points ``xy`` (N, 2) lie closer than ``eps``: a grid of side
+    ``eps`` holding n points in a square expects pi n neighbours of each, so (pi / 2) sum n^2
+    (uniform density within a square; within a factor of about 2 on real clouds)."""
+    if len(xy) == 0:
+        return 0.0
+    b = np.floor(xy / eps).astype(np.int64)
+    b -= b.min(axis=0)
+    _, counts = np.unique(b[:, 0] * (int(b[:, 1].max()) + 1) + b[:, 1], return_counts=True)
+    return float(np.pi / 2 * np.sum(counts.astype(np.float64) ** 2))
+
+
 def overlap_pairs_drop(local: np.ndarray, candidates: np.ndarray, cell: float, eps_xy: float, eps_z: float) -> np.ndarray:
     """Mask of points to drop: the higher point of every overlapping pair (paper eq. 5).
 

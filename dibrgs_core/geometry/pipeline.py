@@ -8,6 +8,7 @@ decision in the report. Options and units: :mod:`.config`.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from .depth_prior import MAPS, Alignment, align_view, compute_prior, map_dispari
 from .fusion import (
     backproject_views,
     dip_cells,
+    neighbour_pairs_estimate,
     overlap_pairs_drop,
     reproject_max_depth,
     to_frame,
@@ -150,6 +152,17 @@ def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray
         return pts, cols, conf
     s = geo.scale
     local = to_frame(pts, geo.frame, geo.origin)
+    pairs = neighbour_pairs_estimate(local[:, :2], config.eps_xy * s)
+    keep_share = min(1.0, math.sqrt(config.max_overlap_pairs / max(pairs, 1.0)))
+    report.values["overlap_pairs_estimate"] = pairs
+    if report.decide(STAGE, "thinning", keep_share < 1.0,
+                     f"{len(pts)} points, about {pairs / 1e6:,.1f} million pairs closer than eps_xy "
+                     + (f"> {config.max_overlap_pairs / 1e6:g} million: a random {100 * keep_share:.3g} % kept "
+                        "(many views measured the same ground)" if keep_share < 1.0 else
+                        f"<= {config.max_overlap_pairs / 1e6:g} million")):
+        keep = np.random.default_rng(0).random(len(pts)) < keep_share
+        pts, cols, conf, local = pts[keep], cols[keep], conf[keep], local[keep]
+        report.values["dense_points_thinned"] = len(pts)
     t = time.time()
     dip = dip_cells(local, config.dip_cell * s, config.dip_alpha, config.dip_min_points)
     report.values["dip_s"] = time.time() - t

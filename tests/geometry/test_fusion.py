@@ -157,3 +157,17 @@ def test_voxel_values_and_ply_confidence_roundtrip(tmp_path):
     with pytest.raises(ValueError, match="confidences"):
         write_ply(tmp_path / "bad.ply", P, C, K[:1])
     assert not (tmp_path / "bad.ply").exists()
+
+
+def test_neighbour_pairs_estimate_is_within_a_factor_of_two():
+    from scipy.spatial import cKDTree
+
+    from dibrgs_core.geometry.fusion import neighbour_pairs_estimate
+
+    rng = np.random.default_rng(0)
+    for n, eps in ((20000, 0.01), (50000, 0.005), (5000, 0.05)):
+        xy = rng.uniform(0, 1, (n, 2))
+        exact = len(cKDTree(xy).query_pairs(eps, output_type="ndarray"))
+        est = neighbour_pairs_estimate(xy * 1000.0, eps * 1000.0)  # units do not matter
+        assert 0.5 * exact < est < 2.0 * exact, (n, eps, exact, est)
+    assert neighbour_pairs_estimate(np.zeros((0, 2)), 1.0) == 0.0
