@@ -120,6 +120,8 @@ class MvsConfig:
     speckle_px: int = 50
     speckle_tol: float = 0.01
     max_sources: int = 8
+
+
 @dataclass
 class InitConfig:
     """Initialisation options; lengths are in paper (LEVIR-NVS) units, multiplied by the scene scale.

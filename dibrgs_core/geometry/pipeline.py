@@ -135,9 +135,10 @@ def refine_cloud(geo: SceneGeometry, config: InitConfig, depths: list[np.ndarray
                  confidence: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fuse the views' depths with the chosen refinement.
 
-    Returns the dense (points, colors, confidence), not downsampled; the
-    confidence of a point is its pixel's in ``confidence`` (HxW maps, one per
-    view; 1 everywhere when None).
+    Returns the dense (points, colors, confidence), not downsampled (but thinned
+    at random before the overlap removal when many views measured the same ground:
+    ``config.max_overlap_pairs``); the confidence of a point is its pixel's in
+    ``confidence`` (HxW maps, one per view; 1 everywhere when None).
     """
     if refine == "reproject":
         depths = reproject_max_depth(geo.cameras, depths)
