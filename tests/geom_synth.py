@@ -210,3 +210,11 @@ def scaled_scene(scene, factor: float):
         cam = replace(v.camera, w2c=w2c, depth_range=None if dr is None else (dr[0] * factor, dr[1] * factor))
         views[k] = View(camera=cam, image=v.image, depth=None if v.depth is None else v.depth * factor)
     return Scene(root=scene.root, views=views, track=list(scene.track), train=list(scene.train), test=list(scene.test))
+
+
+def nadir(x: float, y: float = 0.0, height: float = 100.0, size: int = 64, name: str = "") -> Camera:
+    """A camera ``height`` above (x, y, 0) looking straight down (60 degree field of view)."""
+    f = size / 2 / np.tan(np.radians(30))
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    w2c = look_at(np.array([x, y, height]), np.array([x, y, 0.0]), np.array([0, 1.0, 0]))
+    return Camera(K=K, w2c=w2c, width=size, height=size, name=name)

@@ -30,6 +30,10 @@ class SfmConfig:
         min_angle_deg: minimum triangulation angle.
         max_reproj_error: reprojection error (px) above which points are dropped.
         seed: COLMAP's RANSAC and triangulation seed (its default, -1, seeds from the clock).
+        max_neighbours: each photo is matched with at most this many others, those whose camera
+            centres are nearest (as COLMAP's spatial matcher does with GPS positions); with this
+            many others or fewer, every pair (0 = always every pair: 81 photos at 512 px, 3,240
+            pairs, 3 minutes; the count grows with the square of the photos).
 
     COLMAP runs on one thread: with two (in triangulation, or in extraction and matching) the
     same views gave 56, 68, 75 or 97 points from one run to the next, about one run in twelve;
@@ -41,6 +45,7 @@ class SfmConfig:
     min_angle_deg: float = 1.5
     max_reproj_error: float = 4.0
     seed: int = 0
+    max_neighbours: int = 20
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """Sparse structure from motion with known poses (pycolmap, CPU).
 
-SIFT features of the training views, exhaustive matching with geometric
-verification, then triangulation with the given cameras held fixed: no pose
+SIFT features of the training views, matching with geometric verification
+(every pair, or each photo with its nearest ``SfmConfig.max_neighbours`` by
+camera position), then triangulation with the given cameras held fixed: no pose
 or intrinsics re-estimation. Coordinates are handed to COLMAP relative to a
 local origin (georeferenced scenes have coordinates around 1e5, where float
 precision inside COLMAP's solvers would suffer) and in units of the cameras'
@@ -67,6 +68,21 @@ class SparseCloud:
         return len(self.points)
 
 
+def neighbour_pairs(cams: Sequence[Camera], k: int) -> list[tuple[int, int]] | None:
+    """Index pairs (i < j) to match: each camera with its ``k`` nearest camera centres (a pair
+    either side chose, once); None (every pair) when no camera has more than ``k`` others or
+    ``k`` is 0."""
+    n = len(cams)
+    if k <= 0 or n - 1 <= k:
+        return None
+    from scipy.spatial import cKDTree
+
+    centres = np.array([c.center for c in cams], np.float64)
+    _, nearest = cKDTree(centres).query(centres, k=k + 1)
+    pairs = {(min(i, int(j)), max(i, int(j))) for i in range(n) for j in nearest[i] if int(j) != i}
+    return sorted(pairs)
+
+
 @colmap_logging()
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
                             config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
@@ -121,7 +137,17 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         mo.num_threads = 1
         vo = pycolmap.TwoViewGeometryOptions()
         vo.ransac.random_seed = cfg.seed
-        pycolmap.match_exhaustive(db_path, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+        pairs = neighbour_pairs(cams, cfg.max_neighbours)
+        if pairs is None:
+            pycolmap.match_exhaustive(db_path, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+        else:
+            log.info("SfM: each of %d photos matched with its %d nearest (%d pairs of %d)", len(cams),
+                     cfg.max_neighbours, len(pairs), len(cams) * (len(cams) - 1) // 2)
+            (root / "pairs.txt").write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
+            po = pycolmap.ImportedPairingOptions()
+            po.match_list_path = root / "pairs.txt"
+            pycolmap.match_image_pairs(db_path, matching_options=mo, pairing_options=po, verification_options=vo,
+                                       device=pycolmap.Device.cpu)
 
         db = pycolmap.Database.open(db_path)
         try:

@@ -106,3 +106,32 @@ def test_colmap_progress_lines_only_when_debugging(capfd):
     assert "feature_extraction" not in quiet_err and "Feature extraction" not in quiet_err
     assert "Feature extraction" in loud_err
     np.testing.assert_array_equal(quiet.points, loud.points)
+
+
+def test_neighbour_pairs_of_a_long_strip():
+    """Each photo is matched with its nearest; few photos: every pair (None)."""
+    from dibrgs_core.geometry.sfm import neighbour_pairs
+    from geom_synth import nadir
+
+    cams = [nadir(20.0 * i) for i in range(30)]
+    pairs = neighbour_pairs(cams, 4)
+    assert all(0 < j - i <= 4 for i, j in pairs)  # the nearest (four on one side at the ends)
+    assert {(i, i + d) for i in range(30) for d in (1, 2) if i + d < 30} <= set(pairs)
+    assert len(set(pairs)) == len(pairs) < 30 * 4 // 2 + 6
+    assert neighbour_pairs(cams[:5], 4) is None and neighbour_pairs(cams, 0) is None
+
+
+@pytest.mark.slow
+def test_a_strip_matched_with_neighbours_triangulates_as_every_pair():
+    """Twelve photos in a strip matched with their 4 nearest (30 of 66 pairs): about as many points,
+    as close to the surface, as matching every pair."""
+    from dibrgs_core.geometry.config import SfmConfig
+    from geom_synth import make_grid_scene
+
+    scene, _ = make_grid_scene(96, n_views=12, spacing=20.0, seed=5)
+    vs = scene.train_views()
+    cams, imgs = [v.camera for v in vs], [v.image for v in vs]
+    near = triangulate_known_poses(cams, imgs, config=SfmConfig(max_neighbours=4))
+    every = triangulate_known_poses(cams, imgs, config=SfmConfig(max_neighbours=0))
+    assert len(near) >= 0.8 * len(every) and len(every) >= 50, (len(near), len(every))
+    assert np.median(_depth_errors(scene, near.points)) < 0.005

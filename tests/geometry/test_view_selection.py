@@ -2,17 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
+from geom_synth import nadir
 
-from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.geometry.view_selection import angle_weight, select_sources
-
-
-def nadir(x: float, y: float = 0.0, height: float = 100.0, size: int = 64, name: str = "") -> Camera:
-    """A camera ``height`` above (x, y, 0) looking straight down (60 degree field of view)."""
-    f = size / 2 / np.tan(np.radians(30))
-    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    w2c = look_at(np.array([x, y, height]), np.array([x, y, 0.0]), np.array([0, 1.0, 0]))
-    return Camera(K=K, w2c=w2c, width=size, height=size, name=name)
 
 
 def ground_points(n: int = 2000, half: float = 300.0, seed: int = 0) -> np.ndarray:
