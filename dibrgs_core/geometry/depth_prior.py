@@ -250,8 +250,10 @@ class PriorMaps:
 
 def compute_prior(name: str, cameras: Sequence[Camera], images: Sequence[np.ndarray],
                   gt_depths: Sequence[np.ndarray | None] | None, sparse_points: np.ndarray | None,
-                  ref_distance: float, depth_model: str | Path | None = None, mvs_config=None) -> PriorMaps:
-    """Run the named prior on the views. See the module docstring for the names."""
+                  ref_distance: float, depth_model: str | Path | None = None, mvs_config=None,
+                  checkpoint: Path | None = None) -> PriorMaps:
+    """Run the named prior on the views. See the module docstring for the names. ``checkpoint``:
+    a folder where the plane sweep keeps each view's result as it finishes (``mvs`` only)."""
     if name == "depth-anything-v2":
         if depth_model is None:
             raise InputError(None, "the depth-anything-v2 prior needs its weights: pass a local folder with --depth-model")
@@ -264,7 +266,7 @@ def compute_prior(name: str, cameras: Sequence[Camera], images: Sequence[np.ndar
     if name == "mvs":
         from .mvs import mvs_depths
 
-        res = mvs_depths(cameras, images, sparse_points, ref_distance, mvs_config)
+        res = mvs_depths(cameras, images, sparse_points, ref_distance, mvs_config, checkpoint=checkpoint)
         return PriorMaps("depth", [r.depth for r in res], [r.confidence for r in res])
     if name == "gt":
         if gt_depths is None or any(d is None for d in gt_depths):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -186,12 +187,62 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
                      ncc_best.clamp(-1, 1).numpy().astype(np.float32))
 
 
+class SweepCheckpoint:
+    """Each view's sweep kept in ``folder`` as it finishes (one ``.npz`` a view, named by a digest
+    of everything the sweep read: options, cameras, images, sources, range, planes), so that an
+    initialisation stopped part way (killed, out of time) goes on from the next view. Files no
+    sweep of the latest run used are removed at its end."""
+
+    def __init__(self, folder: Path, cfg: MvsConfig, cams: Sequence[Camera], images: Sequence[np.ndarray],
+                 up: np.ndarray | None, heights: tuple[float, float] | None) -> None:
+        from dataclasses import asdict
+
+        from ..common.digest import Digest
+
+        self.folder = Path(folder)
+        self.used: set[Path] = set()
+        self._digest = Digest
+        self._base = Digest("mvs-sweep-1").json(asdict(cfg)).json(None if up is None else [float(v) for v in up]) \
+            .json(None if heights is None else [float(v) for v in heights]).hex()
+        self._views = [Digest("view").array(c.K).array(c.w2c).json([c.width, c.height]).array(im).hex()
+                       for c, im in zip(cams, images)]
+
+    def path(self, i: int, sources: Sequence[int], near: float, far: float) -> Path:
+        key = self._digest(self._base).json([self._views[i], [self._views[j] for j in sources],
+                                             float(near), float(far)]).hex()
+        return self.folder / f"{key}.npz"
+
+    def load(self, path: Path) -> MvsResult | None:
+        self.used.add(path)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as d:
+                return MvsResult(d["depth"], d["confidence"], d["ncc"])
+        except Exception as e:  # a damaged file is swept again, never fatal
+            log.warning("%s unreadable (%s); sweeping again", path, e)
+            return None
+
+    def save(self, path: Path, res: MvsResult) -> None:
+        from ..common.fileio import atomic_path
+
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, depth=res.depth, confidence=res.confidence, ncc=res.ncc)
+
+    def prune(self) -> None:
+        for p in self.folder.glob("*.npz"):
+            if p not in self.used:
+                p.unlink(missing_ok=True)
+
+
 def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_points: np.ndarray | None,
-               fallback_distance: float, config: MvsConfig | None = None, progress: bool = True) -> list[MvsResult]:
+               fallback_distance: float, config: MvsConfig | None = None, progress: bool = True,
+               checkpoint: Path | None = None) -> list[MvsResult]:
     """Plane-sweep depth for every view against the others (at most ``config.max_sources`` of them).
 
     Camera translations are re-expressed relative to the mean camera centre
-    (precision with georeferenced coordinates); depths do not change.
+    (precision with georeferenced coordinates); depths do not change. With ``checkpoint`` (a
+    folder) each view's sweep is kept there and reused (:class:`SweepCheckpoint`).
     """
     from tqdm import tqdm
 
@@ -217,14 +268,24 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     if any(len(s) < len(cams) - 1 for s in sources):
         log.info("MVS sources: each of %d views against at most %d others (those that see most of it from a "
                  "useful angle)", len(cams), cfg.max_sources)
+    store = None if checkpoint is None else SweepCheckpoint(checkpoint, cfg, cams, images, up, heights)
     out = []
     for i in tqdm(range(len(cams)), desc="mvs", disable=not progress):
         near, far = ranges[i]
-        srcs = [(cams[j], images[j]) for j in sources[i]]
-        res = plane_sweep(cams[i], images[i], srcs, near, far, cfg, up=up, height_range=heights)
-        log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid", cams[i].name, near, far,
-                 "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean())
+        path = None if store is None else store.path(i, sources[i], near, far)
+        res = None if store is None else store.load(path)
+        kept = res is not None
+        if res is None:
+            srcs = [(cams[j], images[j]) for j in sources[i]]
+            res = plane_sweep(cams[i], images[i], srcs, near, far, cfg, up=up, height_range=heights)
+            if store is not None:
+                store.save(path, res)
+        log.info("MVS view %s: range [%.3g, %.3g], %s planes, %.1f%% valid%s", cams[i].name, near, far,
+                 "height" if up is not None else "fronto-parallel", 100.0 * np.isfinite(res.depth).mean(),
+                 " (from the checkpoint)" if kept else "")
         out.append(res)
+    if store is not None:
+        store.prune()
     if cfg.speckle_px > 0:
         out = [MvsResult(*(np.where(keep, a, np.nan if k == 0 else 0).astype(np.float32) if k < 2 else a
                            for k, a in enumerate((r.depth, r.confidence, r.ncc))))

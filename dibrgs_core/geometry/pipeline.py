@@ -39,6 +39,9 @@ from .sfm import SparseCloud, triangulate_known_poses
 
 log = logging.getLogger("dibrgs.init")
 
+#: Folder of ``WORK/init`` where the plane sweep keeps each view's depth as it finishes (resume).
+SWEEPS = "sweeps"
+
 
 
 @dataclass
@@ -224,7 +227,7 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
         name = cfg.depth_prior if cfg.depth_prior != "auto" else ("depth-anything-v2" if cfg.depth_model else "mvs")
         t = time.time()
         prior = compute_prior(name, geo.cameras, geo.images, geo.gt_depths, sparse.points, geo.ref_distance,
-                              cfg.depth_model, cfg.mvs)
+                              cfg.depth_model, cfg.mvs, checkpoint=out / SWEEPS)
         report.values["prior_s"] = time.time() - t
         depths = prior_depths(geo, cfg, sparse.points, report, prior=prior)
         confs = [measured_confidence(None if prior.confidence is None else prior.confidence[i], d.shape)

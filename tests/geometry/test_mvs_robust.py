@@ -139,3 +139,33 @@ def test_a_long_strip_sweeps_few_sources_as_well_as_all():
         ok_b, rel_b = _rel(b, v)
         assert ok_a.mean() > 0.8 * ok_b.mean() and ok_a.mean() > 0.3, (v.name, ok_a.mean(), ok_b.mean())
         assert np.median(rel_a) < 0.015, (v.name, np.median(rel_a))
+
+
+def test_each_views_sweep_is_kept_and_reused(tmp_path, caplog):
+    """An initialisation stopped during the sweep goes on from the next view: each view's result is
+    kept as it finishes, read back bit for bit, and swept again when anything it read changed."""
+    import logging
+
+    scene, _ = make_grid_scene(48, seed=5)
+    vs = scene.train_views()
+    cams, imgs, pts = [v.camera for v in vs], [v.image.copy() for v in vs], _sfm_like(scene, 30)
+    folder = tmp_path / "sweeps"
+    first = mvs_depths(cams, imgs, pts, 100.0, MvsConfig(), progress=False, checkpoint=folder)
+    files = sorted(folder.glob("*.npz"))
+    assert len(files) == 3 and not list(folder.glob(".*"))  # no temporary files left
+    files[1].unlink()  # as if stopped before the second view finished
+    with caplog.at_level(logging.INFO, logger="dibrgs.mvs"):
+        again = mvs_depths(cams, imgs, pts, 100.0, MvsConfig(), progress=False, checkpoint=folder)
+    assert caplog.text.count("(from the checkpoint)") == 2
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.confidence, b.confidence)
+    assert sorted(folder.glob("*.npz")) == files
+    # A changed photo: every view that reads it (all three here) is swept again; the old files go.
+    imgs[0] = np.clip(imgs[0] * 0.9, 0, 1)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="dibrgs.mvs"):
+        mvs_depths(cams, imgs, pts, 100.0, MvsConfig(), progress=False, checkpoint=folder)
+    assert "(from the checkpoint)" not in caplog.text
+    now = sorted(folder.glob("*.npz"))
+    assert len(now) == 3 and not set(now) & set(files)
