@@ -207,6 +207,9 @@ class DIBRGS_OT_import_scene(bpy.types.Operator):
         n = {s: sum(v["split"] == s for v in desc["views"]) for s in ("train", "test", "other")}
         props.message = (f"Imported {len(objs)} views from {root.name}: {n['train']} training, "
                          f"{n['test']} held-out, {n['other']} other; pseudo-view path: {plan.kind}")
+        left_out = jobs.pseudo_views_left_out(props.preset, n["train"])
+        if left_out:  # the path still shows the trajectory; an edited one would not be used either
+            props.message += f" (training leaves pseudo views out: {left_out})"
         turned = sum(v.get("orientation", 1) != 1 for v in desc["views"])
         undistorted = sum(bool(v.get("undistorted")) for v in desc["views"])
         if undistorted:  # the background shows the photo as taken, a few pixels off at the edges

@@ -55,6 +55,14 @@ def pseudo_view_count(preset: str, requested: int = 0) -> int:
     return make_preset(preset).pseudo.n_views
 
 
+def pseudo_views_left_out(preset: str, n_train: int) -> str | None:
+    """Why training with ``preset`` will leave pseudo views out for ``n_train`` training views
+    (:meth:`~dibrgs_core.training.config.PseudoConfig.dense_reason`), or None."""
+    from ..training.config import preset as make_preset
+
+    return make_preset(preset).pseudo.dense_reason(n_train)
+
+
 def core_root() -> Path:
     """The folder that contains the ``dibrgs_core`` package this module belongs to."""
     return Path(__file__).resolve().parents[2]

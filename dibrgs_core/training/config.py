@@ -97,6 +97,13 @@ class PseudoConfig:
     # the completed cloud's.
     consistency_tol: float = 0.1
 
+    def dense_reason(self, n_train: int) -> str | None:
+        """Why ``auto`` leaves pseudo views out for ``n_train`` training views, or None when it
+        uses them (training's decision; the add-on says it at import)."""
+        if self.mode == "auto" and n_train >= self.dense_views:
+            return f"{n_train} training views are dense enough (>= {self.dense_views})"
+        return None
+
 
 @dataclass
 class GS3DConfig:

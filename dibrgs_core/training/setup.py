@@ -253,9 +253,9 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
     if cfg.pseudo.mode == "off":
         rep.decide("train", "pseudo_views", False, "switched off (--no-pseudo)")
         return []
-    if cfg.pseudo.mode == "auto" and n_train >= cfg.pseudo.dense_views:
-        rep.decide("train", "pseudo_views", False,
-                   f"{n_train} training views are dense enough (>= {cfg.pseudo.dense_views})")
+    dense = cfg.pseudo.dense_reason(n_train)
+    if dense is not None:
+        rep.decide("train", "pseudo_views", False, dense)
         return []
     path = None
     if cfg.pseudo_path:

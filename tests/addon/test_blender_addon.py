@@ -87,6 +87,21 @@ def test_register_unregister_twice(ext):
     assert _mod("_core").pinhole.__name__ == "dibrgs_ext.dibrgs_core.camera.pinhole"
 
 
+def test_import_says_when_training_leaves_pseudo_views_out(scene64, fresh, tmp_path):
+    """Twelve training views: training's ``auto`` leaves pseudo views out (dense enough); the import
+    says so beside the path it still draws, so that an edited path is not expected to count."""
+    import shutil
+
+    assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
+    assert "leaves pseudo views out" not in fresh.dibrgs.message  # three training views: used
+    dense = Path(shutil.copytree(scene64, tmp_path / "dense"))
+    ids = sorted(p.stem for p in (dense / "Cams").glob("*.txt"))
+    (dense / "split.json").write_text(json.dumps({"train": ids[:12], "test": ids[12:15]}))
+    assert bpy.ops.dibrgs.import_scene(directory=str(dense)) == {"FINISHED"}
+    assert "12 training" in fresh.dibrgs.message
+    assert "training leaves pseudo views out: 12 training views are dense enough (>= 10)" in fresh.dibrgs.message
+
+
 def test_import_scene_reproduces_every_camera(scene64, fresh):
     assert bpy.ops.dibrgs.import_scene(directory=str(scene64)) == {"FINISHED"}
     sb = _mod("scene_build")
