@@ -126,6 +126,12 @@ class Camera:
         uv[:, 0] += self.K[0, 1] * Xc[:, 1] / zs
         return uv, z
 
+    def unproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(N,2) pixel positions at z-depths (N,) -> (N,3) world points (the inverse of :meth:`project`)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        rays = np.stack([uv[:, 0], uv[:, 1], np.ones(len(uv))], 1) @ np.linalg.inv(self.K).T
+        return (rays * np.asarray(z, dtype=np.float64).reshape(-1, 1) - self.t) @ self.R  # camera -> world
+
     def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Rays through every pixel centre, row-major (H*W).
 

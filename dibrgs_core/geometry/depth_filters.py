@@ -86,8 +86,7 @@ def consistency_filter(cams: Sequence[Camera], results: list[MvsResult], tol: fl
             if not len(idx):
                 continue
             # Lift j's depth at the pixel (sub-pixel position kept) and project it back into i.
-            rays = np.stack([uv[idx, 0], uv[idx, 1], np.ones(len(idx))], 1) @ np.linalg.inv(cj.K).T
-            Xj = (rays * dj[:, None] - cj.t) @ cj.R  # camera j -> world
+            Xj = cj.unproject(uv[idx], dj)
             uvb, zb = ci.project(Xj)
             err = np.linalg.norm(uvb - uv0[idx], axis=1)
             agree = (err <= max_reproj_px) & (np.abs(zb - d[idx]) <= tol * np.abs(d[idx]))

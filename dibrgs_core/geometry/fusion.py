@@ -131,9 +131,7 @@ def neighbour_pairs_estimate(xy: np.ndarray, eps: float) -> float:
     (uniform density within a square; within a factor of about 2 on real clouds)."""
     if len(xy) == 0:
         return 0.0
-    b = np.floor(xy / eps).astype(np.int64)
-    b -= b.min(axis=0)
-    _, counts = np.unique(b[:, 0] * (int(b[:, 1].max()) + 1) + b[:, 1], return_counts=True)
+    _, counts = np.unique(_cell_ids(xy, eps), return_counts=True)
     return float(np.pi / 2 * np.sum(counts.astype(np.float64) ** 2))
 
 

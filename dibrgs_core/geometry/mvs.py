@@ -25,12 +25,15 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from ..camera.pinhole import Camera
+from ..common.digest import Digest
+from ..common.fileio import atomic_path
 from .config import MvsConfig
 from .depth_filters import MvsResult, consistency_filter, speckle_mask
 from .sgm import semi_global
@@ -195,20 +198,15 @@ class SweepCheckpoint:
 
     def __init__(self, folder: Path, cfg: MvsConfig, cams: Sequence[Camera], images: Sequence[np.ndarray],
                  up: np.ndarray | None, heights: tuple[float, float] | None) -> None:
-        from dataclasses import asdict
-
-        from ..common.digest import Digest
-
         self.folder = Path(folder)
         self.used: set[Path] = set()
-        self._digest = Digest
         self._base = Digest("mvs-sweep-1").json(asdict(cfg)).json(None if up is None else [float(v) for v in up]) \
             .json(None if heights is None else [float(v) for v in heights]).hex()
         self._views = [Digest("view").array(c.K).array(c.w2c).json([c.width, c.height]).array(im).hex()
                        for c, im in zip(cams, images)]
 
     def path(self, i: int, sources: Sequence[int], near: float, far: float) -> Path:
-        key = self._digest(self._base).json([self._views[i], [self._views[j] for j in sources],
+        key = Digest(self._base).json([self._views[i], [self._views[j] for j in sources],
                                              float(near), float(far)]).hex()
         return self.folder / f"{key}.npz"
 
@@ -224,8 +222,6 @@ class SweepCheckpoint:
             return None
 
     def save(self, path: Path, res: MvsResult) -> None:
-        from ..common.fileio import atomic_path
-
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, depth=res.depth, confidence=res.confidence, ncc=res.ncc)
 

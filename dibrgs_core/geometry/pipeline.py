@@ -43,7 +43,6 @@ log = logging.getLogger("dibrgs.init")
 SWEEPS = "sweeps"
 
 
-
 @dataclass
 class InitResult:
     """Initial point cloud (world float64, uint8 colours), height map (or None) and report.

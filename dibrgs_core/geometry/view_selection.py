@@ -39,9 +39,8 @@ def reference_samples(cam: Camera, sparse_points: np.ndarray | None, depth_range
     u = (np.arange(grid) + 0.5) * cam.width / grid
     v = (np.arange(grid) + 0.5) * cam.height / grid
     uu, vv = np.meshgrid(u, v)
-    rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], 1) @ np.linalg.inv(cam.K).T
     depth = float(np.sqrt(depth_range[0] * depth_range[1]))
-    return (rays * depth - cam.t) @ cam.R  # camera -> world
+    return cam.unproject(np.c_[uu.ravel(), vv.ravel()], np.full(uu.size, depth))
 
 
 def angle_weight(angle_deg: np.ndarray, min_angle_deg: float) -> np.ndarray:

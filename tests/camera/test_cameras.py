@@ -277,3 +277,13 @@ def test_fit_orbit_noisy_and_small():
     assert np.isfinite(two.radius) and np.isfinite(two.center).all()
     with pytest.raises(ValueError):
         fit_orbit(cams[:1])
+
+
+def test_unproject_inverts_project():
+    rng = np.random.default_rng(1)
+    K = np.array([[300.0, 2.0, 160.0], [0.0, 310.0, 120.0], [0.0, 0.0, 1.0]])  # with skew
+    cam = Camera(K=K, w2c=look_at(np.array([5.0, -40.0, 30.0]), np.zeros(3), np.array([0, 0, 1.0])), width=320,
+                 height=240)
+    X = rng.uniform(-10, 10, (100, 3))
+    uv, z = cam.project(X)
+    np.testing.assert_allclose(cam.unproject(uv, z), X, atol=1e-9)
