@@ -39,10 +39,14 @@ def main(argv: list[str] | None = None) -> int:
                         "of three photos, split.json training on the middle photo of each strip); corridor (one "
                         "strip of five, training on every other); oblique (grid's block, camera pitched 35 deg "
                         "forward)")
+    p.add_argument("--lens-factor", type=float, default=1.0,
+                   help="fly this many times as far with a lens this many times as long: the same ground in "
+                        "the same pixels, nearly orthographic at 100 (a satellite's view)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")
-    out = make_scene(a.kind, a.resolution, a.seed, a.out, samples=a.samples, orbit=a.orbit, flight=a.flight)
+    out = make_scene(a.kind, a.resolution, a.seed, a.out, samples=a.samples, orbit=a.orbit, flight=a.flight,
+                     lens_factor=a.lens_factor)
     print(out)
     return 0
 

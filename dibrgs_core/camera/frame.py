@@ -17,6 +17,9 @@ from .pinhole import Camera
 #: Cameras count as held level (no roll) when their image x axes leave a common plane by at most
 #: this RMS angle (degrees): gimbals and survey mounts keep the image's x axis horizontal.
 LEVEL_ROLL_DEG = 5.0
+#: :attr:`Camera.span <.pinhole.Camera.span>` of the lens the paper's lengths and angles are taken
+#: for: a 35 mm lens on a 36 mm sensor (about 54 degrees across), as the LEVIR-like generated scenes.
+REFERENCE_SPAN = 36.0 / 35.0
 #: The x axes fix up on their own when they spread this far out of one direction (RMS angle,
 #: degrees): the cameras face different headings (an orbit, a free flight).
 HEADING_SPREAD_DEG = 10.0
@@ -130,3 +133,13 @@ def scene_depth(points: np.ndarray, cams: Sequence[Camera]) -> float | None:
     z = np.concatenate(zs) if zs else np.zeros(0)
     z = z[np.isfinite(z) & (z > 0)]
     return float(np.median(z)) if len(z) else None
+
+
+def span_factor(cams: Iterable[Camera]) -> float:
+    """The cameras' median :attr:`~.pinhole.Camera.span` over :data:`REFERENCE_SPAN`: how much more
+    ground (or less: a telephoto or satellite lens, about 0.01) a view covers at a given depth than
+    the reference lens does. Lengths that stand for a share of the scene and tolerances on relative
+    depth are taken in proportion, so a narrow view is not treated as a wide view of a larger scene.
+    Exactly 1 for the reference lens (the division's rounding would move every threshold by a bit)."""
+    span = float(np.median([c.span for c in cams]))
+    return 1.0 if np.isclose(span, REFERENCE_SPAN, rtol=1e-9, atol=0.0) else span / REFERENCE_SPAN

@@ -31,7 +31,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from .frame import estimate_up, up_frame
+from .frame import estimate_up, span_factor, up_frame
 from .orbit import Orbit, fit_orbit
 from .pinhole import Camera, look_at
 from .rotations import axis_angle, slerp
@@ -109,9 +109,7 @@ class Trajectory:
                 "orbit": None if self.orbit is None else self.orbit.to_dict()}
 
 
-# ---------------------------------------------------------------------------
-# Classification
-# ---------------------------------------------------------------------------
+# -- Classification -----------------------------------------------------------
 def _nn_spacing(P: np.ndarray, same: float = 0.0) -> float:
     """Median distance from a position to its nearest other position (positions at most ``same``
     apart count as one: two photos from one place do not make the spacing 0); 0 when all coincide."""
@@ -263,8 +261,8 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
         up: scene up axis (default :func:`.frame.estimate_up`).
         extend: strips are continued this many camera spacings past their end cameras.
         scene_depth: typical distance from the cameras to the scene (world units); a single
-            camera (or cameras at one position) has no spacing, so a quarter of this stands in
-            for it (default 1).
+            camera (or cameras at one position) has no spacing, so a quarter of the ground a view
+            covers there (x :func:`.frame.span_factor`) stands in for it (default 1).
     """
     cams = list(cams)
     if not cams:
@@ -276,7 +274,8 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
     C = np.stack([c.center for c in cams])
     P = (C @ F.T)[:, :2]
     n = len(cams)
-    stand_in = 0.25 * scene_depth if scene_depth and np.isfinite(scene_depth) and scene_depth > 0 else 1.0
+    known = scene_depth and np.isfinite(scene_depth) and scene_depth > 0
+    stand_in = 0.25 * scene_depth * span_factor(cams) if known else 1.0
     spacing = _nn_spacing(P, 1e-9 * float(np.abs(C).max())) if n > 1 else 0.0
     # Positions equal up to rounding (of the coordinates, or against the scene's depth) coincide.
     if spacing <= max(1e-9 * float(np.abs(C).max()), 1e-6 * stand_in if scene_depth else 0.0):
@@ -328,9 +327,7 @@ def classify(cams: Sequence[Camera], up: np.ndarray | None = None, extend: float
                       segments=[Segment(a, b) for a, b in pairs])
 
 
-# ---------------------------------------------------------------------------
-# Sampling
-# ---------------------------------------------------------------------------
+# -- Sampling -----------------------------------------------------------------
 def _jitter(eye: np.ndarray, R: np.ndarray, rng: np.random.Generator, sigma: float, F: np.ndarray,
             look_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """Shift ``eye`` (horizontal sigma, vertical sigma/2) and tilt the optical axis of ``R`` (world->camera)
@@ -359,10 +356,11 @@ def sample_poses(traj: Trajectory, cams: Sequence[Camera], n: int, seed: int, ji
     * otherwise: a segment of ``traj.segments`` at random (weighted by its length), a point on
       it, the rotation slerped between its cameras.
 
-    Every pose is then jittered: position by ``jitter`` x the length of its segment (an orbit:
-    the smaller of the camera spacing and the radius; horizontally, half that vertically), look direction by ``look_deg`` degrees. Intrinsics and image
-    size come from the nearer camera of the segment (an orbit: the first camera). Names are
-    ``pseudo_000``...
+    Every pose is then jittered: position by ``jitter`` x the length of its segment (an orbit: the
+    smaller of the camera spacing and the radius, x :func:`.frame.span_factor`; horizontally, half
+    that vertically), look direction by ``look_deg`` degrees x the span factor: the view of an orbit
+    100 x as far through a lens 100 x as long moves by the same share of the image. Intrinsics and
+    image size come from the nearer camera of the segment (an orbit: the first one); names ``pseudo_000``...
     """
     cams = list(cams)
     if n <= 0:
@@ -370,9 +368,11 @@ def sample_poses(traj: Trajectory, cams: Sequence[Camera], n: int, seed: int, ji
     rng = np.random.default_rng(seed)
     F = up_frame(traj.up)
     out = []
+    span = span_factor(cams)
+    look_deg = look_deg * span
     if traj.kind == "orbit" and traj.orbit is not None:
         o = traj.orbit
-        sigma = jitter * min(traj.spacing, o.radius)
+        sigma = jitter * min(traj.spacing, o.radius) * span
         for i in range(n):
             eye = o.point(rng.uniform(0.0, 2.0 * np.pi))
             R = look_at(eye, o.target, o.normal)[:3, :3]

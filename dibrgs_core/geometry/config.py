@@ -4,8 +4,11 @@
 Units. The paper's thresholds (eps_xy 0.1, eps_z 1.0, voxel 1.0, height-map cell 10) are in
 LEVIR-NVS units, where the training cameras are about ``LEVIR_REFERENCE_DEPTH`` = 115 units from
 the scene (the paper's MAE / Abs Rel ratio, 3.16 / 0.0273). ``InitConfig.scale = None`` scales
-them by the scene's reference distance / 115 (:mod:`.scene_geometry`) so a scene in other units
-(or a generated one) gets the same relative thresholds; a number overrides it.
+them by the scene's reference distance x the lens's span / 115 (:mod:`.scene_geometry`) so a scene
+in other units (or a generated one, or one seen through a telephoto or satellite lens) gets the
+same relative thresholds; a number overrides it. The sweep's height range and its relative depth
+tolerances (``consistency_tol``, ``speckle_tol``) are taken for the reference lens and multiplied by
+the span as well (:func:`~dibrgs_core.camera.frame.span_factor`).
 """
 from __future__ import annotations
 

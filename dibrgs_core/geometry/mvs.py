@@ -31,6 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..camera.frame import span_factor
 from ..camera.pinhole import Camera
 from ..common.digest import Digest
 from ..common.fileio import atomic_path
@@ -255,11 +256,14 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
         pts = np.asarray(sparse_points, np.float64) - np.mean([c.center for c in cameras], axis=0)
     up = sweep_up(cams, cfg)
     ranges = [depth_range_for(c, pts, fallback_distance) for c in cams]
+    # Relief and depth tolerances in proportion to the ground a view covers, not to its distance.
+    span = span_factor(cams)
     heights = None
     if up is not None and cfg.height_above > 0:
-        heights = scene_heights(cams, up, cfg, pts)
+        heights = scene_heights(cams, up, cfg, pts, span)
         log.info("MVS height planes: %s", "every height the depth ranges allow (ground unknown)" if heights is None
-                 else f"{cfg.height_below:g} below to {cfg.height_above:g} above the ground, in flying heights")
+                 else f"{cfg.height_below:g} below to {cfg.height_above:g} above the ground, in flying heights"
+                 + ("" if abs(span - 1.0) < 0.01 else f" x the lens's span {span:.3g}"))
     sources = select_sources(cams, pts, ranges, cfg.max_sources)
     if any(len(s) < len(cams) - 1 for s in sources):
         log.info("MVS sources: each of %d views against at most %d others (those that see most of it from a "
@@ -285,9 +289,9 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
     if cfg.speckle_px > 0:
         out = [MvsResult(*(np.where(keep, a, np.nan if k == 0 else 0).astype(np.float32) if k < 2 else a
                            for k, a in enumerate((r.depth, r.confidence, r.ncc))))
-               for r in out for keep in [speckle_mask(r.depth, cfg.speckle_tol, cfg.speckle_px)]]
+               for r in out for keep in [speckle_mask(r.depth, cfg.speckle_tol * span, cfg.speckle_px)]]
     if cfg.min_consistent_views > 0 and len(cams) > 1:
-        out = consistency_filter(cams, out, cfg.consistency_tol, cfg.min_consistent_views, cfg.max_reproj_px,
+        out = consistency_filter(cams, out, cfg.consistency_tol * span, cfg.min_consistent_views, cfg.max_reproj_px,
                                  sources)
     if f < 1.0:
         out = [MvsResult(*(_upsample(a, c) for a in (r.depth, r.confidence, r.ncc))) for r, c in zip(out, full)]

@@ -215,7 +215,8 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
     report.decide(STAGE, "working_size", geo.resize != 1.0, why)
     sparse = run_sparse(geo, cfg, report)
     sfm_reference(geo, sparse, cfg, report)
-    report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source)
+    report.values.update(scale=geo.scale, origin=geo.origin, ref_distance=geo.ref_distance, ref_source=geo.ref_source,
+                         span=geo.span)
     density = len(sparse) / max(geo.n_pixels, 1)
     use_prior = density < cfg.dense_sfm_ratio
     report.decide(STAGE, "depth_prior", use_prior,
@@ -322,7 +323,7 @@ def load_result(out_dir: str | Path, config: InitConfig, inputs: str | None = No
 
 def _plane_fallback(geo: SceneGeometry, n: int = 32) -> tuple[np.ndarray, np.ndarray]:
     F = geo.frame
-    half = geo.ref_distance * 0.5
+    half = geo.ref_distance * geo.span * 0.5
     g = np.linspace(-half, half, n)
     a, b = np.meshgrid(g, g)
     P = geo.origin + a.reshape(-1, 1) * F[0] + b.reshape(-1, 1) * F[1]

@@ -1,6 +1,10 @@
 """What the geometry stages share: the training cameras and images, the up frame, a local origin
 and the scene's scale (scene units per paper unit), with the scale taken from the SfM points
-when the cameras' axes do not converge (a mapping grid)."""
+when the cameras' axes do not converge (a mapping grid).
+
+The scale is the width of ground a view covers, against LEVIR-NVS's: the reference distance times
+the lens's span (:func:`~dibrgs_core.camera.frame.span_factor`), over 115. A satellite's narrow view
+from 20 km covers what a drone's covers from 200 m, and gets the same thresholds."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..camera.frame import estimate_up, nadir_angle_deg, up_frame
+from ..camera.frame import estimate_up, nadir_angle_deg, span_factor, up_frame
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from ..common.report import Report
@@ -33,6 +37,7 @@ class SceneGeometry:
     scale: float
     ref_distance: float
     ref_source: str = "look-at"
+    span: float = 1.0  # the lens's span against the reference lens (camera.frame.span_factor)
     resize: float = 1.0  # the training photos' size factor here (InitConfig.max_side)
 
     @property
@@ -71,11 +76,12 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
             ref, source = _overlap_distance(cams), "camera-spacing"
         # A point ``ref`` in front of the cameras' centroid: the ground below them, roughly.
         origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
-    scale = float(config.scale) if config.scale else ref / LEVIR_REFERENCE_DEPTH
+    span = span_factor(cams)
+    scale = float(config.scale) if config.scale else ref * span / LEVIR_REFERENCE_DEPTH
     images = [np.asarray(v.image, np.float32) if resize == 1.0 else area_resize(v.image, c) for v, c in zip(views, cams)]
     depths = [v.depth if resize == 1.0 or v.depth is None else _nearest(v.depth, c) for v, c in zip(views, cams)]
     return SceneGeometry(cams, images, depths, up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale,
-                         ref, source, resize)
+                         ref, source, span, resize)
 
 
 def _nearest(depth: np.ndarray, cam: Camera) -> np.ndarray:
@@ -105,10 +111,14 @@ def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, r
     """Replace a provisional reference distance (see :func:`scene_geometry`) by the median z-depth of the
     SfM points in the training views, and the origin by their median; the scale follows (unless
     ``config.scale`` is set)."""
+    def decide(why: str) -> None:
+        lens = "" if abs(geo.span - 1.0) < 0.01 else f"; the lens covers {geo.span:.3g} x the reference's width"
+        report.decide(STAGE, "scene_scale", True, f"{why}{lens}", source=geo.ref_source,
+                      ref_distance=geo.ref_distance, span=geo.span, scale=geo.scale)
+
     if geo.ref_source == "look-at" or len(sparse) < config.min_sfm_points:
-        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
-                      f"{'point the cameras converge on' if geo.ref_source == 'look-at' else geo.ref_source}",
-                      source=geo.ref_source, ref_distance=geo.ref_distance, scale=geo.scale)
+        decide(f"reference distance {geo.ref_distance:.4g} from the "
+               f"{'point the cameras converge on' if geo.ref_source == 'look-at' else geo.ref_source}")
         return
     depths = []
     for c in geo.cameras:
@@ -117,16 +127,14 @@ def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, r
         depths.append(z[ok])
     z = np.concatenate(depths)
     if len(z) < config.min_sfm_points:
-        report.decide(STAGE, "scene_scale", True, f"reference distance {geo.ref_distance:.4g} from the "
-                      f"{geo.ref_source}: only {len(z)} SfM points in the views", source=geo.ref_source,
-                      ref_distance=geo.ref_distance, scale=geo.scale)
+        decide(f"reference distance {geo.ref_distance:.4g} from the {geo.ref_source}: only {len(z)} SfM points "
+               "in the views")
         return
     old, old_source = geo.ref_distance, geo.ref_source
     geo.ref_distance = float(np.median(z))
     geo.origin = np.median(sparse.points, axis=0)
     geo.ref_source = "sfm"
     if not config.scale:
-        geo.scale = geo.ref_distance / LEVIR_REFERENCE_DEPTH
-    report.decide(STAGE, "scene_scale", True, f"the cameras' axes do not converge (parallel views): reference "
-                  f"distance {geo.ref_distance:.4g} = median SfM point depth (provisional {old:.4g} from the "
-                  f"{old_source})", source="sfm", ref_distance=geo.ref_distance, scale=geo.scale)
+        geo.scale = geo.ref_distance * geo.span / LEVIR_REFERENCE_DEPTH
+    decide(f"the cameras' axes do not converge (parallel views): reference distance {geo.ref_distance:.4g} = "
+           f"median SfM point depth (provisional {old:.4g} from the {old_source})")

@@ -182,6 +182,14 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         opts.triangulation.min_angle = cfg.min_angle_deg
         opts.triangulation.complete_max_reproj_error = cfg.max_reproj_error
         opts.triangulation.merge_max_reproj_error = cfg.max_reproj_error
+        # The final filter has its own angle (COLMAP's 1.5 deg): one setting, not two.
+        opts.mapper.filter_min_tri_angle = cfg.min_angle_deg
+        # COLMAP skips images whose focal length is outside [0.1, 10] x their long side as badly
+        # calibrated; ours are given. A telephoto or satellite lens (about 100) lost every point.
+        # Only the pipeline's own setting counts: it overwrites the triangulator's and mapper's.
+        ratios = [max(c.fx, c.fy) / max(c.width, c.height) for c in cams]
+        opts.max_focal_length_ratio = max(opts.max_focal_length_ratio, 2.0 * max(ratios))
+        opts.min_focal_length_ratio = min(opts.min_focal_length_ratio, 0.5 * min(ratios))
         out = root / "sparse"
         out.mkdir(exist_ok=True)
         res = pycolmap.triangulate_points(rec, db_path, img_dir, out, options=opts, refine_intrinsics=False)

@@ -91,9 +91,11 @@ def scene_ground(cams: Sequence[Camera], up: np.ndarray, sparse_points: np.ndarr
 
 
 def scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig,
-                   sparse_points: np.ndarray | None = None) -> tuple[float, float] | None:
+                  sparse_points: np.ndarray | None = None, span: float = 1.0) -> tuple[float, float] | None:
     """Heights to sweep: from ``height_below`` to ``height_above`` times the flying height above the
-    ground (:func:`scene_ground`: the cameras' convergence point, else the SfM points).
+    ground (:func:`scene_ground`: the cameras' convergence point, else the SfM points) times ``span``
+    (:func:`~dibrgs_core.camera.frame.span_factor`: a narrow lens sees a small patch of ground from
+    high up, whose relief is small against the height).
 
     The cameras' depth ranges allow every height from far below the ground up
     to the cameras; sweeping all of it spreads the planes thin and, on
@@ -104,7 +106,7 @@ def scene_heights(cams: Sequence[Camera], up: np.ndarray, cfg: MvsConfig,
     if g is None:
         return None
     ground, alt, _ = g
-    return ground - cfg.height_below * alt, ground + cfg.height_above * alt
+    return ground - cfg.height_below * alt * span, ground + cfg.height_above * alt * span
 
 
 def sweep_up(cams: Sequence[Camera], config: MvsConfig) -> np.ndarray | None:

@@ -88,14 +88,15 @@ def build_scene(bpy, kind: str, resolution: int, rng: np.random.Generator, sampl
     sc.camera = cam_ob
 
 
-def set_camera(bpy, cam: Camera) -> None:
+def set_camera(bpy, cam: Camera, clip: tuple[float, float] = (1.0, 10000.0)) -> None:
+    """Make ``cam`` the scene camera; ``clip``: Blender's clip start and end (metres)."""
     p = to_blender(cam)
     sc = bpy.context.scene
     ob = sc.camera
     d = ob.data
     d.lens, d.sensor_width, d.sensor_height, d.sensor_fit = p.lens, p.sensor_width, p.sensor_height, p.sensor_fit
     d.shift_x, d.shift_y = p.shift_x, p.shift_y
-    d.clip_start, d.clip_end = 1.0, 10000.0
+    d.clip_start, d.clip_end = clip
     sc.render.pixel_aspect_x, sc.render.pixel_aspect_y = p.pixel_aspect_x, p.pixel_aspect_y
     from mathutils import Matrix
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ log = logging.getLogger("dibrgs.scenegen")
 
 
 def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: int | None = None,
-               orbit: str = DEFAULT_ORBIT, flight: str = "orbit") -> Path:
+               orbit: str = DEFAULT_ORBIT, flight: str = "orbit", lens_factor: float = 1.0) -> Path:
     """Render a procedural aerial scene into ``out`` in LEVIR-NVS layout (see module docstring).
 
     Args:
@@ -46,6 +47,9 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         flight: ``orbit`` (views 000-020, LEVIR-NVS's protocol) or a mapping flight, a key of
             :data:`~.flights.GRIDS` (``grid``, ``corridor``, ``oblique``), with its ``split.json``.
             The same seed gives the same scene under every flight.
+        lens_factor: the flight flown this many times as far from the scene with a lens this many
+            times as long (the attitude noise of a grid this many times smaller): the same ground in
+            the same pixels, seen nearly orthographically at 100, as from a satellite.
 
     Returns the output folder. Must run in a background Blender/bpy process: it
     resets the current Blender file.
@@ -63,7 +67,13 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         raise ValueError(f"orbit must be one of {sorted(ORBITS)}, got {orbit!r}")
     if flight not in FLIGHTS:
         raise ValueError(f"flight must be one of {FLIGHTS}, got {flight!r}")
+    if not lens_factor > 0:
+        raise ValueError(f"lens_factor must be > 0, got {lens_factor}")
+    k = float(lens_factor)
     spec = ORBITS[orbit]
+    if k != 1.0:
+        spec = replace(spec, radius=spec.radius * k, height=spec.height * k, nadir_height=spec.nadir_height * k,
+                       lens_mm=spec.lens_mm * k)
     if not bpy.app.background:
         raise RuntimeError("make_scene resets the Blender file; run it in a background process")
     samples = default_samples(resolution) if samples is None else int(samples)
@@ -74,10 +84,14 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     split = None
     if flight in GRIDS:
         # Its own noise stream: the scene below draws from rng exactly as for an orbit.
-        views, track, split = grid_cameras(resolution, phase, np.random.default_rng([seed, 1]), GRIDS[flight],
+        grid = GRIDS[flight]
+        if k != 1.0:
+            grid = replace(grid, height=grid.height * k, lens_mm=grid.lens_mm * k, tilt_deg=grid.tilt_deg / k)
+        views, track, split = grid_cameras(resolution, phase, np.random.default_rng([seed, 1]), grid,
                                            ground=GRID_CLEARANCE.get(kind, 0.0))
     else:
         views, track = scene_cameras(resolution, phase, spec)
+    clip = (k, 10000.0 * k)  # Blender's clip range, as far out as the flight
     build_scene(bpy, kind, resolution, rng, samples)
     bpy.context.scene.render.threads_mode = "AUTO"
     log.info("built %s scene (seed %d) in %.1fs; rendering %d views at %dx%d, %d spp", kind, seed,
@@ -87,12 +101,12 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
     dmin_all, dmax_all = np.inf, 0.0
     with tempfile.TemporaryDirectory(prefix="dibrgs_scenegen_") as tmp:
         for cam in tqdm(views, desc=f"render {kind} {resolution}px", unit="view"):
-            set_camera(bpy, cam)
+            set_camera(bpy, cam, clip)
             rgb = render_rgb(bpy, Path(tmp) / f"{cam.name}.exr")
             write_png(out / "Images" / f"{cam.name}.png", linear_to_srgb8(rgb))
         depth_mode(bpy)
         for cam in tqdm(views, desc="render depth", unit="view"):
-            set_camera(bpy, cam)
+            set_camera(bpy, cam, clip)
             depth = render_rgb(bpy, Path(tmp) / f"{cam.name}_z.exr")[..., 0]
             depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
             valid = depth[depth > 0]
@@ -106,10 +120,10 @@ def make_scene(kind: str, resolution: int, seed: int, out: str | Path, samples: 
         cam.depth_range = (0.95 * dmin_all, 1.05 * dmax_all)
         write_cams_file(out / "Track" / f"{cam.name}.txt", cam)
     meta = {"generator": "dibrgs_core.synth.writer", "kind": kind, "seed": seed, "resolution": resolution,
-            "samples": samples, "flight": flight}
+            "samples": samples, "flight": flight, "lens_factor": k}
     if split is not None:
         write_json(out / "split.json", split)
-        meta.update({"grid_heading_rad": phase, "grid": GRIDS[flight].__dict__,
+        meta.update({"grid_heading_rad": phase, "grid": grid.__dict__,
                      "grid_ground": GRID_CLEARANCE.get(kind, 0.0)})
     else:
         meta.update({"orbit_phase_rad": phase, "orbit_name": orbit, "orbit": spec.__dict__})

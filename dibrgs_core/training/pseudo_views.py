@@ -52,7 +52,7 @@ from .pseudo_warp import PADDED, RTOL, Projector, disagreement, fill_progressive
 
 log = logging.getLogger("dibrgs.pseudo_views")
 
-_CACHE_VERSION = "pseudo-v5"  # v5: poses along the headings of one-photo-a-strip splits
+_CACHE_VERSION = "pseudo-v6"  # v6: look jitter in proportion to the lens's span
 
 
 @dataclass

@@ -287,3 +287,20 @@ def test_unproject_inverts_project():
     X = rng.uniform(-10, 10, (100, 3))
     uv, z = cam.project(X)
     np.testing.assert_allclose(cam.unproject(uv, z), X, atol=1e-9)
+
+
+def test_span_is_the_views_width_per_unit_of_depth():
+    """2 tan(fov / 2) for a square image, the geometric mean of both sides otherwise; the same at any
+    image size (a resized photo covers the same ground)."""
+    from dibrgs_core.camera.frame import REFERENCE_SPAN, span_factor
+
+    f = 128 / np.tan(np.radians(25.0))
+    cam = Camera(K=np.array([[f, 0, 128], [0, f, 128], [0, 0, 1.0]]), w2c=np.eye(4), width=256, height=256)
+    assert cam.span == pytest.approx(2 * np.tan(np.radians(25.0)), rel=1e-12)
+    assert cam.scaled(0.5).span == pytest.approx(cam.span, rel=1e-12)
+    wide = Camera(K=np.array([[661.2, 0, 476.5], [0, 661.2, 268.0], [0, 0, 1.0]]), w2c=np.eye(4), width=953, height=536)
+    assert wide.span == pytest.approx(np.sqrt(953 / 661.2 * 536 / 661.2), rel=1e-12)  # brighton_north's photos
+    assert span_factor([wide, wide, cam]) == pytest.approx(wide.span / REFERENCE_SPAN)
+    ref = Camera(K=np.array([[35 / 36 * 256, 0, 128], [0, 35 / 36 * 256, 128], [0, 0, 1.0]]), w2c=np.eye(4),
+                 width=256, height=256)
+    assert span_factor([ref]) == 1.0  # exactly: the generated scenes keep their thresholds to the bit

@@ -194,6 +194,24 @@ def test_classes_and_poses_do_not_depend_on_units_or_origin(scale, offset):
             assert np.allclose(x.R, y.R, atol=1e-6)
 
 
+def test_a_telephoto_orbit_jitters_by_the_same_share_of_its_view():
+    """The orbit seen from 100 x further through a 100 x longer lens (a satellite's view): jitter in
+    position and look direction moves the orbit's target across the image by the same share of it as
+    for the near orbit. Taken from the distances and in degrees, it threw the target 2-3 images away."""
+    tele = K.copy()
+    tele[0, 0] *= 100.0
+    tele[1, 1] *= 100.0
+    near = orbit_cams()
+    far = [Camera(K=tele, w2c=look_at(100 * c.center, [0, 0, 0], [0, 0, 1]), width=320, height=180, name=c.name)
+           for c in near]
+    shifts = {}
+    for name, cams in (("near", near), ("far", far)):
+        t = classify(cams)
+        uv = np.array([p.project(t.orbit.target[None])[0][0] for p in sample_poses(t, cams, 200, 3)])
+        shifts[name] = np.median(np.linalg.norm(uv - [160, 90], axis=1)) / 320
+    assert 0.005 < shifts["near"] < 0.2 and 0.5 < shifts["far"] / shifts["near"] < 2.0, shifts
+
+
 def test_sampling_is_seeded_and_prefix_stable():
     cams = [nadir(-3.0, 2.2), nadir(0.0, 2.5), nadir(3.0, 2.4)]
     t = classify(cams)
@@ -204,13 +222,14 @@ def test_sampling_is_seeded_and_prefix_stable():
     assert all(np.array_equal(p.K, K) and (p.width, p.height) == (320, 180) for p in a)
     assert sample_poses(t, cams, 0, 7) == []
     single = classify(cams[:1], scene_depth=5.3)
-    assert single.kind == "free" and single.spacing == pytest.approx(5.3 / 4)
+    quarter = 5.3 / 4 * cams[0].span / (36 / 35)  # a quarter of the ground the view covers, for the reference lens
+    assert single.kind == "free" and single.spacing == pytest.approx(quarter)
     assert len(sample_poses(single, cams[:1], 3, 0)) == 3
     # Cameras at one position (a panning camera): jitter from the scene depth, not from units.
     pan = [Camera(K=K, w2c=look_at([1e3, 0, 5.3], [1e3 + dx, 1, 0], [0, 0, 1]), width=320, height=180)
            for dx in (-1.0, 0.0, 1.0)]
     t_pan = classify(pan, scene_depth=5.3)
-    assert t_pan.kind == "free" and t_pan.spacing == pytest.approx(5.3 / 4) and "one position" in t_pan.reason
+    assert t_pan.kind == "free" and t_pan.spacing == pytest.approx(quarter) and "one position" in t_pan.reason
     offs = [np.linalg.norm(p.center - pan[0].center) for p in sample_poses(t_pan, pan, 50, 0)]
     assert 0.02 < np.median(offs) < 0.5
 

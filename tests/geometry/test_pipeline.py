@@ -211,6 +211,44 @@ def test_geometry_does_not_depend_on_units(grid_scene, tmp_path):
             assert abs(figs[f][k] - base[k]) <= 0.01 * base[k] + 5, (f, k, figs[f][k], base[k])
 
 
+def _footprint_figures(scene, res):
+    """Figures of a geometry result that do not depend on the lens: coverage of the training pixels
+    (measured points), median depth error in widths of ground a view covers, SfM points, the scale in
+    those widths."""
+    cov, err = [], []
+    keep = res.dense_confidence >= 0.5
+    for v in scene.train_views():
+        d = zbuffer(v.camera, res.dense_points[keep])
+        ok = np.isfinite(d)
+        cov.append(ok.mean())
+        err.append(np.abs(d[ok] - v.depth[ok]) / (v.depth[ok] * v.camera.span))
+    return float(np.mean(cov)), float(np.median(np.concatenate(err)))
+
+
+@pytest.mark.stability
+def test_a_telephoto_view_of_the_scene_gets_the_same_geometry(tmp_path):
+    """The same orbit seen from 100 x further through a 100 x narrower lens (a satellite's view: nearly
+    orthographic, the same ground in the same pixels): the scale follows the ground a view covers,
+    not its distance, so the sweep's height range, tolerances and voxels are those of the near view.
+    They followed the distance: no SfM point (COLMAP's focal-length guard), 7 % of the pixels
+    measured, the anchors' voxel as wide as the scene."""
+    near, hf = make_synthetic_scene(64, fov_deg=50.0)
+    fov = 2 * np.degrees(np.arctan(np.tan(np.radians(25.0)) / 100))
+    far, _ = make_synthetic_scene(64, radius=5000.0, height=11000.0, fov_deg=fov, hf=hf)
+    figs, vals = {}, {}
+    for name, sc in (("near", near), ("far", far)):
+        res = initialise(sc, tmp_path / name, InitConfig(depth_prior="mvs"))
+        vals[name] = _decisions(tmp_path / name)[1]
+        assert np.isfinite(res.points).all(), name
+        figs[name] = _footprint_figures(sc, res)
+    assert vals["far"]["sfm_points"] >= 10  # 15 near, 34 far: the long view's matches are more exact
+    assert abs(vals["far"]["span"] - vals["near"]["span"] / 100) < 1e-6 * vals["near"]["span"]
+    assert abs(vals["far"]["scale"] / vals["near"]["scale"] - 1) < 0.02
+    assert abs(vals["far"]["points"] / vals["near"]["points"] - 1) < 0.25, (vals["far"]["points"], vals["near"]["points"])
+    assert figs["far"][0] > figs["near"][0] - 0.1 and figs["near"][0] > 0.3, figs
+    assert figs["far"][1] < 2 * figs["near"][1] + 1e-3, figs
+
+
 @pytest.mark.slow
 def test_a_redundant_cloud_is_thinned_before_the_overlap_removal(tmp_path):
     """Many views of the same ground give the overlap removal a number of close pairs that grows
