@@ -29,6 +29,8 @@ POINTS_NAME = "DIBR-GS Dense points"
 HEIGHT_NAME = "DIBR-GS Height map"
 FLY_NAME = "DIBR-GS Fly-through camera"
 SCENE_TEXT = "DIBR-GS scene.json"
+#: Scene property: the clip range (start, end) of cameras without a depth range, in the scene's units.
+CLIP_KEY = "dibrgs_clip"
 #: Custom properties of the path curve: :func:`path_fingerprint` as the add-on drew it, and the
 #: kind of trajectory it was drawn along.
 FINGERPRINT_KEY = "dibrgs_path_fingerprint"
@@ -74,8 +76,10 @@ def clear_collection(name: str) -> None:
 # cameras
 # ---------------------------------------------------------------------------
 def apply_camera(obj: bpy.types.Object, cam: "pinhole.Camera", scene: bpy.types.Scene | None = None) -> None:
-    """Set ``obj``'s pose and camera data from an OpenCV camera (render size on ``scene`` if given)."""
-    p = camera_blender.to_blender(cam)
+    """Set ``obj``'s pose and camera data from an OpenCV camera (render size on ``scene`` if given;
+    without a depth range, the imported scene's clip range)."""
+    clip = bpy.context.scene.get(CLIP_KEY)
+    p = camera_blender.to_blender(cam, clip=tuple(clip) if clip else None)
     d = obj.data
     d.type = "PERSP"
     d.lens_unit = "MILLIMETERS"
@@ -134,6 +138,8 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     view object keeps its own size (:func:`camera_from_object`). Returns view id -> camera object.
     """
     scene = context.scene
+    scene[CLIP_KEY] = desc.get("clip") or camera_blender.DEFAULT_CLIP
+    fit_viewport_clip(*scene[CLIP_KEY])
     for name in SPLIT_COLLECTIONS.values():
         clear_collection(name)
     for obj in [o for o in bpy.data.objects if "dibrgs_view" in o]:  # view cameras moved out of them
@@ -161,6 +167,16 @@ def build_scene(context: bpy.types.Context, desc: dict[str, Any]) -> dict[str, b
     text = bpy.data.texts.get(SCENE_TEXT) or bpy.data.texts.new(SCENE_TEXT)
     text.from_string(json.dumps(desc, indent=1))
     return objs
+
+
+def fit_viewport_clip(start: float, end: float) -> None:
+    """Give the 3D views the clip range ``start``-``end`` where theirs would cut the scene away (its
+    units are the file's: millimetres or kilometres are 1,000 x Blender's default either way)."""
+    for screen in bpy.data.screens:
+        for area in screen.areas:
+            for space in area.spaces:
+                if space.type == "VIEW_3D" and (space.clip_end < end or space.clip_start > start):
+                    space.clip_start, space.clip_end = start, end
 
 
 def view_photo(view: str, path: str, orientation: int) -> bpy.types.Image:

@@ -18,7 +18,11 @@ checks on LEVIR, COLMAP (text and binary) and transforms scenes. The description
                                             stored pixels into the view's image,
                                             "undistorted": whether the camera is the
                                             undistorted pinhole of a distorted one}],
-     "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z]}
+     "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z],
+     "clip": [start, end]}
+
+``clip`` is the Blender clip range for cameras without a depth range
+(:func:`~dibrgs_core.camera.blender.clip_range`: in the scene's units).
 
 Cameras are relative to ``origin`` (zeros unless the scene lies far from its coordinate origin:
 :func:`~dibrgs_core.data.scene.in_local_frame`, the rule the library's readers follow), because
@@ -34,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from ..camera.blender import clip_range
 from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
@@ -76,7 +81,8 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         out.append({"name": name, "split": split, "camera": camera_to_dict(cam), "image": str(path.resolve()),
                     "orientation": orientation, "undistorted": undistorted})
     return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
-            "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin]}
+            "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin],
+            "clip": [float(v) for v in clip_range(list(views.values()))]}
 
 
 def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], list[Camera]]:

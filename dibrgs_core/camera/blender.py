@@ -9,9 +9,11 @@ parameters with bpy).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
+from .frame import overlap_distance
 from .pinhole import Camera, rigid_inverse
 
 
@@ -54,12 +56,29 @@ def _blender_fit(sensor_fit: str, width: int, height: int, pax: float, pay: floa
     return sensor_fit
 
 
-def to_blender(cam: Camera, sensor_width: float = 36.0, sensor_fit: str = "AUTO") -> BlenderCameraParams:
+#: Blender's own camera clip range (start, end), for cameras of unknown depth range and scale.
+DEFAULT_CLIP = (0.1, 1000.0)
+
+
+def clip_range(cams: Sequence[Camera]) -> tuple[float, float]:
+    """Clip start and end for cameras without a depth range (COLMAP, transforms.json): 1/100 and
+    100 x :func:`.frame.overlap_distance`, in the scene's units (Blender's 0.1-1000 cuts away a
+    model in millimetres or kilometres); :data:`DEFAULT_CLIP` without two camera positions."""
+    cams = list(cams)
+    if len(cams) < 2 or not np.ptp(np.stack([c.center for c in cams]), axis=0).any():
+        return DEFAULT_CLIP
+    d = overlap_distance(cams)
+    return d / 100.0, d * 100.0
+
+
+def to_blender(cam: Camera, sensor_width: float = 36.0, sensor_fit: str = "AUTO",
+               clip: tuple[float, float] | None = None) -> BlenderCameraParams:
     """Convert an OpenCV camera to Blender camera parameters (exact).
 
     ``fx != fy`` is expressed with the pixel aspect ratio (fy/fx = pax/pay);
     an off-centre principal point with the lens shift. Skew is not
-    representable in Blender and raises.
+    representable in Blender and raises. The clip range is the camera's depth range, else ``clip``
+    (:func:`clip_range`), else :data:`DEFAULT_CLIP`.
     """
     if abs(cam.K[0, 1]) > 1e-12 * max(1.0, cam.fx):
         raise ValueError("Blender cameras cannot represent a skewed K")
@@ -81,7 +100,7 @@ def to_blender(cam: Camera, sensor_width: float = 36.0, sensor_fit: str = "AUTO"
     shift_y = (cam.cy - H / 2.0) * ycor / viewfac
     other = sensor * (H * ycor / W if fit == "HORIZONTAL" else W / (H * ycor))
     sw, sh = (sensor, other) if (sensor_fit == "AUTO" or fit == "HORIZONTAL") else (other, sensor)
-    near, far = cam.depth_range if cam.depth_range else (0.1, 1000.0)
+    near, far = cam.depth_range if cam.depth_range else (clip or DEFAULT_CLIP)
     return BlenderCameraParams(
         matrix_world=cam.c2w @ _CV_TO_GL, lens=float(lens), sensor_width=float(sw),
         sensor_height=float(sh), sensor_fit=sensor_fit, shift_x=float(shift_x),

@@ -143,3 +143,19 @@ def span_factor(cams: Iterable[Camera]) -> float:
     Exactly 1 for the reference lens (the division's rounding would move every threshold by a bit)."""
     span = float(np.median([c.span for c in cams]))
     return 1.0 if np.isclose(span, REFERENCE_SPAN, rtol=1e-9, atol=0.0) else span / REFERENCE_SPAN
+
+
+def overlap_distance(cams: Sequence[Camera]) -> float:
+    """Distance to the scene if neighbouring photos overlapped by half, world units (a guess where
+    nothing better is known: no SfM points, no depth ranges): the median nearest-neighbour camera
+    spacing is then half the footprint, ``d * mean(W, H) / f``. 1 for a single camera."""
+    C = np.stack([c.center for c in cams])
+    if len(C) < 2:
+        return 1.0
+    D = np.linalg.norm(C[:, None] - C[None], axis=2) + np.diag(np.full(len(C), np.inf))
+    spacing = float(np.median(D.min(1)))
+    c0 = cams[0]
+    size = 0.5 * (c0.width + c0.height)
+    f = 0.5 * (c0.fx + c0.fy)
+    d = 2.0 * spacing * f / max(size, 1.0)
+    return d if np.isfinite(d) and d > 0 else 1.0

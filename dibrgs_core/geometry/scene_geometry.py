@@ -8,11 +8,11 @@ from 20 km covers what a drone's covers from 200 m, and gets the same thresholds
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from ..camera.frame import estimate_up, nadir_angle_deg, span_factor, up_frame
+from ..camera.frame import estimate_up, nadir_angle_deg, overlap_distance, span_factor, up_frame
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from ..common.report import Report
@@ -53,7 +53,7 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
     (:func:`mvs.converging_target`: orbits). Nearly parallel axes (a nadir
     mapping grid) meet nowhere in particular, so there it is provisional: the
     cameras' depth ranges, else a guess from their spacing
-    (:func:`_overlap_distance`), until :func:`sfm_reference` replaces it with
+    (:func:`~dibrgs_core.camera.frame.overlap_distance`), until :func:`sfm_reference` replaces it with
     the depth of the SfM points. ``ref_source`` says which.
     """
     views = list(scene.train_views())
@@ -73,7 +73,7 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
         if ranges:
             ref, source = float(np.median([np.sqrt(a * b) for a, b in ranges])), "depth-range"
         else:
-            ref, source = _overlap_distance(cams), "camera-spacing"
+            ref, source = overlap_distance(cams), "camera-spacing"
         # A point ``ref`` in front of the cameras' centroid: the ground below them, roughly.
         origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
     span = span_factor(cams)
@@ -90,21 +90,6 @@ def _nearest(depth: np.ndarray, cam: Camera) -> np.ndarray:
     rows = np.minimum(((np.arange(cam.height) + 0.5) * H / cam.height).astype(np.int64), H - 1)
     cols = np.minimum(((np.arange(cam.width) + 0.5) * W / cam.width).astype(np.int64), W - 1)
     return np.ascontiguousarray(depth[rows][:, cols])
-
-
-def _overlap_distance(cams: Sequence[Camera]) -> float:
-    """Distance to the scene if neighbouring photos overlapped by half (last resort, no SfM, no depth ranges):
-    the median nearest-neighbour camera spacing is then half the footprint, ``d * mean(W, H) / f``."""
-    C = np.stack([c.center for c in cams])
-    if len(C) < 2:
-        return 1.0
-    D = np.linalg.norm(C[:, None] - C[None], axis=2) + np.diag(np.full(len(C), np.inf))
-    spacing = float(np.median(D.min(1)))
-    c0 = cams[0]
-    size = 0.5 * (c0.width + c0.height)
-    f = 0.5 * (c0.fx + c0.fy)
-    d = 2.0 * spacing * f / max(size, 1.0)
-    return d if np.isfinite(d) and d > 0 else 1.0
 
 
 def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, report: Report) -> None:

@@ -445,6 +445,29 @@ def _pattern(w: int, h: int, shift: int = 0) -> np.ndarray:
                      y / h * 0.9 + 0.05], -1)
 
 
+@pytest.mark.parametrize("unit", [1e-3, 1.0, 1e3])
+def test_a_colmap_project_in_any_units_is_not_clipped_away(fresh, tmp_path, unit):
+    """A COLMAP model has no depth ranges and arbitrary units: the cameras and the 3D views clip at
+    1/100 and 100 x the distance the photos' spacing implies, not at Blender's 0.1-1000 (a flight
+    100 m high in millimetres, or in kilometres, was cut away: nothing seen through its cameras)."""
+    root = tmp_path / "colmap_project"
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "images").mkdir()
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 96 64 80 80 48 32\n")
+    lines = []
+    for i in range(3):  # looking straight down from 100 m, 40 m apart: photos overlapping by a half
+        lines += [f"{i + 1} 0 1 0 0 {-40.0 * i * unit} 0 {100.0 * unit} 1 v{i}.png", ""]
+        _save_with_blender(root / "images" / f"v{i}.png", _pattern(96, 64, 7 * i))
+    (root / "sparse" / "0" / "images.txt").write_text("\n".join(lines) + "\n")
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    depth = 100.0 * unit
+    for obj in _view_objects().values():
+        assert obj.data.clip_start < 0.1 * depth and obj.data.clip_end > 10 * depth
+        assert obj.data.clip_end / obj.data.clip_start < 1.01e4  # no deeper than Blender's own range
+    spaces = [sp for sc in bpy.data.screens for a in sc.areas for sp in a.spaces if sp.type == "VIEW_3D"]
+    assert spaces and all(sp.clip_start < depth < sp.clip_end for sp in spaces)
+
+
 def test_a_colmap_project_with_lens_distortion_imports_with_the_cameras_training_uses(fresh, tmp_path):
     """COLMAP's default camera model has radial distortion: the import gives each view the undistorted
     pinhole the library trains with (the add-on refused such projects before 2026-11-25)."""
