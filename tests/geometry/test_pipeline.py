@@ -230,8 +230,8 @@ def test_a_telephoto_view_of_the_scene_gets_the_same_geometry(tmp_path):
     """The same orbit seen from 100 x further through a 100 x narrower lens (a satellite's view: nearly
     orthographic, the same ground in the same pixels): the scale follows the ground a view covers,
     not its distance, so the sweep's height range, tolerances and voxels are those of the near view.
-    They followed the distance: no SfM point (COLMAP's focal-length guard), 7 % of the pixels
-    measured, the anchors' voxel as wide as the scene."""
+    When they followed the distance (the generated city's orbit, `make_scene.py --lens-factor 100`):
+    no SfM point (COLMAP's focal-length guard), 7 % of the pixels measured, 15 anchors."""
     near, hf = make_synthetic_scene(64, fov_deg=50.0)
     fov = 2 * np.degrees(np.arctan(np.tan(np.radians(25.0)) / 100))
     far, _ = make_synthetic_scene(64, radius=5000.0, height=11000.0, fov_deg=fov, hf=hf)
