@@ -88,15 +88,15 @@ class Camera:
         return float(self.K[0, 2])
 
     @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
     def span(self) -> float:
         """Width of what the view covers per unit of depth: ``sqrt(W H / (fx fy))``, the geometric
         mean of both sides (``2 tan(fov / 2)`` for a square image; about 1 for a survey camera, 0.01
         for a satellite's). The same at any image size."""
         return float(np.sqrt(self.width * self.height / (self.fx * self.fy)))
-
-    @property
-    def cy(self) -> float:
-        return float(self.K[1, 2])
 
     def translated(self, d: Sequence[float] | np.ndarray) -> "Camera":
         """The same camera in a world moved by ``d`` (world units): a point ``X`` there is

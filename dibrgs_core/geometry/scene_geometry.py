@@ -98,7 +98,8 @@ def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, r
     ``config.scale`` is set)."""
     def decide(why: str) -> None:
         lens = "" if abs(geo.span - 1.0) < 0.01 else f"; the lens covers {geo.span:.3g} x the reference's width"
-        report.decide(STAGE, "scene_scale", True, f"{why}{lens}", source=geo.ref_source,
+        given = f"; scale {config.scale:g} as given" if config.scale else ""
+        report.decide(STAGE, "scene_scale", True, f"{why}{lens}{given}", source=geo.ref_source,
                       ref_distance=geo.ref_distance, span=geo.span, scale=geo.scale)
 
     if geo.ref_source == "look-at" or len(sparse) < config.min_sfm_points:
