@@ -17,6 +17,17 @@ from ..common.errors import InputError
 from ..common.fileio import atomic_path
 
 log = logging.getLogger("dibrgs.images")
+#: Photos already reported as holding transparent or no-data pixels (one warning a file).
+_WARNED: set[str] = set()
+
+
+def _warn_unused(path: Path, share: float, what: str) -> None:
+    """Say once per file that ``share`` of its pixels are ``what`` and are read as plain colour: masks
+    are not supported, so those pixels are trained on and scored like any other."""
+    if share > 0 and str(path) not in _WARNED:
+        _WARNED.add(str(path))
+        log.warning("%s: %.1f %% of its pixels are %s, read as their stored colour: masks are not used, "
+                    "so they are trained on and scored as they are", path, 100.0 * share, what)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _TIFF_EXTS = (".tif", ".tiff")
@@ -100,6 +111,8 @@ def _tiff_image(path: Path, orient: bool) -> np.ndarray:
     if a is None:
         return _pillow_image(path, orient)
     a = a[..., :3] if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, axis=2)
+    if np.issubdtype(a.dtype, np.floating):
+        _warn_unused(path, float(np.isnan(a).any(axis=2).mean()), "no-data (NaN, read as black)")
     if a.dtype == bool:
         a = a.astype(np.float32)
     elif np.issubdtype(a.dtype, np.integer):
@@ -157,6 +170,9 @@ def _pillow_image(path: Path, orient: bool) -> np.ndarray:
             im.load()  # decodes fully: truncated files fail here
             if orient and exif_orientation(im) != 1:
                 im = ImageOps.exif_transpose(im)
+            if "A" in im.getbands() or "transparency" in im.info:
+                alpha = np.asarray(im.convert("RGBA").getchannel("A"))
+                _warn_unused(path, float((alpha < 255).mean()), "transparent")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(im, dtype=np.float32) / 65535.0
                 return np.repeat(a[..., None], 3, axis=2)

@@ -259,3 +259,32 @@ def test_tiff_photos_of_any_depth_and_band_layout(tmp_path):
             pillow = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255.0
         assert np.array_equal(read_image(f), pillow) and image_size(f) == pillow.shape[1::-1], o
         assert np.array_equal(read_image(f, orient=False), rgb8 / np.float32(255))
+
+
+def test_transparent_and_no_data_pixels_are_named_once(tmp_path, caplog):
+    """Alpha and NaN no-data are not masks here: the photo reads as its colour, and the log says, once a
+    file, what share of it is transparent or no-data (it was silent)."""
+    import logging
+
+    import tifffile
+
+    from dibrgs_core.data.images import read_image
+
+    rgb = (pattern(W, H) * 255).astype(np.uint8)
+    alpha = np.full((H, W), 255, np.uint8)
+    alpha[: H // 4] = 0
+    Image.fromarray(np.dstack([rgb, alpha])).save(tmp_path / "a.png")
+    Image.fromarray(rgb).save(tmp_path / "opaque.png")
+    Image.fromarray(np.dstack([rgb, np.full((H, W), 255, np.uint8)])).save(tmp_path / "opaque_rgba.png")
+    nodata = rgb.astype(np.float32) / 255
+    nodata[:, : W // 2] = np.nan
+    tifffile.imwrite(tmp_path / "n.tif", nodata, photometric="rgb")
+    with caplog.at_level(logging.WARNING, logger="dibrgs.images"):
+        for _ in range(2):
+            assert np.array_equal(read_image(tmp_path / "a.png"), rgb.astype(np.float32) / 255)
+            for name in ("opaque.png", "opaque_rgba.png", "n.tif"):
+                read_image(tmp_path / name)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2, lines
+    assert "a.png: 25.0 % of its pixels are transparent" in lines[0]
+    assert "n.tif: 50.0 % of its pixels are no-data" in lines[1]
