@@ -77,10 +77,12 @@ def clear_collection(name: str) -> None:
 # ---------------------------------------------------------------------------
 def apply_camera(obj: bpy.types.Object, cam: "pinhole.Camera", scene: bpy.types.Scene | None = None) -> None:
     """Set ``obj``'s pose and camera data from an OpenCV camera (render size on ``scene`` if given;
-    without a depth range, the imported scene's clip range)."""
+    without a depth range, the imported scene's clip range, which also sizes its drawing)."""
     clip = bpy.context.scene.get(CLIP_KEY)
     p = camera_blender.to_blender(cam, clip=tuple(clip) if clip else None)
     d = obj.data
+    if clip:  # drawn a tenth of the scene's distance across, as far as Blender allows (default 1)
+        d.display_size = min(max(math.sqrt(clip[0] * clip[1]) / 10.0, 0.01), 1000.0)
     d.type = "PERSP"
     d.lens_unit = "MILLIMETERS"
     d.sensor_fit = p.sensor_fit

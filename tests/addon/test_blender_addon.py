@@ -464,6 +464,8 @@ def test_a_colmap_project_in_any_units_is_not_clipped_away(fresh, tmp_path, unit
     for obj in _view_objects().values():
         assert obj.data.clip_start < 0.1 * depth and obj.data.clip_end > 10 * depth
         assert obj.data.clip_end / obj.data.clip_start < 1.01e4  # no deeper than Blender's own range
+        # drawn at the scene's size (Blender allows 0.01-1000), not at 1 unit
+        assert min(0.01 * depth, 1000.0) <= obj.data.display_size <= max(0.5 * depth, 0.01)
     spaces = [sp for sc in bpy.data.screens for a in sc.areas for sp in a.spaces if sp.type == "VIEW_3D"]
     assert spaces and all(sp.clip_start < depth < sp.clip_end for sp in spaces)
 
