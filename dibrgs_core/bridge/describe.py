@@ -42,7 +42,7 @@ from ..camera.blender import clip_range
 from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
-from ..data.colmap import find_colmap_model
+from ..data.colmap import find_colmap_model, image_folder
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE
@@ -101,7 +101,7 @@ def _levir(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bo
 def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], list[Camera]]:
     model_dir = find_colmap_model(root)
     cams, imgs = read_model(model_dir)
-    img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images") if d.is_dir()), None)
+    img_dir = image_folder(root, model_dir)
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
     views: dict[str, Camera] = {}

@@ -2,9 +2,13 @@
 
 Accepted layouts (the first that holds ``cameras.bin`` or ``cameras.txt`` wins)::
 
-    ROOT/sparse/0/{cameras,images,points3D}.{bin,txt}   + ROOT/images/<name>
+    ROOT/sparse/N/{cameras,images,points3D}.{bin,txt}   + ROOT/images/<name>
     ROOT/sparse/{cameras,images,points3D}.{bin,txt}     + ROOT/images/<name>
-    ROOT/{cameras,images,points3D}.{bin,txt}            + ROOT/images/<name>
+    ROOT/{cameras,images,points3D}.{bin,txt}            + ROOT/images/<name> (or ROOT/../../images)
+
+COLMAP's mapper writes one model a part of the flight it could join (``sparse/0``, ``sparse/1``,
+...): of several, the one with the most images is read, and the log says so; a model's own folder
+(``SCENE/sparse/1``) reads that one.
 
 ``points3D`` may be missing (a model of known cameras and poses only): its points are never used.
 
@@ -45,13 +49,52 @@ from .undistort import cache_dir, check_model, undistort_photo, undistorted_came
 log = logging.getLogger("dibrgs.io_colmap")
 
 
+def _is_model(d: Path) -> bool:
+    return (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file()
+
+
+def image_count(model_dir: Path) -> int:
+    """Images in a COLMAP model, from the head of ``images.bin`` or the image lines of ``images.txt``
+    (without decoding the model); 0 when neither is readable."""
+    try:
+        if (model_dir / "images.bin").is_file():
+            with open(model_dir / "images.bin", "rb") as f:
+                head = f.read(8)
+            return struct.unpack("<Q", head)[0] if len(head) == 8 else 0
+        n = 0
+        with open(model_dir / "images.txt", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                t = line.split()  # an image line: ID QW QX QY QZ TX TY TZ CAMERA_ID NAME
+                n += len(t) >= 10 and not line.startswith("#") and t[0].isdigit() and t[8].isdigit()
+        return n
+    except OSError:
+        return 0
+
+
+def colmap_models(root: str | Path) -> list[Path]:
+    """The numbered models in ``root/sparse`` (``0``, ``1``, ...), in number order."""
+    sparse = Path(root) / "sparse"
+    if not sparse.is_dir():
+        return []
+    return sorted((d for d in sparse.iterdir() if d.name.isdigit() and _is_model(d)), key=lambda d: int(d.name))
+
+
 def find_colmap_model(root: str | Path) -> Path | None:
-    """The folder holding the COLMAP model under ``root``, or None."""
+    """The folder holding the COLMAP model under ``root``, or None: of ``root/sparse``'s numbered
+    models the one with the most images (the lowest number of those as large), else ``root/sparse``,
+    else ``root`` itself."""
     root = Path(root)
-    for d in (root / "sparse" / "0", root / "sparse", root):
-        if (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file():
-            return d
-    return None
+    numbered = colmap_models(root)
+    if numbered:
+        return max(numbered, key=image_count)
+    return next((d for d in (root / "sparse", root) if _is_model(d)), None)
+
+
+def image_folder(root: Path, model_dir: Path) -> Path | None:
+    """The photos' folder of a COLMAP model: ``root/images`` (or ``Images``), else ``images`` beside
+    the model folder or beside its ``sparse`` folder (``root`` given as ``SCENE/sparse/1``)."""
+    return next((d for d in (root / "images", root / "Images", model_dir.parent / "images",
+                             model_dir.parent.parent / "images") if d.is_dir()), None)
 
 
 def read_colmap_cameras(root: str | Path) -> list[Camera]:
@@ -68,7 +111,13 @@ def _load(root: str | Path):
         raise InputError(root, "COLMAP folder not found")
     model_dir = find_colmap_model(root)
     if model_dir is None:
-        raise InputError(root, "no COLMAP model (cameras.bin/.txt in sparse/0, sparse/ or the folder)")
+        raise InputError(root, "no COLMAP model (cameras.bin/.txt in sparse/N, sparse/ or the folder)")
+    numbered = colmap_models(root)
+    if len(numbered) > 1:
+        log.warning("%s holds %d COLMAP models (%s): reading sparse/%s, the one with the most images; give a model's "
+                    "folder (%s) to read another", root / "sparse", len(numbered),
+                    ", ".join(f"{d.name}: {image_count(d)} images" for d in numbered), model_dir.name,
+                    root / "sparse" / "N")
     if not any((model_dir / f"images{e}").is_file() for e in (".bin", ".txt")):
         raise InputError(model_dir / "images.bin", "COLMAP model file missing")
     try:
@@ -131,8 +180,7 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     (:class:`~dibrgs_core.data.scene.ImageFile`)."""
     root = Path(root)
     rec, model_dir = _load(root)
-    img_dir = next((d for d in (root / "images", root / "Images", model_dir.parent / "images")
-                    if d.is_dir()), None)
+    img_dir = image_folder(root, model_dir)
     if img_dir is None:
         raise InputError(root / "images", "image folder not found")
     by_name = {im.name: im for im in rec.images.values()}

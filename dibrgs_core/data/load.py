@@ -38,7 +38,7 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 
 #: What a scene folder holds (the library's and the add-on's readers say it alike).
 NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model (cameras/images/points3D "
-               ".bin or .txt in sparse/0, sparse/ or the folder) or a transforms.json (instant-ngp, nerfstudio)")
+               ".bin or .txt in sparse/N, sparse/ or the folder) or a transforms.json (instant-ngp, nerfstudio)")
 
 
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,

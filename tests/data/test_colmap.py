@@ -59,6 +59,31 @@ def test_model_location_variants(tmp_path):
         read_any_scene(tmp_path)
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_of_several_models_the_largest_is_read_and_named(tmp_path, caplog, binary):
+    """COLMAP's mapper writes one model a part of the flight it could join: of sparse/0 (3 photos) and
+    sparse/1 (all 21) the larger is read, and the log lists them (sparse/0 was read, silently); a
+    model's own folder reads that one, with the photos two folders up."""
+    import logging
+
+    from dibrgs_core.data.colmap import colmap_models, image_count
+
+    root = colmap_dir(tmp_path / "two", binary, sub="sparse/1")
+    views, _ = make_views()
+    small = [views[k].camera for k in sorted(views)[:3]]
+    write_colmap_model(small, root / "sparse" / "0", binary=binary, points=np.zeros((0, 3)),
+                       colors=np.zeros((0, 3), np.uint8))
+    assert [(d.name, image_count(d)) for d in colmap_models(root)] == [("0", 3), ("1", 21)]
+    assert find_colmap_model(root) == root / "sparse" / "1"
+    with caplog.at_level(logging.WARNING, logger="dibrgs.io_colmap"):
+        assert len(read_any_scene(root).views) == 21
+    assert "holds 2 COLMAP models (0: 3 images, 1: 21 images): reading sparse/1" in caplog.text
+    assert len(read_any_scene(root / "sparse" / "0").views) == 3
+    from dibrgs_core.bridge.describe import describe_scene  # the add-on reads the same model
+
+    assert len(describe_scene(root)["views"]) == 21 and len(describe_scene(root / "sparse" / "0")["views"]) == 3
+
+
 def test_missing_model_file(tmp_path):
     root = colmap_dir(tmp_path / "c", True)
     (root / "sparse" / "0" / "images.bin").unlink()
