@@ -93,8 +93,9 @@ def find_colmap_model(root: str | Path) -> Path | None:
 def image_folder(root: Path, model_dir: Path) -> Path | None:
     """The photos' folder of a COLMAP model: ``root/images`` (or ``Images``), else ``images`` beside
     the model folder or beside its ``sparse`` folder (``root`` given as ``SCENE/sparse/1``)."""
-    return next((d for d in (root / "images", root / "Images", model_dir.parent / "images",
-                             model_dir.parent.parent / "images") if d.is_dir()), None)
+    near = [root / "images", root / "Images", model_dir.parent / "images"]
+    up = [model_dir.parent.parent / "images"] if model_dir.parent.name == "sparse" else []
+    return next((d for d in near + up if d.is_dir()), None)
 
 
 def read_colmap_cameras(root: str | Path) -> list[Camera]:
