@@ -42,7 +42,7 @@ from ..camera.blender import clip_range
 from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
-from ..data.colmap import find_colmap_model, image_folder
+from ..data.colmap import find_colmap_model, image_folder, split_folder
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE
@@ -70,7 +70,7 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
     else:
         raise InputError(root, NOT_A_SCENE)
     try:
-        train, test, source = make_split(root, list(views), None, layout=layout)
+        train, test, source = make_split(split_folder(root), list(views), None, layout=layout)
     except ValueError as e:
         raise InputError(root, str(e)) from None
     origin, views, track = in_local_frame(views, track)

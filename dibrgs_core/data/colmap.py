@@ -8,7 +8,7 @@ Accepted layouts (the first that holds ``cameras.bin`` or ``cameras.txt`` wins):
 
 COLMAP's mapper writes one model a part of the flight it could join (``sparse/0``, ``sparse/1``,
 ...): of several, the one with the most images is read, and the log says so; a model's own folder
-(``SCENE/sparse/1``) reads that one.
+(``SCENE/sparse/1``) reads that one, with ``SCENE``'s photos and ``split.json``.
 
 ``points3D`` may be missing (a model of known cameras and poses only): its points are never used.
 
@@ -88,6 +88,15 @@ def find_colmap_model(root: str | Path) -> Path | None:
     if numbered:
         return max(numbered, key=image_count)
     return next((d for d in (root / "sparse", root) if _is_model(d)), None)
+
+
+def split_folder(root: str | Path) -> Path:
+    """Where a COLMAP scene's ``split.json`` is read: ``root``, or, for a model's own folder inside
+    ``SCENE/sparse/`` with none of its own, ``SCENE``."""
+    root = Path(root)
+    if not (root / "split.json").is_file() and root.parent.name == "sparse" and _is_model(root):
+        return root.parent.parent
+    return root
 
 
 def image_folder(root: Path, model_dir: Path) -> Path | None:
@@ -204,7 +213,7 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     ids = sorted(views)
     views = {k: views[k] for k in ids}
     try:
-        train, test, source = make_split(root, ids, train_ids, test_ids)
+        train, test, source = make_split(split_folder(root), ids, train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
     log.info("read COLMAP model %s: %d views, train %s (split: %s)", model_dir, len(views), train, source)

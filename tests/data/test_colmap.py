@@ -79,9 +79,11 @@ def test_of_several_models_the_largest_is_read_and_named(tmp_path, caplog, binar
         assert len(read_any_scene(root).views) == 21
     assert "holds 2 COLMAP models (0: 3 images, 1: 21 images): reading sparse/1" in caplog.text
     assert len(read_any_scene(root / "sparse" / "0").views) == 3
+    (root / "split.json").write_text('{"train": ["000", "002"], "test": ["001"]}')  # the scene's, not the model's
+    assert read_any_scene(root / "sparse" / "0").train == ["000", "002"]
     from dibrgs_core.bridge.describe import describe_scene  # the add-on reads the same model
 
-    assert len(describe_scene(root)["views"]) == 21 and len(describe_scene(root / "sparse" / "0")["views"]) == 3
+    assert len(describe_scene(root)["views"]) == 21 and describe_scene(root / "sparse" / "0")["train"] == ["000", "002"]
 
 
 def test_missing_model_file(tmp_path):
