@@ -63,9 +63,10 @@ def test_model_location_variants(tmp_path):
 def test_of_several_models_the_largest_is_read_and_named(tmp_path, caplog, binary):
     """COLMAP's mapper writes one model a part of the flight it could join: of sparse/0 (3 photos) and
     sparse/1 (all 21) the larger is read, and the log lists them (sparse/0 was read, silently); a
-    model's own folder reads that one, with the photos two folders up."""
+    model's own folder reads that one, with the scene's photos and split.json two folders up."""
     import logging
 
+    from dibrgs_core.bridge.describe import describe_scene  # the add-on reads the same model
     from dibrgs_core.data.colmap import colmap_models, image_count
 
     root = colmap_dir(tmp_path / "two", binary, sub="sparse/1")
@@ -81,8 +82,6 @@ def test_of_several_models_the_largest_is_read_and_named(tmp_path, caplog, binar
     assert len(read_any_scene(root / "sparse" / "0").views) == 3
     (root / "split.json").write_text('{"train": ["000", "002"], "test": ["001"]}')  # the scene's, not the model's
     assert read_any_scene(root / "sparse" / "0").train == ["000", "002"]
-    from dibrgs_core.bridge.describe import describe_scene  # the add-on reads the same model
-
     assert len(describe_scene(root)["views"]) == 21 and describe_scene(root / "sparse" / "0")["train"] == ["000", "002"]
 
 

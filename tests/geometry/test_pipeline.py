@@ -212,9 +212,8 @@ def test_geometry_does_not_depend_on_units(grid_scene, tmp_path):
 
 
 def _footprint_figures(scene, res):
-    """Figures of a geometry result that do not depend on the lens: coverage of the training pixels
-    (measured points), median depth error in widths of ground a view covers, SfM points, the scale in
-    those widths."""
+    """Figures of a geometry result that do not depend on the lens: (coverage of the training pixels by
+    the measured points, their median depth error in widths of the ground a view covers)."""
     cov, err = [], []
     keep = res.dense_confidence >= 0.5
     for v in scene.train_views():
