@@ -133,6 +133,10 @@ class Camera:
         uv[:, 0] += self.K[0, 1] * Xc[:, 1] / zs
         return uv, z
 
+    def in_image(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Mask of the projections ``uv, z`` (:meth:`project`) in front of the camera and inside its image."""
+        return (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+
     def unproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(N,2) pixel positions at z-depths (N,) -> (N,3) world points (the inverse of :meth:`project`)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

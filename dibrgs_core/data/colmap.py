@@ -85,8 +85,8 @@ def find_colmap_model(root: str | Path) -> Path | None:
     else ``root`` itself."""
     root = Path(root)
     numbered = colmap_models(root)
-    if numbered:
-        return max(numbered, key=image_count)
+    if numbered:  # counted only when there is a choice (images.txt can be large)
+        return numbered[0] if len(numbered) == 1 else max(numbered, key=image_count)
     return next((d for d in (root / "sparse", root) if _is_model(d)), None)
 
 

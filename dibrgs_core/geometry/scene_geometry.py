@@ -109,7 +109,7 @@ def sfm_reference(geo: SceneGeometry, sparse: SparseCloud, config: InitConfig, r
     depths = []
     for c in geo.cameras:
         uv, z = c.project(sparse.points)
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        ok = c.in_image(uv, z)
         depths.append(z[ok])
     z = np.concatenate(depths)
     if len(z) < config.min_sfm_points:

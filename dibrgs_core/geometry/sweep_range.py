@@ -18,7 +18,7 @@ def depth_range_for(cam: Camera, sparse_points: np.ndarray | None, fallback_dist
     ``[d/2, 2d]`` around ``fallback_distance`` (distance to the scene's look-at point)."""
     if sparse_points is not None and len(sparse_points) >= 10:
         uv, z = cam.project(sparse_points)
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        ok = cam.in_image(uv, z)
         if ok.sum() >= 10:
             lo, hi = np.percentile(z[ok], [2, 98])
             near, far = lo / margin, hi * margin
@@ -82,7 +82,7 @@ def scene_ground(cams: Sequence[Camera], up: np.ndarray, sparse_points: np.ndarr
         seen = np.zeros(len(P), bool)
         for c in cams:
             uv, z = c.project(P)
-            seen |= (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+            seen |= c.in_image(uv, z)
         if seen.sum() >= min_points:
             ground = float(np.percentile(P[seen] @ n_up, 5.0))
             if cam_h - ground > 0:

@@ -32,7 +32,7 @@ def reference_samples(cam: Camera, sparse_points: np.ndarray | None, depth_range
     geometric middle of ``depth_range`` (z-depths, world units)."""
     if sparse_points is not None and len(sparse_points) >= 10:
         uv, z = cam.project(sparse_points)
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        ok = cam.in_image(uv, z)
         pts = np.asarray(sparse_points)[ok]
         if len(pts) >= 10:
             return pts[:: max(1, len(pts) // max_points)]
@@ -62,7 +62,7 @@ def pair_scores(cams: Sequence[Camera], samples: Sequence[np.ndarray], min_angle
             if j == i:
                 continue
             uv, z = cj.project(X)
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cj.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cj.height)
+            inside = cj.in_image(uv, z)
             if not inside.any():
                 continue
             to_j = cj.center - X[inside]
