@@ -21,7 +21,9 @@ cameras are used as they are; ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and
 Photos: JPEG, PNG or TIFF, any aspect ratio, of any sizes (each view keeps its own). COLMAP reconstructs from the
 stored pixel order and ignores EXIF orientation, so the stored order is used
 when it matches the camera's size; a photo that matches only when turned
-upright (a model made from rotated copies) is turned upright.
+upright (a model made from rotated copies) is turned upright. Pixels without data (transparent,
+no-data values, :mod:`.images`) and those a mask image zeroes (``ROOT/masks/<name>.png``, COLMAP's
+``mask_path`` convention) are left out of training, evaluation and geometry.
 
 View ids are the image file stems (a rig's like-named photos in folders of their own: their paths,
 :func:`~dibrgs_core.data.split.view_ids`); the split comes from ``--train``/``--test``,
@@ -41,9 +43,9 @@ import numpy as np
 from ..camera.pinhole import Camera
 from ..common.colmap_lib import import_pycolmap
 from ..common.errors import InputError
-from .scene import ImageFile, Scene, View, validate_camera_arrays
+from .scene import ImageFile, Pixels, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
-from .images import image_size, read_image, turned_to_fit
+from .images import find_mask, image_size, read_masked, turned_to_fit
 from .undistort import cache_dir, check_model, undistort_photo, undistorted_camera
 
 log = logging.getLogger("dibrgs.io_colmap")
@@ -204,7 +206,8 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     undistorted = sum(p[4] for p in photos)
     views: dict[str, View] = {}
     for cam, path, ccam, oriented, distorted in photos:  # each photo at its own size
-        pixels, size = ImageFile.checked(path, partial(read_photo, path, ccam, oriented, distorted))
+        pixels, size = ImageFile.checked(path, partial(read_photo, path, ccam, oriented, distorted,
+                                                       find_mask(img_dir, path.relative_to(img_dir).as_posix())))
         if size != (cam.width, cam.height):
             raise InputError(path, f"image is {size[0]}x{size[1]} but its COLMAP camera is {cam.width}x{cam.height}")
         views[cam.name] = View(camera=cam, image=pixels)
@@ -232,12 +235,13 @@ def _orientation(path: Path, width: int, height: int) -> bool:
     return turned
 
 
-def read_photo(path: Path, ccam, oriented: bool, distorted: bool) -> np.ndarray:
-    """A photo as its view holds it: read in the pixel order of its pycolmap camera ``ccam``,
-    undistorted when ``distorted``."""
+def read_photo(path: Path, ccam, oriented: bool, distorted: bool, mask: Path | None = None) -> Pixels:
+    """A photo's :data:`~.scene.Pixels` as its view holds them: read in the pixel order of its
+    pycolmap camera ``ccam``, with its ``mask`` file if any, undistorted when ``distorted``."""
     if distorted:
-        return undistort_photo(path, ccam, oriented, lambda: read_image(path, orient=oriented)).image
-    return read_image(path, orient=oriented)  # its size is checked against its camera by the caller
+        u = undistort_photo(path, ccam, oriented, lambda: read_masked(path, mask, orient=oriented), mask)
+        return u.image, u.valid
+    return read_masked(path, mask, orient=oriented)  # its size is checked against its camera by the caller
 
 
 def write_colmap_model(cams: Sequence[Camera], out_dir: str | Path, binary: bool = True,

@@ -3,8 +3,10 @@ integer or float, any number of bands (tifffile), float32 depth as TIFF (tifffil
 (OpenEXR). Writers are atomic. Never torch or bpy.
 
 Images are float32 (H, W, 3) RGB in [0, 1] as stored (sRGB-encoded), turned upright by their
-EXIF orientation unless a reader asks for the stored pixel order (COLMAP); depth maps float32
-(H, W) z-depth in world units, 0 = no depth.
+EXIF orientation unless a reader asks for the stored pixel order (COLMAP), with a bool (H, W) map of
+the pixels that hold data (:func:`read_pixels`: transparent, NaN and GDAL no-data pixels do not; a
+mask image, :func:`read_mask`, can say so for any photo); depth maps float32 (H, W) z-depth in world
+units, 0 = no depth.
 """
 from __future__ import annotations
 
@@ -17,17 +19,21 @@ from ..common.errors import InputError
 from ..common.fileio import atomic_path
 
 log = logging.getLogger("dibrgs.images")
-#: Photos already reported as holding transparent or no-data pixels (one warning a file).
-_WARNED: set[str] = set()
+#: Photos already reported as holding no-data pixels (one line a file).
+_REPORTED: set[str] = set()
 
 
-def _warn_unused(path: Path, share: float, what: str) -> None:
-    """Say once per file that ``share`` of its pixels are ``what`` and are read as plain colour: masks
-    are not supported, so those pixels are trained on and scored like any other."""
-    if share > 0 and str(path) not in _WARNED:
-        _WARNED.add(str(path))
-        log.warning("%s: %.1f %% of its pixels are %s, read as their stored colour: masks are not used, "
-                    "so they are trained on and scored as they are", path, 100.0 * share, what)
+def _report_no_data(path: Path, valid: np.ndarray | None, what: str) -> np.ndarray | None:
+    """``valid`` as a view holds it (None when every pixel is data), saying once a file what share of
+    it is no data and that those pixels are left out."""
+    if valid is None or valid.all():
+        return None
+    if str(path) not in _REPORTED:
+        _REPORTED.add(str(path))
+        log.info("%s: %.1f %% of its pixels are %s: left out of training, evaluation and geometry", path,
+                 100.0 * (1.0 - valid.mean()), what)
+    return valid
+
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _TIFF_EXTS = (".tif", ".tiff")
@@ -65,10 +71,11 @@ def exif_orientation(im) -> int:
 
 def _tiff(path: Path, pixels: bool):
     """A TIFF image's first image through tifffile (Pillow misreads 16-bit RGBA and cannot read float
-    TIFFs, both common in remote sensing): ((H, W, bands) array, (W, H), orientation tag). The array
-    is None without ``pixels``, and when its compression needs the imagecodecs package (LZW, JPEG,
-    ...), which needs numpy 2 (bpy needs numpy 1) and is not a dependency: :func:`_tiff_image` then
-    reads it with Pillow where Pillow reads it right."""
+    TIFFs, both common in remote sensing): ((H, W, bands) array, (W, H), orientation tag, alpha band
+    index or None, GDAL no-data value or None). The array is None without ``pixels``, and when its
+    compression needs the imagecodecs package (LZW, JPEG, ...), which needs numpy 2 (bpy needs numpy
+    1) and is not a dependency: :func:`_tiff_image` then reads it with Pillow where Pillow reads it
+    right."""
     import tifffile
 
     try:
@@ -80,8 +87,12 @@ def _tiff(path: Path, pixels: bool):
             if "Y" not in axes or "X" not in axes:
                 raise ValueError(f"no image axes in {axes}")
             H, W = shape[axes.index("Y")], shape[axes.index("X")]
+            # the first extra sample marked as alpha, after the colour bands
+            colour = 3 if int(page.photometric) == 2 else 1
+            alpha = next((colour + k for k, e in enumerate(page.extrasamples or ()) if int(e) in (1, 2)), None)
+            nodata = _gdal_nodata(page.tags.get(42113))
             if not pixels:
-                return None, (W, H), orientation
+                return None, (W, H), orientation, alpha, nodata
             try:
                 a = series.asarray()
             except ValueError as e:
@@ -89,7 +100,7 @@ def _tiff(path: Path, pixels: bool):
                     raise
                 # 8-bit images of 1 to 4 bands and 16-bit grey are what Pillow reads right
                 if page.bitspersample == 8 or (page.bitspersample == 16 and page.samplesperpixel == 1):
-                    return None, (W, H), orientation
+                    return None, (W, H), orientation, alpha, nodata
                 raise InputError(path, f"{page.compression.name}-compressed {page.bitspersample}-bit TIFF of "
                                        f"{page.samplesperpixel} bands: tifffile needs the imagecodecs package "
                                        "for it and Pillow misreads it; save it uncompressed or "
@@ -100,31 +111,62 @@ def _tiff(path: Path, pixels: bool):
         raise InputError(path, f"unreadable or truncated image ({e})") from None
     # bands (samples, channels, pages) last, whatever order the file keeps them in
     a = np.moveaxis(a, [axes.index("Y"), axes.index("X")], [0, 1]).reshape(H, W, -1)
-    return a, (W, H), orientation
+    return a, (W, H), orientation, alpha, nodata
 
 
-def _tiff_image(path: Path, orient: bool) -> np.ndarray:
-    """:func:`read_image` of a TIFF: the first three bands as RGB (one band: grey; two: grey and alpha),
-    integers scaled by their type's maximum, floats taken as values in [0, 1] (NaN, a usual no-data
-    value, as 0)."""
-    a, _, orientation = _tiff(path, pixels=True)
+def _gdal_nodata(tag) -> float | None:
+    """The no-data value of GDAL's GDAL_NODATA tag (42113, ASCII: "0", "-9999", "nan"), or None."""
+    if tag is None:
+        return None
+    try:
+        return float(str(tag.value).strip().strip("\x00"))
+    except ValueError:
+        return None
+
+
+def _tiff_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_pixels` of a TIFF: the first three bands as RGB (one band: grey), integers scaled
+    by their type's maximum, floats taken as values in [0, 1]. No data: NaN in a float band, GDAL's
+    no-data value in every colour band, an alpha band (TIFF extra sample) below half."""
+    a, _, orientation, alpha, nodata = _tiff(path, pixels=True)
     if a is None:
-        return _pillow_image(path, orient)
-    a = a[..., :3] if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, axis=2)
+        rgb, valid = _pillow_image(path, orient)
+        if nodata is not None:
+            stored = np.round(rgb * 255.0)
+            valid = (valid if valid is not None else True) & ~(stored == nodata).all(axis=2)
+            return rgb, _report_no_data(path, np.asarray(valid), f"GDAL no-data ({nodata:g})")
+        return rgb, valid
+    valid = np.ones(a.shape[:2], bool)
+    what = []
+    if alpha is not None and alpha < a.shape[2]:
+        top = np.iinfo(a.dtype).max if np.issubdtype(a.dtype, np.integer) else 1.0
+        valid &= np.nan_to_num(a[..., alpha].astype(np.float64)) > top / 2
+        what.append("transparent")
+    colour = a[..., :3] if a.shape[2] >= 3 and alpha != 1 else a[..., :1]
+    if nodata is not None:
+        valid &= ~(np.isnan(colour) if np.isnan(nodata) else colour == nodata).all(axis=2)
+        what.append(f"GDAL no-data ({nodata:g})")
     if np.issubdtype(a.dtype, np.floating):
-        _warn_unused(path, float(np.isnan(a).any(axis=2).mean()), "no-data (NaN, read as black)")
+        valid &= np.isfinite(colour).all(axis=2)
+        what.append("NaN")
+    a = colour if colour.shape[2] == 3 else np.repeat(colour, 3, axis=2)
     if a.dtype == bool:
         a = a.astype(np.float32)
     elif np.issubdtype(a.dtype, np.integer):
         a = np.clip(a, 0, None).astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
     else:
-        a = np.nan_to_num(a.astype(np.float32), nan=0.0, posinf=np.inf, neginf=0.0)
+        a = np.where(valid[..., None], a.astype(np.float32), np.float32(0.0))
+        a = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0)
         top = float(a.max(initial=0.0))
         if not np.isfinite(top) or top > 1.0 + 1e-6:
             raise InputError(path, f"floating-point image with values up to {top:g}; expected [0, 1] "
                                    "(reflectance): rescale it, or save it as 8- or 16-bit")
         a = np.clip(a, 0.0, 1.0)  # small negative reflectances (correction noise) are dark, not an error
-    return np.ascontiguousarray(oriented(a, orientation) if orient else a)
+    if not valid.all():
+        a = np.where(valid[..., None], a, np.float32(0.0))
+    if orient:
+        a, valid = oriented(a, orientation), oriented(valid, orientation)
+    return np.ascontiguousarray(a), _report_no_data(path, np.ascontiguousarray(valid), " or ".join(what) or "no data")
 
 
 def oriented(a: np.ndarray, orientation: int) -> np.ndarray:
@@ -140,7 +182,7 @@ def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
     from PIL import Image, UnidentifiedImageError
 
     if Path(path).suffix.lower() in _TIFF_EXTS:
-        _, (w, h), orientation = _tiff(Path(path), pixels=False)
+        _, (w, h), orientation, _, _ = _tiff(Path(path), pixels=False)
         return upright_size(w, h, orientation) if orient else (w, h)
     try:
         with Image.open(path) as im:
@@ -156,13 +198,69 @@ def read_image(path: str | Path, orient: bool = True) -> np.ndarray:
     With ``orient`` the EXIF orientation of a photo is applied (the image as a viewer shows it);
     ``orient=False`` keeps the stored pixel order (what COLMAP reconstructs from).
     """
+    return read_pixels(path, orient)[0]
+
+
+def read_pixels(path: str | Path, orient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """(:func:`read_image`'s RGB, bool (H, W) valid pixels or None when all are): pixels are no
+    data where transparent (alpha below half), NaN in a float TIFF, or GDAL's no-data value
+    (GeoTIFF tag 42113) in every colour band. Their RGB is 0."""
     path = Path(path)
     if path.suffix.lower() in _TIFF_EXTS:
         return _tiff_image(path, orient)
     return _pillow_image(path, orient)
 
 
-def _pillow_image(path: Path, orient: bool) -> np.ndarray:
+def read_mask(path: str | Path, size: tuple[int, int], orient: bool = True) -> np.ndarray:
+    """A mask image as bool (H, W), True where it is not zero (COLMAP's convention: black pixels are
+    ignored); it must be ``size`` (width, height) once turned upright with ``orient``."""
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if orient and exif_orientation(im) != 1:
+                im = ImageOps.exif_transpose(im)
+            m = np.asarray(im.convert("L")) > 0
+    except FileNotFoundError:
+        raise InputError(path, "mask file not found") from None
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+        raise InputError(path, f"unreadable mask ({e})") from None
+    if (m.shape[1], m.shape[0]) != tuple(size):
+        raise InputError(path, f"mask is {m.shape[1]}x{m.shape[0]} but its photo is {size[0]}x{size[1]}")
+    return m
+
+
+def read_masked(path: str | Path, mask: Path | None, orient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_pixels` of the photo at ``path``, with the pixels its ``mask`` image (if any,
+    :func:`read_mask`) zeroes left out as well."""
+    image, valid = read_pixels(path, orient)
+    if mask is None:
+        return image, valid
+    m = read_mask(mask, (image.shape[1], image.shape[0]))
+    valid = _report_no_data(Path(mask), m if valid is None else valid & m, f"masked out for {Path(path).name}")
+    return (image if valid is None else np.where(valid[..., None], image, np.float32(0.0))), valid
+
+
+#: Folder names of a scene's mask images, beside its photos' folder (COLMAP's ``--ImageReader.mask_path``
+#: convention: the mask of ``NAME`` is ``NAME.png``).
+MASK_FOLDERS = ("masks", "Masks")
+
+
+def find_mask(photos: Path, name: str) -> Path | None:
+    """The mask of the photo ``name`` (relative to the folder ``photos``) in a mask folder beside
+    ``photos``: ``NAME.png`` as COLMAP names it, else the photo's name with ``.png`` for its
+    extension; None when there is none."""
+    for folder in MASK_FOLDERS:
+        base = Path(photos).parent / folder
+        for cand in (base / f"{name}.png", (base / name).with_suffix(".png")):
+            if cand.is_file():
+                return cand
+    return None
+
+
+def _pillow_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | None]:
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     try:
@@ -170,13 +268,14 @@ def _pillow_image(path: Path, orient: bool) -> np.ndarray:
             im.load()  # decodes fully: truncated files fail here
             if orient and exif_orientation(im) != 1:
                 im = ImageOps.exif_transpose(im)
+            valid = None
             if "A" in im.getbands() or "transparency" in im.info:
-                alpha = np.asarray(im.convert("RGBA").getchannel("A"))
-                _warn_unused(path, float((alpha < 255).mean()), "transparent")
+                valid = _report_no_data(path, np.asarray(im.convert("RGBA").getchannel("A")) >= 128, "transparent")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(im, dtype=np.float32) / 65535.0
-                return np.repeat(a[..., None], 3, axis=2)
-            return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+                return np.repeat(a[..., None], 3, axis=2), valid
+            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+            return (rgb if valid is None else np.where(valid[..., None], rgb, np.float32(0.0))), valid
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:

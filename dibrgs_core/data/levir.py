@@ -8,6 +8,8 @@ Layout of a scene folder::
     Depths/NNN.tiff  optional float32 z-depth (distance along the camera axis;
                      0 or non-finite = no depth). Depths/NNN.exr (channel "Z") also read.
     Track/NNN.txt    optional render-path cameras, same format as Cams/
+    Masks/NNN.png    optional: black where a photo holds no data (also NNN.png.png, COLMAP's
+                     naming); transparent and no-data pixels of the photos count as masked
 
     split.json       optional {"train": [names], "test": [names]} (see data.split.make_split)
 
@@ -38,7 +40,8 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_from_dict
 from ..common.errors import InputError
 from ..common.fileio import write_text
-from .images import DEPTH_EXTS, IMAGE_EXTS, image_size, read_depth, read_image, write_depth_tiff, write_png
+from .images import (DEPTH_EXTS, IMAGE_EXTS, find_mask, image_size, read_depth, read_masked,
+                     write_depth_tiff, write_png)
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split
 
@@ -220,7 +223,8 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
     check_sizes(cameras, images, cams)
     views: dict[str, View] = {}
     for stem, cam in cameras.items():  # each photo at its own size
-        pixels, (w, h) = ImageFile.checked(images[stem], partial(read_image, images[stem]))
+        pixels, (w, h) = ImageFile.checked(images[stem], partial(read_masked, images[stem],
+                                                                 find_mask(img_dir, images[stem].name)))
         if (w, h) != (cam.width, cam.height):
             raise InputError(images[stem], f"image decodes to {w}x{h} but its header says {cam.width}x{cam.height}")
         depth = None
@@ -257,13 +261,17 @@ def read_track(root: Path, cameras: dict[str, Camera]) -> list[Camera]:
 
 
 def write_scene(root: str | Path, views: dict[str, View] | Iterable[View], track: Iterable[Camera] = ()) -> Path:
-    """Write views (PNG, Cams, and depth as TIFF when present) and Track cameras in LEVIR layout."""
+    """Write views (PNG, Cams, a mask PNG where some pixels hold no data, and depth as TIFF when
+    present) and Track cameras in LEVIR layout."""
     root = Path(root)
     vs = list(views.values()) if isinstance(views, dict) else list(views)
     for v in vs:
         if not v.name:
             raise ValueError("every view's camera needs a name (its id)")
-        write_png(root / "Images" / f"{v.name}.png", v.image)
+        image, valid = v.pixels()
+        write_png(root / "Images" / f"{v.name}.png", image)
+        if valid is not None:
+            write_png(root / "Masks" / f"{v.name}.png", np.repeat(valid[..., None], 3, axis=2).astype(np.uint8) * 255)
         write_cams_file(root / "Cams" / f"{v.name}.txt", v.camera)
         if v.depth is not None:
             write_depth_tiff(root / "Depths" / f"{v.name}.tiff", v.depth)

@@ -19,6 +19,11 @@ from ..common.digest import Digest
 from ..common.errors import InputError
 
 
+#: What a view's pixels are: float32 (H, W, 3) RGB in [0, 1] and bool (H, W) valid pixels, None
+#: when every pixel holds data (see :func:`~dibrgs_core.data.images.read_pixels`).
+Pixels = tuple[np.ndarray, "np.ndarray | None"]
+
+
 @dataclass(frozen=True)
 class ImageFile:
     """A view's pixels left in their file: a scene of hundreds of photos holds only its cameras,
@@ -26,8 +31,8 @@ class ImageFile:
 
     Attributes:
         path: the photo's file (for messages).
-        load: returns the float32 (H, W, 3) RGB image in [0, 1], as the reader would have held it
-            (oriented, undistorted).
+        load: returns the view's :data:`Pixels` as the reader would have held them (oriented,
+            undistorted, masked).
         digest: :func:`pixels_digest` of what ``load`` gives, taken when the scene was read (the
             reader decodes every photo once to check it, so a damaged file is found before a run
             starts); :meth:`read` checks it again, so a photo edited since is an error, never
@@ -35,25 +40,27 @@ class ImageFile:
     """
 
     path: Path
-    load: Callable[[], np.ndarray]
+    load: Callable[[], Pixels]
     digest: str
 
     @classmethod
-    def checked(cls, path: Path, load: Callable[[], np.ndarray]) -> tuple["ImageFile", tuple[int, int]]:
+    def checked(cls, path: Path, load: Callable[[], Pixels]) -> tuple["ImageFile", tuple[int, int]]:
         """The image ``load`` reads from ``path``, read once now for its digest, and its (width, height)."""
-        image = load()
-        return cls(Path(path), load, pixels_digest(image)), (image.shape[1], image.shape[0])
+        image, valid = load()
+        return cls(Path(path), load, pixels_digest(image, valid)), (image.shape[1], image.shape[0])
 
-    def read(self) -> np.ndarray:
-        image = self.load()
-        if pixels_digest(image) != self.digest:
+    def read(self) -> Pixels:
+        image, valid = self.load()
+        if pixels_digest(image, valid) != self.digest:
             raise InputError(self.path, "changed since the scene was read; start again to use the new photo")
-        return image
+        return image, valid
 
 
-def pixels_digest(image: np.ndarray) -> str:
-    """Digest of an image's float32 values (the same for a view held in memory or in its file)."""
-    return Digest("pixels/1").array(np.asarray(image, np.float32)).hex()
+def pixels_digest(image: np.ndarray, valid: np.ndarray | None = None) -> str:
+    """Digest of an image's float32 values and of its valid pixels when some are not (the same for
+    a view held in memory or in its file)."""
+    d = Digest("pixels/1").array(np.asarray(image, np.float32))
+    return (d if valid is None else d.array(np.asarray(valid, np.uint8))).hex()
 
 
 class View:
@@ -63,19 +70,32 @@ class View:
         camera: the view's camera (its ``name`` is the view id, e.g. ``"001"``).
         image: float32 (H, W, 3) RGB in [0, 1] (sRGB-encoded values as stored); given as an array
             or as an :class:`ImageFile`, read from disk again at each use and not kept.
+        valid: bool (H, W), False where the photo holds no data (transparent, no-data value,
+            masked), or None when every pixel does; from the :class:`ImageFile` when given one.
+            Those pixels are left out of training, evaluation and geometry.
         depth: optional float32 (H, W) z-depth in world units; 0 where unknown.
     """
 
-    __slots__ = ("camera", "_image", "depth")
+    __slots__ = ("camera", "_image", "_valid", "depth")
 
-    def __init__(self, camera: Camera, image: np.ndarray | ImageFile, depth: np.ndarray | None = None) -> None:
+    def __init__(self, camera: Camera, image: np.ndarray | ImageFile, depth: np.ndarray | None = None,
+                 valid: np.ndarray | None = None) -> None:
         self.camera = camera
         self._image = image
+        self._valid = None if valid is None or np.all(valid) else np.asarray(valid, bool)
         self.depth = depth
+
+    def pixels(self) -> Pixels:
+        """(image, valid) with one read of the file."""
+        return self._image.read() if isinstance(self._image, ImageFile) else (self._image, self._valid)
 
     @property
     def image(self) -> np.ndarray:
-        return self._image.read() if isinstance(self._image, ImageFile) else self._image
+        return self.pixels()[0]
+
+    @property
+    def valid(self) -> np.ndarray | None:
+        return self.pixels()[1]
 
     @property
     def name(self) -> str:
@@ -83,11 +103,11 @@ class View:
 
     def with_camera(self, camera: Camera) -> "View":
         """This view seen through ``camera`` (same pixels, read or not, and depth)."""
-        return View(camera, self._image, self.depth)
+        return View(camera, self._image, self.depth, self._valid)
 
     def pixels_digest(self) -> str:
         """Digest of the view's pixels (taken when read for an :class:`ImageFile`)."""
-        return self._image.digest if isinstance(self._image, ImageFile) else pixels_digest(self._image)
+        return self._image.digest if isinstance(self._image, ImageFile) else pixels_digest(self._image, self._valid)
 
     def __repr__(self) -> str:
         what = "in its file" if isinstance(self._image, ImageFile) else f"{np.shape(self._image)}"

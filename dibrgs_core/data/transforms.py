@@ -16,7 +16,8 @@ principal point, the image centre. Distortion ``k1``, ``k2``, ``p1``, ``p2`` (``
 perspective ``camera_model`` (``OPENCV``, the default, or a pinhole or radial one) is undistorted
 on load as COLMAP's (``OPENCV`` / ``FULL_OPENCV``); fisheye and other models are refused. ``file_path`` is relative to the JSON's folder, with or without the
 photo's extension. Photos keep their stored pixel order (as the layout's tools read them) unless
-only the upright photo fits the given size.
+only the upright photo fits the given size. A frame's ``mask_path`` (nerfstudio's: black pixels are
+left out) or a mask in ``masks/`` beside the photos marks pixels without data.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from ..camera.pinhole import Camera
 from ..common.colmap_lib import import_pycolmap
 from ..common.errors import InputError
 from .colmap import read_photo
-from .images import IMAGE_EXTS, image_size, turned_to_fit
+from .images import IMAGE_EXTS, find_mask, image_size, turned_to_fit
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
 from .undistort import undistorted_camera
@@ -71,6 +72,8 @@ class Frame:
         intrinsics: the JSON's ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``camera_angle_x``,
             ``camera_angle_y`` (those present) and distortion ``k1`` ... ``k3``.
         part: ``"train"``, ``"test"``, ``"val"`` (from a part file) or None.
+        mask: the frame's mask image (nerfstudio's ``mask_path``; else one in a ``masks/`` folder
+            beside the photo's, :func:`~.images.find_mask`), or None.
     """
 
     name: str
@@ -79,6 +82,7 @@ class Frame:
     size: tuple[int, int] | None
     intrinsics: dict[str, float]
     part: str | None
+    mask: Path | None = None
 
     def camera_model(self, width: int, height: int) -> tuple[str, list[float]]:
         """The COLMAP camera model and parameters of this frame's camera for a photo of
@@ -165,8 +169,14 @@ def _read_file(path: Path, part: str | None) -> list[Frame]:
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R.T, -R.T @ C
         name = str(fr["file_path"]).replace("\\", "/")
-        out.append(Frame(name=_strip_dot(name), photo=_photo(path.parent, name, path, k), w2c=w2c,
-                         size=(int(w), int(h)) if w and h else None, intrinsics=intr, part=part))
+        photo = _photo(path.parent, name, path, k)
+        mask = find_mask(photo.parent, photo.name)
+        if fr.get("mask_path") is not None:
+            mask = path.parent / str(fr["mask_path"]).replace("\\", "/")
+            if not mask.is_file():
+                raise InputError(path, f"frame {k}: mask_path {fr['mask_path']} not found in {path.parent}")
+        out.append(Frame(name=_strip_dot(name), photo=photo, w2c=w2c, size=(int(w), int(h)) if w and h else None,
+                         intrinsics=intr, part=part, mask=mask))
     return out
 
 
@@ -232,7 +242,8 @@ def read_transforms_scene(root: str | Path, train_ids: Iterable[str] | None = No
     undistorted = 0
     for f in frames:
         cam, ccam, oriented = _camera(f, ids[f.name])
-        pixels, got = ImageFile.checked(f.photo, partial(read_photo, f.photo, ccam, oriented, ccam is not None))
+        pixels, got = ImageFile.checked(f.photo, partial(read_photo, f.photo, ccam, oriented, ccam is not None,
+                                                         f.mask))
         if got != (cam.width, cam.height):
             raise InputError(f.photo, f"image is {got[0]}x{got[1]} but its camera is {cam.width}x{cam.height}")
         views[cam.name] = View(camera=cam, image=pixels)

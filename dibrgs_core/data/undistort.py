@@ -32,7 +32,7 @@ log = logging.getLogger("dibrgs.undistort")
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 #: Perspective models with distortion that are undistorted on load.
 DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
-_VERSION = "undistort/1"
+_VERSION = "undistort/2"
 
 
 def model_name(cam) -> str:
@@ -81,36 +81,47 @@ def cache_dir() -> Path:
 
 @dataclass
 class Undistorted:
-    """An undistorted photo: float32 (H, W, 3) RGB in [0, 1] and its pinhole pycolmap camera."""
+    """An undistorted photo: float32 (H, W, 3) RGB in [0, 1], bool (H, W) valid pixels (None when all
+    are) and its pinhole pycolmap camera."""
 
     image: np.ndarray
+    valid: np.ndarray | None
     camera: object
 
 
-def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], np.ndarray]) -> Undistorted:
+def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], tuple[np.ndarray, np.ndarray | None]],
+                    mask: Path | None = None) -> Undistorted:
     """The undistorted photo at ``path`` taken with pycolmap camera ``cam``; ``read()`` gives the
-    photo (float RGB in [0, 1], in the pixel order the camera describes) when it is not cached."""
+    photo (float RGB in [0, 1], in the pixel order the camera describes) and its valid pixels when
+    it is not cached; ``mask``, the mask file those come from, if any (part of the cache key). A
+    pixel of the undistorted photo is valid when every photo pixel it is drawn from is."""
     pycolmap = import_pycolmap()
 
     out_cam = undistorted_camera(cam)
-    key = (Digest(_VERSION).text(file_digest(path)).text(model_name(cam)).array(np.asarray(cam.params, np.float64))
+    key = (Digest(_VERSION).text(file_digest(path)).text("" if mask is None else file_digest(mask))
+           .text(model_name(cam)).array(np.asarray(cam.params, np.float64))
            .json([cam.width, cam.height, bool(oriented), _options().todict()]).hex())
     cached = cache_dir() / f"{key}.npy"
     if cached.is_file():
         try:
             a = np.load(cached, allow_pickle=False)
-            if a.shape == (out_cam.height, out_cam.width, 3) and a.dtype == np.uint8:
-                return Undistorted(a.astype(np.float32) / 255.0, out_cam)
+            if a.shape[:2] == (out_cam.height, out_cam.width) and a.shape[2] in (3, 4) and a.dtype == np.uint8:
+                return _undistorted(a, out_cam)
         except (OSError, ValueError) as e:
             log.warning("%s: unreadable cache entry, recomputing (%s)", cached, e)
-    image = read()
+    image, valid = read()
     if image.shape[:2] != (cam.height, cam.width):
         raise InputError(path, f"image is {image.shape[1]}x{image.shape[0]} but its COLMAP camera is "
                                f"{cam.width}x{cam.height}")
-    u8 = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
-    bitmap, out_cam = pycolmap.undistort_image(_options(), pycolmap.Bitmap.from_array(np.ascontiguousarray(u8)),
-                                               cam)
-    a = np.asarray(bitmap.to_array(), dtype=np.uint8).reshape(out_cam.height, out_cam.width, -1)[..., :3]
+
+    def undistorted(u8: np.ndarray) -> np.ndarray:
+        bitmap, _ = pycolmap.undistort_image(_options(), pycolmap.Bitmap.from_array(np.ascontiguousarray(u8)), cam)
+        return np.asarray(bitmap.to_array(), dtype=np.uint8).reshape(out_cam.height, out_cam.width, -1)
+
+    a = undistorted(np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8))[..., :3]
+    if valid is not None:  # alpha 255 where every source pixel of the bilinear resampling is valid
+        a = np.concatenate([a, np.where(undistorted(valid.astype(np.uint8) * 255)[..., :1] == 255, 255, 0)
+                            .astype(np.uint8)], axis=2)
     try:
         with atomic_path(cached) as tmp:
             with open(tmp, "wb") as f:
@@ -118,4 +129,12 @@ def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], np.ndarr
     except (OSError, InputError) as e:
         log.warning("cannot cache the undistorted %s in %s (%s); continuing without the cache", path.name,
                     cached.parent, e)
-    return Undistorted(a.astype(np.float32) / 255.0, out_cam)
+    return _undistorted(a, out_cam)
+
+
+def _undistorted(a: np.ndarray, out_cam) -> Undistorted:
+    """An :class:`Undistorted` of uint8 (H, W, 3) RGB or (H, W, 4) RGB and validity (alpha 255)."""
+    valid = None if a.shape[2] == 3 else a[..., 3] == 255
+    image = a[..., :3].astype(np.float32) / 255.0
+    return Undistorted(image if valid is None else np.where(valid[..., None], image, np.float32(0.0)), valid,
+                       out_cam)

@@ -10,6 +10,9 @@
   torchvision ``vgg16`` / ``alexnet`` state dict, ``features.*`` keys). The network
   is rebuilt here in plain torch. Without weights LPIPS and AVGE are reported as
   ``null`` with the reason; nothing is estimated.
+* Held-out pixels without data (transparent, no-data values, masked: :mod:`~dibrgs_core.data.images`)
+  count in no metric: PSNR's and SSIM's means are over the others, and SSIM's and LPIPS's windows
+  see the image itself there.
 * AVGE (RegNeRF): geometric mean of ``10^(-PSNR/10)``, ``sqrt(1 - SSIM)`` and LPIPS.
 * FPS: held-out views rendered repeatedly after a warm-up, wall-clock.
 """
@@ -127,6 +130,10 @@ def run_scale(work: str | Path, tr: Trained, scene: Any) -> float:
     return resolve_resolution(tr.cfg, sizes)[0]
 
 
+#: Half-width of scikit-image's SSIM window (Gaussian, sigma 1.5: 11 pixels), the border its mean leaves out.
+_SSIM_PAD = 5
+
+
 def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_backbone: str | Path | None = None,
              fps_repeats: int = 3, write_renders: bool = True, scene_root: str | Path | None = None
              ) -> dict[str, Any]:
@@ -141,7 +148,7 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
 
     from ..data.images import write_png
     from ..data.load import load_scene
-    from ..training.frames import views_to_frames
+    from ..training.frames import frame_valid, views_to_frames
 
     work = Path(work)
     tr = load_trained(work)
@@ -171,16 +178,27 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     for f in tqdm(frames, desc="eval", unit="view", disable=None):
         img, _ = tr.render(f.cam.cam)
         gt = f.image.numpy()
+        valid = frame_valid(f)
+        # Pixels without data are scored as rendered right: they count in no mean, and SSIM's
+        # and LPIPS's windows that reach them compare only the pixels with data
+        scored = img if valid is None else np.where(valid[..., None], img, gt)
         with np.errstate(divide="ignore"):
-            p = float(peak_signal_noise_ratio(gt, img, data_range=1.0))
-        s = float(structural_similarity(gt, img, channel_axis=2, data_range=1.0, gaussian_weights=True,
-                                        sigma=1.5, use_sample_covariance=False))
+            p = float(peak_signal_noise_ratio(gt, img, data_range=1.0)) if valid is None else \
+                float(10.0 * np.log10(1.0 / np.mean((img[valid].astype(np.float64) - gt[valid]) ** 2)))
+        s, smap = structural_similarity(gt, scored, channel_axis=2, data_range=1.0, gaussian_weights=True,
+                                        sigma=1.5, use_sample_covariance=False, full=True)
+        if valid is not None:  # as scikit-image's mean: the window's half-width of border left out
+            inner = np.zeros_like(valid)
+            inner[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD] = True
+            s = float(smap[valid & inner].mean()) if (valid & inner).any() else float(smap[valid].mean())
         row: dict[str, Any] = {"psnr": p, "ssim": s}
+        if valid is not None:
+            row["scored_share"] = float(valid.mean())
         if not math.isfinite(p):
             row["psnr"] = None
             undefined[f"per_view.{f.cam.cam.name}.psnr"] = "infinite: the render equals the image (MSE 0)"
         if lp is not None:
-            row["lpips"] = float(lp(torch.from_numpy(img), f.image))
+            row["lpips"] = float(lp(torch.from_numpy(np.ascontiguousarray(scored)), f.image))
         per_view[f.cam.cam.name] = row
         renders.append((f.cam.cam.name, img))
         if write_renders:

@@ -40,7 +40,7 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
     ray meets that surface, with confidence ``config.completion_confidence``
     (below every measured point's). Skipped, with the reason in the report,
     when the scene is not near-nadir (``auto``), when ``config.complete`` is
-    ``off``, or with too few measured points.
+    ``off``, or with too few measured points. Pixels without data stay without depth.
     """
     holes = sum(int((~(np.isfinite(d) & (np.asarray(d) > 0))).sum()) for d in depths)
     if config.complete == "off":
@@ -64,9 +64,9 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
     ground = float(np.median(to_frame(pts, geo.frame, geo.origin)[:, 2]))
     field = completion_field(pts, geo.frame, geo.origin, cell, _footprints(geo, ground))
     out_d, out_c, filled = [], [], 0
-    for cam, d, c in zip(geo.cameras, depths, confidence):
+    for cam, d, c, ok in zip(geo.cameras, depths, confidence, geo.valid):
         d = np.asarray(d, np.float64)
-        hole = ~(np.isfinite(d) & (d > 0))
+        hole = ~(np.isfinite(d) & (d > 0)) & (True if ok is None else ok)  # no data: nothing to place
         surf = _surface_depth(field, cam, config.mvs.max_size) if hole.any() else np.zeros_like(d)
         fill = hole & (surf > 0)
         filled += int(fill.sum())

@@ -251,9 +251,11 @@ class PriorMaps:
 def compute_prior(name: str, cameras: Sequence[Camera], images: Sequence[np.ndarray],
                   gt_depths: Sequence[np.ndarray | None] | None, sparse_points: np.ndarray | None,
                   ref_distance: float, depth_model: str | Path | None = None, mvs_config=None,
-                  checkpoint: Path | None = None) -> PriorMaps:
+                  checkpoint: Path | None = None, valid: Sequence[np.ndarray | None] | None = None) -> PriorMaps:
     """Run the named prior on the views. See the module docstring for the names. ``checkpoint``:
-    a folder where the plane sweep keeps each view's result as it finishes (``mvs`` only)."""
+    a folder where the plane sweep keeps each view's result as it finishes (``mvs`` only).
+    ``valid``: per view, bool (H, W) pixels that hold data or None: the plane sweep matches only
+    those (the maps are not masked here: :func:`~.pipeline.prior_depths` leaves the rest out)."""
     if name == "depth-anything-v2":
         if depth_model is None:
             raise InputError(None, "the depth-anything-v2 prior needs its weights: pass a local folder with --depth-model")
@@ -266,6 +268,8 @@ def compute_prior(name: str, cameras: Sequence[Camera], images: Sequence[np.ndar
     if name == "mvs":
         from .mvs import mvs_depths
 
+        if valid is not None:
+            images = [im if v is None else np.where(v[..., None], im, np.float32(np.nan)) for im, v in zip(images, valid)]
         res = mvs_depths(cameras, images, sparse_points, ref_distance, mvs_config, checkpoint=checkpoint)
         return PriorMaps("depth", [r.depth for r in res], [r.confidence for r in res])
     if name == "gt":

@@ -45,12 +45,13 @@ log = logging.getLogger("dibrgs.mvs")
 
 
 def _gray(img: np.ndarray):
+    """(1, 1, H, W) luminance; NaN (no data) stays NaN."""
     import torch
 
     g = np.asarray(img, np.float32)
     if g.ndim == 3:
         g = g[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
-    return torch.from_numpy(np.nan_to_num(g, nan=0.0).copy())[None, None]
+    return torch.from_numpy(np.ascontiguousarray(g))[None, None]
 
 
 def _blur(x):
@@ -76,6 +77,9 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
     height a pixel ray reaches between ``near`` and ``far``); a pixel whose
     plane intersection falls outside ``[near, far]`` gets no cost there.
     Without ``up`` the planes are fronto-parallel, uniform in inverse depth.
+
+    Images may hold NaN where they have no data: a reference pixel whose window touches one gets
+    no depth, and a source whose window does counts as not seeing the pixel at that plane.
     """
     import torch
     import torch.nn.functional as F
@@ -93,6 +97,9 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         if cfg.prefilter:
             r = _blur(r)
         mu_r = _box(r, w)
+        # a window touching no data matches nothing; the NaN must not reach the aggregation
+        ref_ok = torch.isfinite(mu_r)[0, 0]
+        r, mu_r = torch.nan_to_num(r), torch.nan_to_num(mu_r)
         var_r = (_box(r * r, w) - mu_r ** 2).clamp_min(0)
         sd_r = var_r.sqrt()
         # Pixel-centre rays of the reference camera (camera frame, z = 1).
@@ -150,14 +157,14 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
                 cov = _box(warped * r, w) - mu_s * mu_r
                 ncc = cov / (var_s * var_r + 1e-10).sqrt()
                 c = (1 - ncc.clamp(-1, 1))[:, 0]
-                c = torch.where(inside.reshape(n, H, W), c, torch.full_like(c, float("inf")))
+                c = torch.where(inside.reshape(n, H, W) & torch.isfinite(c), c, torch.full_like(c, float("inf")))
                 per_src.append(c)
             stack = torch.stack(per_src, 0)  # (S, n, H, W)
             best = torch.sort(stack, dim=0).values[:n_keep]
             finite = torch.isfinite(best)
             cnt = finite.sum(0)
             agg = torch.where(finite, best, torch.zeros_like(best)).sum(0) / cnt.clamp_min(1)
-            cost[k0:k0 + n] = torch.where(cnt > 0, agg, torch.full_like(agg, 2.0))
+            cost[k0:k0 + n] = torch.where((cnt > 0) & ref_ok, agg, torch.full_like(agg, 2.0))
         raw = cost
         if cfg.sgm_paths:
             cost = semi_global(cost, cfg.sgm_p1, cfg.sgm_p2, cfg.sgm_paths) / cfg.sgm_paths
@@ -183,7 +190,8 @@ def plane_sweep(ref: Camera, ref_img: np.ndarray, sources: Sequence[tuple[Camera
         c2 = torch.where(away, cost, torch.full_like(cost, 2.0)).min(0).values
         conf = ((c2 - c1) / c2.clamp_min(1e-6)).clamp(0, 1)
         ncc_best = 1 - raw.gather(0, k1[None])[0]
-        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & (sd_r[0, 0] >= cfg.min_texture_rel * sd_r.median())
+        texture = sd_r[0, 0] >= cfg.min_texture_rel * sd_r[0, 0][ref_ok].median() if ref_ok.any() else ref_ok
+        valid = (ncc_best >= cfg.min_ncc) & (conf >= cfg.min_confidence) & texture & ref_ok
         valid &= torch.isfinite(depth) & (c1 < 2) & (depth >= near * 0.99) & (depth <= far * 1.01)
         depth = torch.where(valid, depth, torch.full_like(depth, float("nan")))
         conf = torch.where(valid, conf, torch.zeros_like(conf))
@@ -235,7 +243,8 @@ class SweepCheckpoint:
 def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_points: np.ndarray | None,
                fallback_distance: float, config: MvsConfig | None = None, progress: bool = True,
                checkpoint: Path | None = None) -> list[MvsResult]:
-    """Plane-sweep depth for every view against the others (at most ``config.max_sources`` of them).
+    """Plane-sweep depth for every view against the others (at most ``config.max_sources`` of them);
+    ``images`` may hold NaN where a photo has no data (:func:`plane_sweep`).
 
     Camera translations are re-expressed relative to the mean camera centre
     (precision with georeferenced coordinates); depths do not change. With ``checkpoint`` (a
@@ -299,12 +308,19 @@ def mvs_depths(cameras: Sequence[Camera], images: Sequence[np.ndarray], sparse_p
 
 
 def area_resize(img: np.ndarray, cam: Camera) -> np.ndarray:
-    """Area-average an HxWxC image to the size of ``cam``."""
+    """Area-average an HxWxC image to the size of ``cam``; a pixel drawn from any NaN is NaN."""
     import torch
     import torch.nn.functional as F
 
-    t = torch.from_numpy(np.nan_to_num(np.asarray(img, np.float32))).permute(2, 0, 1)[None]
-    return F.interpolate(t, size=(cam.height, cam.width), mode="area")[0].permute(1, 2, 0).numpy()
+    a = np.asarray(img, np.float32)
+    t = torch.from_numpy(np.nan_to_num(a)).permute(2, 0, 1)[None]
+    out = F.interpolate(t, size=(cam.height, cam.width), mode="area")[0].permute(1, 2, 0).numpy()
+    nan = np.isnan(a).any(axis=2)
+    if nan.any():
+        share = F.interpolate(torch.from_numpy(nan.astype(np.float32))[None, None], size=(cam.height, cam.width),
+                              mode="area")[0, 0].numpy()
+        out[share > 1e-4] = np.nan
+    return out
 
 
 def _upsample(a: np.ndarray, cam: Camera) -> np.ndarray:

@@ -70,7 +70,7 @@ def run_sparse(geo: SceneGeometry, config: InitConfig, report: Report) -> Sparse
     """SfM with the poses fixed; an empty cloud (with the reason) when it finds too few points."""
     t = time.time()
     try:
-        sparse = triangulate_known_poses(geo.cameras, geo.images, origin=geo.origin, config=config.sfm)
+        sparse = triangulate_known_poses(geo.cameras, geo.images, origin=geo.origin, config=config.sfm, valid=geo.valid)
     except Exception as e:  # pycolmap failures must not stop initialisation
         log.warning("SfM failed: %s", e)
         sparse = SparseCloud.empty()
@@ -99,7 +99,7 @@ def prior_depths(geo: SceneGeometry, config: InitConfig, sparse_points: np.ndarr
     if prior is None:
         t = time.time()
         prior = compute_prior(name, geo.cameras, geo.images, geo.gt_depths, sparse_points, geo.ref_distance,
-                              config.depth_model, config.mvs)
+                              config.depth_model, config.mvs, valid=geo.valid)
         report.values["prior_s"] = time.time() - t
     report.values["prior"] = name
     out = []
@@ -119,6 +119,8 @@ def prior_depths(geo: SceneGeometry, config: InitConfig, sparse_points: np.ndarr
                 report.decide(STAGE, f"align[{cam.name}]", al.method == "robust-lsq", al.reason, a=al.a, b=al.b)
             out.append(al.apply(pseudo))
     report.values["alignment"] = aligns
+    # no depth where a photo holds no data, whatever the prior made of its fill
+    out = [d if v is None else np.where(v, d, np.nan) for d, v in zip(out, geo.valid)]
     if prior.kind == "depth":
         report.decide(STAGE, "align", False, f"the {name} prior is metric depth; the affine fit against SfM is "
                       "recorded as a check only", fits=[(a["a"], a["b"], a["n_points"]) for a in aligns])
@@ -227,7 +229,7 @@ def initialise(scene: Any, out_dir: str | Path, config: InitConfig | None = None
         name = cfg.depth_prior if cfg.depth_prior != "auto" else ("depth-anything-v2" if cfg.depth_model else "mvs")
         t = time.time()
         prior = compute_prior(name, geo.cameras, geo.images, geo.gt_depths, sparse.points, geo.ref_distance,
-                              cfg.depth_model, cfg.mvs, checkpoint=out / SWEEPS)
+                              cfg.depth_model, cfg.mvs, checkpoint=out / SWEEPS, valid=geo.valid)
         report.values["prior_s"] = time.time() - t
         depths = prior_depths(geo, cfg, sparse.points, report, prior=prior)
         confs = [measured_confidence(None if prior.confidence is None else prior.confidence[i], d.shape)

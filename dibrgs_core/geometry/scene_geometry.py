@@ -39,6 +39,12 @@ class SceneGeometry:
     ref_source: str = "look-at"
     span: float = 1.0  # the lens's span against the reference lens (camera.frame.span_factor)
     resize: float = 1.0  # the training photos' size factor here (InitConfig.max_side)
+    #: per view, bool (H, W) pixels that hold data (their images are 0 elsewhere), None when all do
+    valid: list[np.ndarray | None] | None = None
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            self.valid = [None] * len(self.cameras)
 
     @property
     def n_pixels(self) -> int:
@@ -78,10 +84,17 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
         origin = centers.mean(0) + ref * np.mean([c.view_dir for c in cams], axis=0)
     span = span_factor(cams)
     scale = float(config.scale) if config.scale else ref * span / LEVIR_REFERENCE_DEPTH
-    images = [np.asarray(v.image, np.float32) if resize == 1.0 else area_resize(v.image, c) for v, c in zip(views, cams)]
+    images, valid = [], []
+    for v, c in zip(views, cams):
+        image, ok = v.pixels()
+        if resize != 1.0:  # a pixel drawn from any pixel without data has none
+            image = area_resize(image if ok is None else np.where(ok[..., None], image, np.float32(np.nan)), c)
+            ok = None if ok is None else np.isfinite(image).all(axis=2)
+        images.append(np.nan_to_num(np.asarray(image, np.float32)))
+        valid.append(ok)
     depths = [v.depth if resize == 1.0 or v.depth is None else _nearest(v.depth, c) for v, c in zip(views, cams)]
     return SceneGeometry(cams, images, depths, up, float(conf), up_frame(up), origin, nadir_angle_deg(cams, up), scale,
-                         ref, source, span, resize)
+                         ref, source, span, resize, valid)
 
 
 def _nearest(depth: np.ndarray, cam: Camera) -> np.ndarray:

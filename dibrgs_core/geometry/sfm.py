@@ -83,9 +83,14 @@ def neighbour_pairs(cams: Sequence[Camera], k: int) -> list[tuple[int, int]] | N
     return sorted(pairs)
 
 
+#: Pixels by which features keep off the pixels of a photo without data.
+MASK_MARGIN_PX = 4
+
+
 @colmap_logging()
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
-                            config: SfmConfig | None = None, work_dir: Path | None = None) -> SparseCloud:
+                            config: SfmConfig | None = None, work_dir: Path | None = None,
+                            valid: Sequence[np.ndarray | None] | None = None) -> SparseCloud:
     """Sparse points from images with known cameras.
 
     Args:
@@ -96,6 +101,8 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         config: :class:`SfmConfig`.
         work_dir: where COLMAP's database and images go (a temporary folder
             when None; removed afterwards).
+        valid: per image, bool HxW pixels that hold data or None (all do): features are
+            extracted only there (COLMAP's mask images).
 
     Returns a :class:`SparseCloud` (possibly empty; never raises for "too few
     matches").
@@ -131,6 +138,14 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
             # One PINHOLE camera per image with the known intrinsics.
             ro = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
                                              camera_params=f"{cam.fx!r},{cam.fy!r},{cam.cx!r},{cam.cy!r}")
+            if valid is not None and valid[i] is not None:
+                from scipy.ndimage import binary_erosion
+
+                # no features on no data, nor at its edge (a corner of a fill is no point of the scene)
+                keep = binary_erosion(valid[i], iterations=MASK_MARGIN_PX)
+                (root / "masks").mkdir(exist_ok=True)
+                Image.fromarray(keep.astype(np.uint8) * 255).save(root / "masks" / f"{name}.png")
+                ro.mask_path = str(root / "masks")
             pycolmap.extract_features(db_path, img_dir, image_names=[name], camera_mode=pycolmap.CameraMode.SINGLE,
                                       reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
         mo = pycolmap.FeatureMatchingOptions()

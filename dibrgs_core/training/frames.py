@@ -1,4 +1,5 @@
-"""Supervised frames: a camera as tensors, its target image and an optional per-pixel loss weight.
+"""Supervised frames: a camera as tensors, its target image and an optional per-pixel loss weight
+(a scene view's pixels without data weigh 0; a pseudo view's padding less than its warped pixels).
 
 Images are (H, W, 3) float32 in [0, 1]; a resolution scale resizes image and camera together
 (area-averaged down, bilinear up; the camera with :meth:`Camera.scaled`, pixel-centre exact).
@@ -35,10 +36,22 @@ class Frame:
 
 
 def views_to_frames(views: list[Any], scale: float) -> list[Frame]:
-    """Frames of scene views (:class:`~dibrgs_core.data.scene.View`) at ``scale`` x their resolution."""
+    """Frames of scene views (:class:`~dibrgs_core.data.scene.View`) at ``scale`` x their resolution;
+    a view with pixels that hold no data gets a 0/1 mask: 1 where every photo pixel a frame pixel
+    is drawn from holds data (its colour is not mixed with the fill)."""
     out = []
     for v in views:
         cam = v.camera.scaled(scale) if scale != 1.0 else v.camera
-        img = resize_image(np.clip(np.nan_to_num(v.image), 0.0, 1.0), scale)
-        out.append(Frame(CameraTensors.of(cam), torch.from_numpy(np.ascontiguousarray(img[..., :3]))))
+        image, valid = v.pixels()
+        img = resize_image(np.clip(np.nan_to_num(image), 0.0, 1.0), scale)
+        mask = None
+        if valid is not None:
+            mask = torch.from_numpy((resize_image(valid[..., None].astype(np.float32), scale)[..., 0] > 1 - 1e-4)
+                                    .astype(np.float32))
+        out.append(Frame(CameraTensors.of(cam), torch.from_numpy(np.ascontiguousarray(img[..., :3])), mask))
     return out
+
+
+def frame_valid(frame: Frame) -> np.ndarray | None:
+    """The pixels of a scene view's frame that hold data (bool (H, W)), None when all do."""
+    return None if frame.mask is None else frame.mask.numpy() > 0.5

@@ -83,12 +83,21 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma:
     return (num / den)[0].permute(1, 2, 0).reshape(pred.shape)
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma: float = _SIGMA) -> torch.Tensor:
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma: float = _SIGMA,
+         mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean SSIM of two (H,W,C) or (H,W) images in [0,1] (0-d tensor, differentiable).
 
     Matches scikit-image's Gaussian-weighted SSIM: the mean excludes a border of
-    ``window // 2`` pixels when the image is large enough to have an interior.
+    ``window // 2`` pixels when the image is large enough to have an interior. With ``mask``
+    (H,W), the mean over the pixels it weights, ``pred`` taken as ``gt`` where it is 0 (so that
+    windows reaching pixels without data compare only the pixels with it).
     """
+    if mask is not None:
+        m = _mask_hw1(mask, pred.shape[0], pred.shape[1], pred)
+        m = m if pred.dim() == 3 else m[..., 0]
+        s = ssim_map(torch.where(m > 0, pred, gt.to(pred.dtype)), gt, window, sigma)
+        w = m.expand_as(s)
+        return (s * w).sum() / w.sum().clamp_min(1e-12)
     m = ssim_map(pred, gt, window, sigma)
     r = window // 2
     H, W = m.shape[0], m.shape[1]
@@ -147,8 +156,9 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     """The paper's loss ``(1 - lam) * L1 + lam * (1 - SSIM)`` for (H,W,C) images.
 
     ``mask`` (H,W) or (H,W,1), bool or float weights in [0,1], restricts both
-    terms to valid pixels (pseudo views with holes): L1 is the weighted mean
-    absolute error and the D-SSIM term the weighted mean of the SSIM map. A mask
+    terms to valid pixels (pseudo views with holes, photos without data in places): L1 is the
+    weighted mean absolute error and the D-SSIM term the weighted mean of the SSIM map, ``pred``
+    taken as ``gt`` where the weight is 0. A mask
     without any valid pixel gives a loss of exactly 0 whose gradients are 0.
     """
     if pred.shape != gt.shape:
@@ -176,6 +186,10 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     if float(wsum) <= 0.0:
         # Keep the graph (zero gradients) without dividing by zero.
         return (pred * 0.0).sum()
+    if bool((m <= 0).any()):
+        # SSIM windows reaching pixels without data compare the data only: none of their gradient
+        # flows into what is rendered there
+        pred = torch.where((m if pred.dim() == 3 else m[..., 0]) > 0, pred, gt)
     if fast:
         # One contiguous weight tensor for both terms (expanded, each would be copied on its own).
         w = (m / (wsum * C)).detach().expand(H, W, C).contiguous()

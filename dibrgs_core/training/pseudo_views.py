@@ -46,6 +46,7 @@ from ..camera.pinhole import Camera
 from ..camera.frame import scene_depth
 from ..camera.trajectory import Trajectory, classify, sample_poses
 from ..common.fileio import atomic_path, write_json
+from ..data.scene import View
 from ..geometry.pointcloud import point_spacing
 from .pseudo_depth import complete_depth, zbuffer_depth
 from .pseudo_warp import PADDED, RTOL, Projector, disagreement, fill_progressive, merge_samples, source_order
@@ -148,13 +149,21 @@ def _hash_inputs(train_views: Sequence, points: np.ndarray, options: dict, path:
     h.update(f"views={len(train_views)}".encode())
     for v in train_views:
         cam(v.camera)
-        img = np.ascontiguousarray(v.image, dtype=np.float32)
+        img = np.ascontiguousarray(_source_image(v))
         h.update(f"{img.shape}".encode())
         h.update(img.tobytes())
     h.update(f"path={path is not None}:{len(path or [])}".encode())
     for c in path or []:
         cam(c)
     return h.hexdigest()
+
+
+def _source_image(v: View) -> np.ndarray:
+    """A training view's float32 (H, W, 3) RGB as a warp's source: NaN where it holds no data, which
+    the warp treats as not visible (:meth:`~.pseudo_warp.Projector.sample`)."""
+    image, valid = v.pixels()
+    image = np.asarray(image, np.float32)[..., :3]
+    return image if valid is None else np.where(valid[..., None], image, np.float32(np.nan))
 
 
 def _save_view(p: Path, pv: PseudoView) -> None:
@@ -270,7 +279,7 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     sources = []
     for v in train_views:
         fill = None if hfield is None else hfield.depth(v.camera)
-        sources.append((v.camera, np.asarray(v.image, np.float32)[..., :3],
+        sources.append((v.camera, _source_image(v),
                         complete_depth(zbuffer_depth(pts, v.camera, spacing), fill=fill)))
     check = consistency_tol > 0 and len(sources) > 1
     (cache_dir / "manifest.json").unlink(missing_ok=True)  # a crash mid-rebuild must not look complete

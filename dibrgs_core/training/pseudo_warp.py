@@ -32,7 +32,7 @@ class SourceSamples:
             image (the padding colour where the projection falls outside).
         front: the back-projected point is in front of the source camera.
         inside: ... and projects inside the source image.
-        visible: ... and passes the occlusion test against the source depth.
+        visible: ... and holds data there and passes the occlusion test against the source depth.
     """
 
     colour: np.ndarray
@@ -93,8 +93,10 @@ class Projector:
             front &= np.isfinite(u) & np.isfinite(v)
             inside = front & (u >= 0) & (u < ws) & (v >= 0) & (v < hs)
             ds = d_s[np.clip(v, 0, hs - 1).astype(np.int64), np.clip(u, 0, ws - 1).astype(np.int64)]
-            visible = inside & (ds > 0) & (z <= ds * (1.0 + rtol))
-            out.append(SourceSamples(_sample(im_s, np.stack([u, v], -1)), front, inside, visible))
+            colour = _sample(im_s, np.stack([u, v], -1))
+            # NaN: the source holds no data there; like an occluded pixel, padded from its neighbours
+            visible = inside & np.isfinite(colour).all(axis=1) & (ds > 0) & (z <= ds * (1.0 + rtol))
+            out.append(SourceSamples(np.nan_to_num(colour), front, inside, visible))
         return out
 
 
@@ -102,7 +104,8 @@ def sample_sources(target: Camera, depth: np.ndarray, sources: Sequence[tuple], 
                    ) -> list[SourceSamples]:
     """Project the target's pixels, back-projected at ``depth`` (H,W; 0 = none), once into each source.
 
-    ``sources`` are ``(camera, image (h,w,3))`` or ``(camera, image, depth (h,w))`` tuples. The
+    ``sources`` are ``(camera, image (h,w,3))`` or ``(camera, image, depth (h,w))`` tuples (an image
+    is NaN where it holds no data: a pixel drawn from there is not visible in it). The
     source depth (0 = unknown) is used for the occlusion test: a pixel is visible in a source
     when its depth there is at most ``source_depth * (1 + rtol)``; without it, one is
     z-buffered from the target's own back-projected pixels.

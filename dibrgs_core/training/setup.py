@@ -26,7 +26,7 @@ from ..common.report import Report
 from ..common.digest import Digest
 from ..data.scene import Scene, View, views_digest
 from .config import TrainConfig
-from .frames import Frame
+from .frames import Frame, frame_valid
 from .methods import GS3DTraining, ScaffoldTraining, TrainingMethod
 from .run_folder import PSEUDO_PATH_DIGEST
 
@@ -80,7 +80,8 @@ def sfm_points(ctx: SetupContext) -> tuple[np.ndarray, np.ndarray]:
             log.info("%s was made from other views or options; triangulating again", cache)
         except (OSError, ValueError, KeyError) as e:
             log.warning("%s unreadable (%s); triangulating again", cache, e)
-    sc = triangulate_known_poses([v.camera for v in views], [v.image for v in views])
+    pixels = [v.pixels() for v in views]
+    sc = triangulate_known_poses([v.camera for v in views], [p[0] for p in pixels], valid=[p[1] for p in pixels])
     with atomic_path(cache) as tmp:
         np.savez(tmp, points=sc.points, colors=sc.colors, key=np.array(key))
     return sc.points, sc.colors
@@ -272,7 +273,7 @@ def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:
         given = [c.translated(-origin) for c in read]
         path = [c.scaled(ctx.resolution_scale) if ctx.resolution_scale != 1.0 else c for c in given]
     cams = [f.cam.cam for f in ctx.train_frames]
-    train_views = [View(c, f.image.numpy()) for c, f in zip(cams, ctx.train_frames)]
+    train_views = [View(c, f.image.numpy(), valid=frame_valid(f)) for c, f in zip(cams, ctx.train_frames)]
     surface, why = decide(cfg.pseudo.surface, cams)
     rep.decide("train", "pseudo_depth_height_field", surface, why)
     built = build_pseudo_views(train_views, np.asarray(points), cfg.pseudo.n_views, cfg.seed, ctx.work / "pseudo",

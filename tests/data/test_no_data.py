@@ -1,0 +1,152 @@
+"""Photos with pixels that hold no data (the black or transparent fill of a rectified or clipped
+image, NaN or a GDAL no-data value in a GeoTIFF, a mask image beside the photos): read as a view's
+``valid`` map, in every layout, through undistortion, and into the scene's digest."""
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from dibrgs_core.camera.pinhole import Camera, look_at
+from dibrgs_core.common.errors import InputError
+from dibrgs_core.data.colmap import read_colmap_scene
+from dibrgs_core.data.images import read_pixels
+from dibrgs_core.data.levir import read_scene, write_scene
+from dibrgs_core.data.scene import View
+from dibrgs_core.data.transforms import read_transforms_scene
+
+from photo_synth import H, W, pattern, write_distorted_model
+
+RGB8 = (pattern(W, H) * 255).astype(np.uint8)
+
+
+def _corner(h: int = H, w: int = W) -> np.ndarray:
+    """bool (h, w), False over a triangle in the top-left corner (a rectified photo's fill), about 1/8 of it."""
+    y, x = np.mgrid[0:h, 0:w]
+    return x / w + y / h >= 0.5
+
+
+def test_every_kind_of_no_data_reads_as_a_valid_map(tmp_path, caplog):
+    """Alpha below half, NaN bands, GDAL's no-data tag and a TIFF alpha band mark pixels without data;
+    their RGB reads 0, the rest as stored; opaque photos have no map; the log names each file once."""
+    ok = _corner()
+    alpha = np.where(ok, 255, 0).astype(np.uint8)
+    Image.fromarray(np.dstack([RGB8, alpha])).save(tmp_path / "a.png")
+    Image.fromarray(np.dstack([RGB8, np.full((H, W), 255, np.uint8)])).save(tmp_path / "opaque_rgba.png")
+    Image.fromarray(RGB8).save(tmp_path / "opaque.jpg", quality=95)
+    f = RGB8.astype(np.float32) / 255
+    tifffile.imwrite(tmp_path / "nan.tif", np.where(ok[..., None], f, np.nan), photometric="rgb")
+    # GDAL writes no-data as ASCII; a black pixel inside the data (one band 0) stays data
+    gdal = np.where(ok[..., None], np.maximum(RGB8, 1), 0).astype(np.uint8)
+    gdal[-1, -1] = (0, 5, 5)
+    tifffile.imwrite(tmp_path / "gdal.tif", gdal, photometric="rgb", extratags=[(42113, "s", 0, "0", True)])
+    tifffile.imwrite(tmp_path / "rgba16.tif", np.dstack([RGB8.astype(np.uint16) * 257, alpha.astype(np.uint16) * 257]),
+                     photometric="rgb", extrasamples=["unassalpha"])
+    # four bands with no alpha marked (red, green, blue, near infrared): all data
+    tifffile.imwrite(tmp_path / "rgbn.tif", np.dstack([RGB8, np.zeros((H, W), np.uint8)]), photometric="rgb",
+                     extrasamples=["unspecified"])
+    with caplog.at_level(logging.INFO, logger="dibrgs.images"):
+        for _ in range(2):
+            for name in ("a.png", "nan.tif", "gdal.tif", "rgba16.tif"):
+                image, valid = read_pixels(tmp_path / name)
+                assert valid is not None and np.array_equal(valid, ok), name
+                assert (image[~ok] == 0).all(), name
+                stored = gdal if name == "gdal.tif" else RGB8
+                assert np.abs(image[ok] - stored[ok] / 255.0).max() < 1e-6, name
+            for name in ("opaque_rgba.png", "opaque.jpg", "rgbn.tif"):
+                assert read_pixels(tmp_path / name)[1] is None, name
+    lines = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    share = f"{100 * (1 - ok.mean()):.1f} % of its pixels are"
+    assert len(lines) == 4, lines
+    assert f"a.png: {share} transparent: left out of training, evaluation and geometry" in lines[0]
+    assert f"nan.tif: {share} NaN" in lines[1]
+    assert f"gdal.tif: {share} GDAL no-data (0)" in lines[2]
+    assert f"rgba16.tif: {share} transparent" in lines[3]
+
+
+def _grid_cameras(n: int = 3) -> list[Camera]:
+    K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
+    return [Camera(K=K, w2c=look_at([10.0 * i, 0, 100], [10.0 * i, 0, 0], [0, 1, 0]), width=W, height=H,
+                   name=f"{i:03d}") for i in range(n)]
+
+
+def test_levir_masks_round_trip_and_change_the_digest(tmp_path):
+    """A view's valid map is written as Masks/NNN.png and read back the same; a scene whose masks differ
+    has another digest (caches never mix them), one without masks the digest it always had."""
+    cams = _grid_cameras()
+    img = RGB8.astype(np.float32) / 255
+    masked = {c.name: View(c, np.where(_corner()[..., None], img, 0.0).astype(np.float32), valid=_corner())
+              for c in cams}
+    plain = {c.name: View(c, img) for c in cams}
+    write_scene(tmp_path / "m", masked)
+    write_scene(tmp_path / "p", plain)
+    assert sorted(p.name for p in (tmp_path / "m" / "Masks").iterdir()) == ["000.png", "001.png", "002.png"]
+    assert not (tmp_path / "p" / "Masks").exists()
+    sm, sp = read_scene(tmp_path / "m"), read_scene(tmp_path / "p")
+    for k in masked:
+        assert np.array_equal(sm.views[k].valid, _corner())
+        assert sp.views[k].valid is None
+    assert sm.digest() != sp.digest()
+    # the digest of a scene without masks is that of its views' pixels alone, as before masks existed
+    from dibrgs_core.data.scene import pixels_digest
+
+    assert sp.views["000"].pixels_digest() == pixels_digest(sp.views["000"].image)
+
+
+def test_colmap_masks_folder_and_undistortion(tmp_path, monkeypatch):
+    """COLMAP's convention (masks/NAME.png, black = no data) gives the valid map, and a distorted camera's
+    map goes through the same undistortion as its photo: invalid exactly where the undistorted photo
+    draws on masked pixels (checked against undistorting the mask alone)."""
+    import pycolmap
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    root = tmp_path / "s"
+    params = [80.0, W / 2, H / 2, -0.25]
+    write_distorted_model(root, "SIMPLE_RADIAL", params)
+    (root / "masks").mkdir()
+    Image.fromarray(np.where(_corner(), 255, 0).astype(np.uint8)).save(root / "masks" / "v0.png.png")
+    Image.fromarray(np.where(_corner(), 255, 0).astype(np.uint8)).save(root / "masks" / "v1.png")  # stem.png
+    for _ in range(2):  # the second read comes from the undistortion cache
+        s = read_colmap_scene(root)
+        v0, v1, v2 = s.views.values()
+        assert v2.valid is None
+        cam = pycolmap.Camera(model="SIMPLE_RADIAL", width=W, height=H, params=params)
+        bitmap, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(),
+                                             pycolmap.Bitmap.from_array(np.where(_corner(), 255, 0).astype(np.uint8)), cam)
+        want = np.asarray(bitmap.to_array()).reshape(v0.camera.height, v0.camera.width, -1)[..., 0] == 255
+        for v in (v0, v1):
+            assert np.array_equal(v.valid, want)
+            assert (v.image[~want] == 0).all() and v.image[want].mean() > 0.2
+        assert 0.05 < 1 - want.mean() < 0.3
+
+
+def test_transforms_mask_path_and_a_bad_mask(tmp_path):
+    """nerfstudio's per-frame mask_path is read; a missing mask file or one of another size is one clear error."""
+    (tmp_path / "images").mkdir()
+    (tmp_path / "m").mkdir()
+    frames = []
+    for i in range(3):
+        Image.fromarray(RGB8).save(tmp_path / "images" / f"f{i}.png")
+        c2w = np.eye(4)
+        c2w[:3, 3] = [10.0 * i, 0, 100]
+        fr = {"file_path": f"images/f{i}.png", "transform_matrix": c2w.tolist()}
+        if i == 1:
+            Image.fromarray(np.where(_corner(), 255, 0).astype(np.uint8)).save(tmp_path / "m" / "f1.png")
+            fr["mask_path"] = "m/f1.png"
+        frames.append(fr)
+    meta = {"fl_x": 80.0, "fl_y": 80.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H, "frames": frames}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    s = read_transforms_scene(tmp_path)
+    valid = [v.valid for v in s.views.values()]
+    assert valid[0] is None and valid[2] is None and np.array_equal(valid[1], _corner())
+    Image.fromarray(np.zeros((H // 2, W // 2), np.uint8)).save(tmp_path / "m" / "f1.png")
+    with pytest.raises(InputError, match=r"f1.png.*mask is 48x32 but its photo is 96x64"):
+        read_transforms_scene(tmp_path)
+    frames[1]["mask_path"] = "m/gone.png"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="mask_path m/gone.png not found"):
+        read_transforms_scene(tmp_path)
