@@ -169,3 +169,25 @@ def test_each_views_sweep_is_kept_and_reused(tmp_path, caplog):
     assert "(from the checkpoint)" not in caplog.text
     now = sorted(folder.glob("*.npz"))
     assert len(now) == 3 and not set(now) & set(files)
+
+
+def test_pixels_without_data_get_no_depth_and_match_nothing():
+    """Every photo of a grid strip without data over the same corner (NaN: a burnt-in label, a clipped
+    footprint): those pixels get no depth, and elsewhere the views keep as much depth as with the
+    corner painted black (no NaN spreads through the aggregation), with no more of it wrong (a window
+    that reaches the fill matches nothing, where the black corner's edge could match itself)."""
+    scene, _ = make_grid_scene(96, seed=5)
+    vs = scene.train_views()
+    cams, pts = [v.camera for v in vs], _sfm_like(scene)
+    hole = np.zeros((96, 96), bool)
+    hole[:40, :40] = True
+    imgs = [np.asarray(v.image, np.float32) for v in vs]
+    black = mvs_depths(cams, [np.where(hole[..., None], np.float32(0), im) for im in imgs], pts, 100.0, MvsConfig(),
+                       progress=False)
+    res = mvs_depths(cams, [np.where(hole[..., None], np.float32(np.nan), im) for im in imgs], pts, 100.0,
+                     MvsConfig(), progress=False)
+    for i, v in enumerate(vs):
+        assert not np.isfinite(res[i].depth[hole]).any()
+        (ok, rel), (ok_black, rel_black) = _rel(res[i], v), _rel(black[i], v)
+        assert ok.sum() >= 0.9 * ok_black.sum() > 0.15 * ok.size, (i, ok.sum(), ok_black.sum())
+        assert (rel > 0.05).sum() <= (rel_black > 0.05).sum() + 5 and np.median(rel) < 0.01
