@@ -6,7 +6,8 @@ lists each size's views), train/test split and where it came from
 up axis estimated from the cameras (with its confidence), the mean angle off
 nadir, the training cameras' acquisition trajectory (orbit, strips or free, and
 why: what pseudo views are sampled along) and, for an orbit, the circle fitted
-through the orbit views. ``origin``: where the scene's own frame has its (0, 0, 0) in the files'
+through the orbit views. ``no_data``: the share of each photo's pixels that hold no data
+(transparent, a no-data value, masked), for the photos that have any. ``origin``: where the scene's own frame has its (0, 0, 0) in the files'
 coordinates (non-zero for a scene far from its coordinate origin, e.g. georeferenced; positions
 printed here, like the orbit's centre, are relative to it). Bad input exits with code 2 and a
 message naming the file.
@@ -55,6 +56,9 @@ def summarize(scene) -> dict:
     }
     if len(sizes) > 1:
         out["sizes"] = {f"{w}x{h}": ids for (w, h), ids in sizes.items()}
+    no_data = {k: round(v.no_data, 4) for k, v in scene.views.items() if v.no_data > 0}
+    if no_data:  # transparent, no-data or masked pixels, left out of training and scoring
+        out["no_data"] = no_data
     ranges = [c.depth_range for c in cams if c.depth_range is not None and c.depth_range[1] > c.depth_range[0]]
     if ranges:
         out["depth_range_cams"] = [float(min(r[0] for r in ranges)), float(max(r[1] for r in ranges))]

@@ -37,17 +37,20 @@ class ImageFile:
             reader decodes every photo once to check it, so a damaged file is found before a run
             starts); :meth:`read` checks it again, so a photo edited since is an error, never
             silently other pixels than the run's digest says.
+        no_data: the share of its pixels without data (0 when all hold data).
     """
 
     path: Path
     load: Callable[[], Pixels]
     digest: str
+    no_data: float = 0.0
 
     @classmethod
     def checked(cls, path: Path, load: Callable[[], Pixels]) -> tuple["ImageFile", tuple[int, int]]:
         """The image ``load`` reads from ``path``, read once now for its digest, and its (width, height)."""
         image, valid = load()
-        return cls(Path(path), load, pixels_digest(image, valid)), (image.shape[1], image.shape[0])
+        return (cls(Path(path), load, pixels_digest(image, valid), 0.0 if valid is None else float(1.0 - valid.mean())),
+                (image.shape[1], image.shape[0]))
 
     def read(self) -> Pixels:
         image, valid = self.load()
@@ -88,6 +91,13 @@ class View:
     def pixels(self) -> Pixels:
         """(image, valid) with one read of the file."""
         return self._image.read() if isinstance(self._image, ImageFile) else (self._image, self._valid)
+
+    @property
+    def no_data(self) -> float:
+        """Share of the view's pixels without data, without reading its file."""
+        if isinstance(self._image, ImageFile):
+            return self._image.no_data
+        return 0.0 if self._valid is None else float(1.0 - self._valid.mean())
 
     @property
     def image(self) -> np.ndarray:

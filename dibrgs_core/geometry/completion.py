@@ -64,9 +64,11 @@ def complete_depths(geo: SceneGeometry, config: InitConfig, depths: list[np.ndar
     ground = float(np.median(to_frame(pts, geo.frame, geo.origin)[:, 2]))
     field = completion_field(pts, geo.frame, geo.origin, cell, _footprints(geo, ground))
     out_d, out_c, filled = [], [], 0
-    for cam, d, c, ok in zip(geo.cameras, depths, confidence, geo.valid):
+    for cam, d, c, has_data in zip(geo.cameras, depths, confidence, geo.valid):
         d = np.asarray(d, np.float64)
-        hole = ~(np.isfinite(d) & (d > 0)) & (True if ok is None else ok)  # no data: nothing to place
+        hole = ~(np.isfinite(d) & (d > 0))
+        if has_data is not None:  # no data: nothing to place
+            hole &= has_data
         surf = _surface_depth(field, cam, config.mvs.max_size) if hole.any() else np.zeros_like(d)
         fill = hole & (surf > 0)
         filled += int(fill.sum())

@@ -91,6 +91,12 @@ def test_levir_masks_round_trip_and_change_the_digest(tmp_path):
         assert np.array_equal(sm.views[k].valid, _corner())
         assert sp.views[k].valid is None
     assert sm.digest() != sp.digest()
+    # dibrgs info names the share of each photo without data (none for the plain scene)
+    from dibrgs_core.commands.info import summarize
+
+    share = round(float(1 - _corner().mean()), 4)
+    assert summarize(sm)["no_data"] == {"000": share, "001": share, "002": share}
+    assert "no_data" not in summarize(sp)
     # the digest of a scene without masks is that of its views' pixels alone, as before masks existed
     from dibrgs_core.data.scene import pixels_digest
 

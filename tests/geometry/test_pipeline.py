@@ -188,6 +188,27 @@ def test_mapping_grid_scale_completion_and_confidence(grid_scene, tmp_path):
     assert not _decisions(tmp_path / "off")[0]["completion"]["applied"]
 
 
+def test_pixels_without_data_are_neither_measured_nor_completed(grid_scene, tmp_path):
+    """The same strip with a corner of each training photo holding no data: those pixels get no depth
+    from the sweep nor from the height field (completed before: the whole photo), SfM runs on the
+    rest, and the other pixels are measured and completed as without the corner."""
+    from dataclasses import replace
+
+    from dibrgs_core.data.scene import View
+
+    y, x = np.mgrid[0:96, 0:96]
+    ok = x + y >= 48  # an eighth of each photo
+    views = {k: View(v.camera, np.where(ok[..., None], v.image, 0).astype(np.float32), v.depth, valid=ok)
+             if k in grid_scene.train else v for k, v in grid_scene.views.items()}
+    initialise(replace(grid_scene, views=views), tmp_path, InitConfig(depth_prior="mvs"))
+    dec, vals = _decisions(tmp_path)
+    measured = np.mean(list(vals["prior_coverage"].values()))
+    completed = dec["completion"]["details"]["completed"]
+    assert dec["completion"]["applied"] and completed > 0.05 and vals["sfm_points"] >= 20
+    assert measured + completed <= ok.mean() + 1e-6, (measured, completed, ok.mean())
+    assert measured + completed > ok.mean() - 0.05
+
+
 @pytest.mark.stability
 def test_geometry_does_not_depend_on_units(grid_scene, tmp_path):
     """The same mapping strip in units x0.001, x1 and x1000 (the real flight is 5.3 units high, generated
