@@ -236,7 +236,8 @@ def build_ibr(ctx: SetupContext) -> Any:
         return None
     imgs = [f.image.permute(2, 0, 1) for f in ctx.train_frames]
     cams = [f.cam.cam for f in ctx.train_frames]
-    return build(name, imgs, cams, c_r=cfg.model.ibr_channels, dino_resnet=cfg.dino_resnet, dino_vit=cfg.dino_vit)
+    return build(name, imgs, cams, c_r=cfg.model.ibr_channels, dino_resnet=cfg.dino_resnet, dino_vit=cfg.dino_vit,
+                 valid=[frame_valid(f) for f in ctx.train_frames])
 
 
 def pseudo_frames(ctx: SetupContext, points: np.ndarray) -> list[Frame]:

@@ -144,6 +144,26 @@ def test_anchor_samples_its_pixel_and_skips_behind(encoder):
     assert torch.equal(f0, torch.zeros(1, 8))
 
 
+def test_a_view_holding_no_data_at_the_projection_does_not_see_the_anchor():
+    """An anchor landing on a pixel without data in one view (its fill) averages the other views only;
+    elsewhere in that view it is averaged as before."""
+    images, cams = ring_views(V=3)
+    ibr = IBRFeatures("pyramid", images, cams, c_r=8)
+    X = torch.zeros(1, 3)  # the look-at point, inside all three views
+    uv, _ = cams[1].project(np.zeros((1, 3)))
+    u, v = int(uv[0, 0]), int(uv[0, 1])
+    hole = np.ones((48, 64), bool)
+    hole[v - 1:v + 2, u - 1:u + 2] = False
+    masked = IBRFeatures("pyramid", images, cams, c_r=8, valid=[None, hole, None])
+    masked.load_state_dict(ibr.state_dict())
+    two = IBRFeatures("pyramid", [images[0], images[2]], [cams[0], cams[2]], c_r=8)
+    two.load_state_dict(ibr.state_dict())
+    with torch.no_grad():
+        assert torch.allclose(masked(X), two(X), atol=1e-6) and not torch.allclose(ibr(X), two(X), atol=1e-3)
+        far = torch.tensor([[0.3, -0.2, 0.1]])  # elsewhere in view 1
+        assert torch.equal(masked(far), ibr(far))
+
+
 def test_average_over_views_and_state_dict_small():
     images, cams = ring_views(V=3)
     ibr = IBRFeatures("pyramid", images, cams, c_r=8)

@@ -5,7 +5,7 @@ Each training image goes once through a frozen encoder; a learnable projection
 reference map per view of size ``(H//2, W//2)``, half its own image's (photos may differ in
 size; views of one size share their feature tensors). An anchor's IBR feature is the
 bilinear sample of that map at its projection, averaged over the training views
-where it lies in front of the camera and inside the image. Training never builds
+where it lies in front of the camera and inside the image, on a pixel that holds data. Training never builds
 the maps: ``P`` is affine and the upsampling, sampling and averaging are blends
 with weights summing to 1, so each anchor's raw encoder features are sampled once
 (:mod:`.sampling`) and ``P`` is one small matmul an iteration (:meth:`IBRFeatures.forward`).
@@ -86,7 +86,8 @@ class IBRFeatures(nn.Module):
 
     def __init__(self, encoder: str, images: torch.Tensor | Sequence[torch.Tensor], cameras: Sequence[Camera],
                  c_r: int = 32, dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None, *,
-                 resnet: nn.Module | None = None, vit: nn.Module | None = None):
+                 resnet: nn.Module | None = None, vit: nn.Module | None = None,
+                 valid: Sequence[np.ndarray | None] | None = None):
         super().__init__()
         if encoder not in ("dino", "pyramid"):
             raise ValueError(f"IBRFeatures encoder must be 'dino' or 'pyramid', got {encoder!r}")
@@ -102,6 +103,8 @@ class IBRFeatures(nn.Module):
                 raise ValueError(f"camera {c.name!r} is {c.width}x{c.height}, its image {im.shape[2]}x{im.shape[1]}")
         self.encoder = encoder
         self.c_r = int(c_r)
+        # per view, bool (H, W) pixels with data or None: a view does not see what lands elsewhere
+        self._valid = [None if m is None else torch.as_tensor(np.asarray(m, bool)) for m in (valid or [None] * V)]
         # Views of one size share their feature tensors (a group); the groups keep the
         # views' order within them.
         by_size: dict[tuple[int, int], list[int]] = {}
@@ -306,6 +309,9 @@ class IBRFeatures(nn.Module):
         v = K[..., 1, 0] * xn + K[..., 1, 1] * yn + K[..., 1, 2]
         W, H = self.size[:, 0, None], self.size[:, 1, None]  # (V,1) each view's own size
         ok = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        for i, m in enumerate(self._valid):
+            if m is not None:  # the view holds no data there: it does not see the anchor
+                ok[i] &= m[v[i].clamp(0, m.shape[0] - 1).long(), u[i].clamp(0, m.shape[1] - 1).long()]
         grid = torch.stack([2.0 * u / W - 1.0, 2.0 * v / H - 1.0], dim=-1)
         grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))  # no NaN/Inf into the taps
         w = ok.float()
@@ -367,9 +373,9 @@ def resolve_encoder(requested: str, dino_paths: tuple[str | Path | None, str | P
 
 
 def build_ibr(name: str, images: torch.Tensor, cameras: Sequence[Camera], c_r: int = 32,
-              dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None
-              ) -> IBRFeatures | None:
+              dino_resnet: str | Path | None = None, dino_vit: str | Path | None = None,
+              valid: Sequence[np.ndarray | None] | None = None) -> IBRFeatures | None:
     """IBRFeatures for ``name`` in {"dino", "pyramid"}; None for ``"none"``."""
     if name == "none":
         return None
-    return IBRFeatures(name, images, cameras, c_r=c_r, dino_resnet=dino_resnet, dino_vit=dino_vit)
+    return IBRFeatures(name, images, cameras, c_r=c_r, dino_resnet=dino_resnet, dino_vit=dino_vit, valid=valid)
