@@ -4,7 +4,9 @@
 A real scene has no true depth, so which held-out pixels a training photo sees is decided on the
 ground plane fitted to the scene's reference points (EVALUATION ONLY: the all-photo reconstruction's
 points in ``reference_points.txt``, never an input of the pipeline): a held-out pixel's ray meets
-the plane, and the point counts as seen by every training photo it projects into. A scene without
+the plane, and the point counts as seen by every training photo it projects into on a pixel that
+holds data (masks, transparency: the runs may be scored on a copy of the scene with its training
+photos' fill marked, to count only what every run could have learnt). A scene without
 reference points but with depth maps for every view (a generated one, ``make_scene.py --flight
 grid``) is scored the same way with its true depth instead (occlusion-tested, as
 ``scripts/error_by_visibility.py``). Each run is rendered at its held-out cameras at its own
@@ -112,6 +114,7 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
     the scene's true depth when ``reference`` is None."""
     from dibrgs_core.evaluation.evaluate import load_trained
     from dibrgs_core.geometry.visibility import SplitError, visibility_count
+    from dibrgs_core.training.frames import frame_valid
 
     points = read_reference_points(reference) if reference is not None else None
     runs, counts_of, images, loaded = [], {}, {}, {}
@@ -125,10 +128,11 @@ def evaluate_runs(scene_dir: Path, works: list[Path], reference: Path | None) ->
         def surface(cam):
             return plane_depth(cam, normal, offset) if reference is not None else depths[cam.name]
 
-        sources = [(f.cam.cam, surface(f.cam.cam)) for f in train]
+        # a training photo's pixels without data (masked, transparent) show nothing
+        sources = [(f.cam.cam, surface(f.cam.cam), frame_valid(f)) for f in train]
         # What a held-out pixel's count means depends on the run's training photos: runs of other
         # splits share no counts, not even for a held-out photo they have in common.
-        split_key = tuple((c.name, c.width, c.height) for c, _ in sources)
+        split_key = tuple((c.name, c.width, c.height, None if m is None else m.tobytes()) for c, _, m in sources)
         acc, per_view = SplitError.empty(), {}
         for f in test:
             cam = f.cam.cam

@@ -24,14 +24,16 @@ from ..camera.pinhole import Camera
 GROUPS: tuple[tuple[str, int, int | None], ...] = (("unseen", 0, 0), ("one", 1, 1), ("two_plus", 2, None))
 
 
-def visibility_count(cam: Camera, depth: np.ndarray, sources: Sequence[tuple[Camera, np.ndarray]],
+def visibility_count(cam: Camera, depth: np.ndarray, sources: Sequence[tuple],
                      rel_tol: float = 0.01) -> np.ndarray:
     """How many of ``sources`` see each pixel of ``cam``.
 
     Args:
         cam: the target camera (OpenCV axes, world-to-camera extrinsics).
         depth: (H, W) z-depth of the target in world units; 0 or non-finite = no surface.
-        sources: (camera, (H', W') z-depth) of each training view.
+        sources: (camera, (H', W') z-depth) of each training view, or (camera, depth, valid):
+            ``valid`` (H', W') bool, the pixels where the view's photo holds data (None: all);
+            a view does not see what lands on a pixel without data.
         rel_tol: a projected point counts as visible when its depth in the source is at
             most ``(1 + rel_tol)`` times the source's depth at that pixel.
 
@@ -44,8 +46,9 @@ def visibility_count(cam: Camera, depth: np.ndarray, sources: Sequence[tuple[Cam
     ok = np.isfinite(depth) & (depth > 0)
     X = cam.backproject(np.where(ok, depth, 1.0))
     count = np.zeros(X.shape[0], np.int32)
-    for scam, sdepth in sources:
+    for scam, sdepth, *rest in sources:
         sdepth = np.asarray(sdepth, np.float64)
+        valid = rest[0] if rest else None
         uv, z = scam.project(X)
         H, W = sdepth.shape
         with np.errstate(invalid="ignore"):
@@ -55,6 +58,8 @@ def visibility_count(cam: Camera, depth: np.ndarray, sources: Sequence[tuple[Cam
         d = sdepth[ys, xs]
         # A source without depth at that pixel (sky, background) cannot occlude it.
         free = ~(np.isfinite(d) & (d > 0))
+        if valid is not None:
+            inside &= np.asarray(valid, bool)[ys, xs]
         with np.errstate(invalid="ignore"):
             count += inside & (free | (z <= d * (1.0 + rel_tol)))
     count = count.reshape(cam.height, cam.width)

@@ -23,6 +23,11 @@ def test_a_view_sees_itself_and_an_occluder_hides_everything(scene):
     assert (visibility_count(v.camera, v.depth, [(v.camera, v.depth * 0.5)]) == 0).all()
     # A source with no surface anywhere (sky) cannot occlude.
     assert (visibility_count(v.camera, v.depth, [(v.camera, np.zeros_like(v.depth))]) == 1).all()
+    # Where its photo holds no data it sees nothing (None: every pixel holds data).
+    half = np.zeros_like(ok)
+    half[:, : ok.shape[1] // 2] = True
+    assert np.array_equal(visibility_count(v.camera, v.depth, [(v.camera, v.depth, half)]), half.astype(np.int32))
+    assert (visibility_count(v.camera, v.depth, [(v.camera, v.depth, None)]) == 1).all()
     # No surface in the target (0, NaN, inf) is marked -1 and never raises.
     d = v.depth.copy()
     d[0, 0], d[0, 1], d[0, 2] = 0.0, np.nan, np.inf
