@@ -171,6 +171,7 @@ def test_each_views_sweep_is_kept_and_reused(tmp_path, caplog):
     assert len(now) == 3 and not set(now) & set(files)
 
 
+@pytest.mark.slow  # the geometry stage's masked run (test_pipeline) covers the sweep's no-data path in the fast tier
 def test_pixels_without_data_get_no_depth_and_match_nothing():
     """Every photo of a grid strip without data over the same corner (NaN: a burnt-in label, a clipped
     footprint): those pixels get no depth, and elsewhere the views keep as much depth as with the
