@@ -75,7 +75,7 @@ def _tiff(path: Path, pixels: bool):
     index or None, GDAL no-data value or None). The array is None without ``pixels``, and when its
     compression needs the imagecodecs package (LZW, JPEG, ...), which needs numpy 2 (bpy needs numpy
     1) and is not a dependency: :func:`_tiff_image` then reads it with Pillow where Pillow reads it
-    right."""
+    right (the no-data value then on Pillow's [0, 1] scale)."""
     import tifffile
 
     try:
@@ -100,7 +100,9 @@ def _tiff(path: Path, pixels: bool):
                     raise
                 # 8-bit images of 1 to 4 bands and 16-bit grey are what Pillow reads right
                 if page.bitspersample == 8 or (page.bitspersample == 16 and page.samplesperpixel == 1):
-                    return None, (W, H), orientation, alpha, nodata
+                    # the no-data value on Pillow's [0, 1] scale
+                    unit = None if nodata is None else nodata / (2 ** page.bitspersample - 1)
+                    return None, (W, H), orientation, alpha, unit
                 raise InputError(path, f"{page.compression.name}-compressed {page.bitspersample}-bit TIFF of "
                                        f"{page.samplesperpixel} bands: tifffile needs the imagecodecs package "
                                        "for it and Pillow misreads it; save it uncompressed or "
@@ -131,10 +133,10 @@ def _tiff_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | None
     a, _, orientation, alpha, nodata = _tiff(path, pixels=True)
     if a is None:
         rgb, valid = _pillow_image(path, orient)
-        if nodata is not None:
-            stored = np.round(rgb * 255.0)
-            valid = (valid if valid is not None else True) & ~(stored == nodata).all(axis=2)
-            return rgb, _report_no_data(path, np.asarray(valid), f"GDAL no-data ({nodata:g})")
+        if nodata is not None:  # here on [0, 1]: within half of the smallest step of 16 bits
+            valid = (valid if valid is not None else True) & ~(np.abs(rgb - nodata) < 0.5 / 65535).all(axis=2)
+            valid = _report_no_data(path, np.asarray(valid), "GDAL no-data")
+            return (rgb if valid is None else np.where(valid[..., None], rgb, np.float32(0.0))), valid
         return rgb, valid
     valid = np.ones(a.shape[:2], bool)
     what = []
@@ -238,7 +240,7 @@ def read_masked(path: str | Path, mask: Path | None, orient: bool = True) -> tup
     image, valid = read_pixels(path, orient)
     if mask is None:
         return image, valid
-    m = read_mask(mask, (image.shape[1], image.shape[0]))
+    m = read_mask(mask, (image.shape[1], image.shape[0]), orient)
     valid = _report_no_data(Path(mask), m if valid is None else valid & m, f"masked out for {Path(path).name}")
     return (image if valid is None else np.where(valid[..., None], image, np.float32(0.0))), valid
 

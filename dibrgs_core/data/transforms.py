@@ -72,8 +72,9 @@ class Frame:
         intrinsics: the JSON's ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``camera_angle_x``,
             ``camera_angle_y`` (those present) and distortion ``k1`` ... ``k3``.
         part: ``"train"``, ``"test"``, ``"val"`` (from a part file) or None.
-        mask: the frame's mask image (nerfstudio's ``mask_path``; else one in a ``masks/`` folder
-            beside the photo's, :func:`~.images.find_mask`), or None.
+        mask: the frame's mask image (nerfstudio's ``mask_path``; else, for a photo in a folder
+            (``images/x.jpg``), ``masks/x.jpg.png`` or ``masks/x.png`` beside that folder,
+            :func:`~.images.find_mask`), or None.
     """
 
     name: str
@@ -170,7 +171,10 @@ def _read_file(path: Path, part: str | None) -> list[Frame]:
         w2c[:3, :3], w2c[:3, 3] = R.T, -R.T @ C
         name = str(fr["file_path"]).replace("\\", "/")
         photo = _photo(path.parent, name, path, k)
-        mask = find_mask(photo.parent, photo.name)
+        # as COLMAP names masks: beside the photos' folder (the path's first part), by the rest
+        parts = Path(_strip_dot(name)).parts
+        mask = find_mask(path.parent / parts[0], photo.relative_to(path.parent / parts[0]).as_posix()) \
+            if len(parts) > 1 and photo.is_relative_to(path.parent / parts[0]) else None
         if fr.get("mask_path") is not None:
             mask = path.parent / str(fr["mask_path"]).replace("\\", "/")
             if not mask.is_file():

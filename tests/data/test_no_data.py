@@ -59,7 +59,17 @@ def test_every_kind_of_no_data_reads_as_a_valid_map(tmp_path, caplog):
                 assert np.abs(image[ok] - stored[ok] / 255.0).max() < 1e-6, name
             for name in ("opaque_rgba.png", "opaque.jpg", "rgbn.tif"):
                 assert read_pixels(tmp_path / name)[1] is None, name
-    lines = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    # LZW-compressed (tifffile needs imagecodecs for it, so Pillow reads it): the tag still counts,
+    # 8-bit RGB and 16-bit grey alike
+    from PIL import TiffImagePlugin
+
+    for name, data, value in (("lzw8.tif", gdal, "0"), ("lzw16.tif", np.where(ok, 1000, 7).astype(np.uint16), "7")):
+        tags = TiffImagePlugin.ImageFileDirectory_v2()
+        tags[42113], tags.tagtype[42113] = value, 2
+        Image.fromarray(data).save(tmp_path / name, compression="tiff_lzw", tiffinfo=tags)
+        image, valid = read_pixels(tmp_path / name)
+        assert valid is not None and np.array_equal(valid, ok) and (image[~ok] == 0).all(), name
+    lines = [r.getMessage() for r in caplog.records if "left out" in r.getMessage() and "lzw" not in r.getMessage()]
     share = f"{100 * (1 - ok.mean()):.1f} % of its pixels are"
     assert len(lines) == 4, lines
     assert f"a.png: {share} transparent: left out of training, evaluation and geometry" in lines[0]
@@ -131,7 +141,8 @@ def test_colmap_masks_folder_and_undistortion(tmp_path, monkeypatch):
 
 
 def test_transforms_mask_path_and_a_bad_mask(tmp_path):
-    """nerfstudio's per-frame mask_path is read; a missing mask file or one of another size is one clear error."""
+    """nerfstudio's per-frame mask_path is read, and masks/NAME.png beside the photos' folder; a missing
+    mask file or one of another size is one clear error."""
     (tmp_path / "images").mkdir()
     (tmp_path / "m").mkdir()
     frames = []
@@ -146,9 +157,12 @@ def test_transforms_mask_path_and_a_bad_mask(tmp_path):
         frames.append(fr)
     meta = {"fl_x": 80.0, "fl_y": 80.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H, "frames": frames}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    (tmp_path / "masks").mkdir()  # COLMAP's naming, beside the photos' folder
+    Image.fromarray(np.where(~_corner(), 255, 0).astype(np.uint8)).save(
+        tmp_path / "masks" / "f2.png.png")
     s = read_transforms_scene(tmp_path)
     valid = [v.valid for v in s.views.values()]
-    assert valid[0] is None and valid[2] is None and np.array_equal(valid[1], _corner())
+    assert valid[0] is None and np.array_equal(valid[1], _corner()) and np.array_equal(valid[2], ~_corner())
     Image.fromarray(np.zeros((H // 2, W // 2), np.uint8)).save(tmp_path / "m" / "f1.png")
     with pytest.raises(InputError, match=r"f1.png.*mask is 48x32 but its photo is 96x64"):
         read_transforms_scene(tmp_path)
