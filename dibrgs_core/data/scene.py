@@ -231,6 +231,22 @@ def origin_decision(scene: Scene) -> tuple[bool, str]:
     return False, f"the cameras lie within {FAR_FROM_ORIGIN:g} x their spread of the coordinate origin"
 
 
+def no_data_decision(scene: Scene) -> tuple[bool, str]:
+    """Whether some of the split's photos hold pixels without data (left out of every stage), and
+    which (the ``no_data`` decision)."""
+    parts = []
+    for what, ids in (("training", scene.train), ("held-out", scene.test)):
+        shares = {i: scene.views[i].no_data for i in ids if scene.views[i].no_data > 0}
+        if shares:
+            parts.append(f"{len(shares)} of {len(ids)} {what} photos ("
+                         + ", ".join(f"{k} {100 * v:.1f} %" for k, v in list(shares.items())[:6])
+                         + (", ..." if len(shares) > 6 else "") + ")")
+    if not parts:
+        return False, "every pixel of the split's photos holds data"
+    return True, (" and ".join(parts) + " hold pixels without data (transparent, a no-data value, masked): "
+                  "left out of the loss, the geometry and the scores")
+
+
 def views_digest(views: Iterable[View], depth: bool = False) -> str:
     """Digest of views' names, cameras (K, w2c, size) and pixels (:meth:`View.pixels_digest`), and
     of their depth maps with ``depth`` (see :mod:`dibrgs_core.common.digest`)."""

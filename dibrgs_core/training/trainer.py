@@ -45,7 +45,7 @@ from ..common.lock import run_folder_lock
 from ..common.openmp import wait_policy
 from ..common.report import Report
 from ..data.load import load_scene
-from ..data.scene import Scene, origin_decision
+from ..data.scene import Scene, no_data_decision, origin_decision
 from ..data.split import require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
@@ -161,6 +161,7 @@ class Trainer:
         self.scene_origin = np.asarray(scene.origin, np.float64)
         self.report.values["scene_origin"] = self.scene_origin.tolist()
         self.report.decide("train", "recentre", *origin_decision(scene))
+        self.report.decide("train", "no_data", *no_data_decision(scene))
         write_json(self.work / CONFIG, {"scene": str(self.scene_root.resolve()), "run": run,
                                         "config": cfg.to_dict(),
                                         "forced_config": self.report.values.get("forced_config", [])})

@@ -3,6 +3,7 @@ training photo (its stored colour magenta, as a tool may leave it) is not painte
 and a held-out photo's transparent block counts in no score."""
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -63,6 +64,10 @@ def test_a_transparent_block_is_neither_learnt_nor_scored(tmp_path, method):
             shutil.copy(tmp_path / "tmp" / "Images" / "002.png", scene / "Images" / "002.png")
         work = tmp_path / f"w{transparent}"
         Trainer(scene, work, cfg).run()
+        decision = {d["step"]: d for d in json.loads((work / "report.json").read_text())["decisions"]}["no_data"]
+        assert decision["applied"] and decision["reason"].startswith(
+            ("3 of 3 training photos (001 25.0 %, 008 25.0 %, 015 25.0 %) and " if transparent else "")
+            + "1 of 17 held-out photos (002 25.0 %) hold pixels without data"), decision
         m = evaluate(work, fps_repeats=1)
         scores[transparent] = (m["psnr"], _magenta(work))
         row = m["per_view"]["002"]
