@@ -148,7 +148,7 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
 
     from ..data.images import write_png
     from ..data.load import load_scene
-    from ..training.frames import frame_valid, views_to_frames
+    from ..training.frames import frame_valid, has_data, views_to_frames
 
     work = Path(work)
     tr = load_trained(work)
@@ -170,8 +170,13 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
         raise InputError(root, f"{what} {work} was trained on (its digest was {digest}, now {scene.digest()}); "
                                "train again to evaluate on it")
     frames = views_to_frames(scene.test_views(), run_scale(work, tr, scene))
+    empty = [f.cam.cam.name for f in frames if not has_data(f)]
+    if empty:  # nothing to score
+        log.warning("held-out photos without a pixel of data, not scored: %s", ", ".join(empty))
+        frames = [f for f in frames if f.cam.cam.name not in empty]
     if not frames:
-        raise InputError(root, "the run's split has no held-out views to evaluate")
+        raise InputError(root, "the run's split has no held-out views to evaluate"
+                         + (" (those it has hold no pixel of data)" if empty else ""))
     per_view: dict[str, dict[str, Any]] = {}
     undefined: dict[str, str] = {}
     renders = []
@@ -246,6 +251,8 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     metrics["split"] = {"train": list(scene.train), "test": list(scene.test), "source": scene.split_source
                         if train is None else f"the run ({work / 'config.json'})"}
     metrics["per_view"] = per_view
+    if empty:
+        metrics["not_scored"] = {name: "no pixel of the photo holds data" for name in empty}
     if undefined:
         metrics["undefined"] = undefined
     write_json(work / "metrics.json", metrics)

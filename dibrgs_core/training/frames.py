@@ -52,6 +52,11 @@ def views_to_frames(views: list[Any], scale: float) -> list[Frame]:
     return out
 
 
+def has_data(frame: Frame) -> bool:
+    """Whether a scene view's frame has a pixel of data to score (a photo may have none)."""
+    return frame.mask is None or bool((frame.mask > 0.5).any())
+
+
 def frame_valid(frame: Frame) -> np.ndarray | None:
     """The pixels of a scene view's frame that hold data (bool (H, W)), None when all do."""
     return None if frame.mask is None else frame.mask.numpy() > 0.5

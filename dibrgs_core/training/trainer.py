@@ -51,7 +51,7 @@ from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig, resolve_resolution
 from .curve import curve_decision, curve_views, heldout_scores, plot_curve, write_curve
-from .frames import Frame, views_to_frames
+from .frames import Frame, has_data, views_to_frames
 from .guard import all_finite, make_finite, stop_on_signals
 from .losses import photometric_loss
 from .methods import TrainingMethod
@@ -146,7 +146,7 @@ class Trainer:
         s, budget, why = resolve_resolution(cfg, [(v.camera.width, v.camera.height) for v in train_views + test_views])
         self.report.decide("train", "pixel_budget", budget, why)
         self.train_frames = views_to_frames(train_views, s)
-        self.test_frames = views_to_frames(test_views, s)
+        self.test_frames = [f for f in views_to_frames(test_views, s) if has_data(f)]  # else nothing to score
         for f in self.train_frames + self.test_frames:
             h, w = f.image.shape[:2]
             if min(h, w) < MIN_RESOLUTION:

@@ -3,6 +3,7 @@ training photo (its stored colour magenta, as a tool may leave it) is not painte
 and a held-out photo's transparent block counts in no score."""
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 
@@ -62,13 +63,21 @@ def test_a_transparent_block_is_neither_learnt_nor_scored(tmp_path, method):
         if not transparent:
             _with_block(src, tmp_path / "tmp", {"002": (0, 255, 0)}, True)
             shutil.copy(tmp_path / "tmp" / "Images" / "002.png", scene / "Images" / "002.png")
+        # and 003 without a pixel of data: not scored, and said so
+        rgb = np.asarray(Image.open(scene / "Images" / "003.png").convert("RGB"))
+        Image.fromarray(np.dstack([rgb, np.zeros(rgb.shape[:2], np.uint8)])).save(scene / "Images" / "003.png")
         work = tmp_path / f"w{transparent}"
         Trainer(scene, work, cfg).run()
         decision = {d["step"]: d for d in json.loads((work / "report.json").read_text())["decisions"]}["no_data"]
         assert decision["applied"] and decision["reason"].startswith(
             ("3 of 3 training photos (001 25.0 %, 008 25.0 %, 015 25.0 %) and " if transparent else "")
-            + "1 of 17 held-out photos (002 25.0 %) hold pixels without data"), decision
+            + "2 of 17 held-out photos (002 25.0 %, 003 100.0 %) hold pixels without data"), decision
         m = evaluate(work, fps_repeats=1)
+        assert m["views"] == 16 and "003" not in m["per_view"] and m["not_scored"] == {
+            "003": "no pixel of the photo holds data"}
+        # the curve's last point (all held-out views) is the evaluation's mean: 003 left out there too
+        last = list(csv.DictReader((work / "curve.csv").read_text().splitlines()))[-1]
+        assert m["psnr"] == pytest.approx(float(last["psnr"]), abs=0.05), (m["psnr"], last)
         scores[transparent] = (m["psnr"], _magenta(work))
         row = m["per_view"]["002"]
         assert row["scored_share"] == pytest.approx(0.75)
