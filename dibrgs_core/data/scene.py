@@ -233,7 +233,12 @@ def origin_decision(scene: Scene) -> tuple[bool, str]:
 
 def no_data_decision(scene: Scene) -> tuple[bool, str]:
     """Whether some of the split's photos hold pixels without data (left out of every stage), and
-    which (the ``no_data`` decision)."""
+    which (the ``no_data`` decision); InputError when a training photo holds none at all."""
+    empty = [i for i in scene.train if scene.views[i].no_data >= 1.0]
+    if empty:
+        which = f"training photo {empty[0]} holds" if len(empty) == 1 else f"training photos {', '.join(empty)} hold"
+        raise InputError(scene.root, f"{which} no pixel of data (transparent, a no-data value or masked "
+                                     "everywhere): train on others (--train)")
     parts = []
     for what, ids in (("training", scene.train), ("held-out", scene.test)):
         shares = {i: scene.views[i].no_data for i in ids if scene.views[i].no_data > 0}

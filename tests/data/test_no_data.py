@@ -170,3 +170,20 @@ def test_transforms_mask_path_and_a_bad_mask(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match="mask_path m/gone.png not found"):
         read_transforms_scene(tmp_path)
+
+
+def test_a_training_photo_without_a_pixel_of_data_is_a_clear_error(tmp_path, capsys):
+    """`dibrgs train` on a split whose training photo is masked everywhere: one line naming it, exit 2,
+    nothing trained (it trained on nothing, every loss 0)."""
+    from dibrgs_core.cli import main
+
+    cams = _grid_cameras()
+    img = RGB8.astype(np.float32) / 255
+    views = {c.name: View(c, img) for c in cams}
+    views["001"] = View(cams[1], np.zeros_like(img), valid=np.zeros((H, W), bool))
+    write_scene(tmp_path / "s", views)
+    code = main(["train", str(tmp_path / "s"), "--out", str(tmp_path / "w"), "--preset", "test",
+                 "--train", "000,001", "--test", "002"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "training photo 001 holds no pixel of data" in err[-1] and "--train" in err[-1], err
+    assert not (tmp_path / "w" / "model.pt").exists()
