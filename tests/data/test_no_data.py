@@ -187,3 +187,22 @@ def test_a_training_photo_without_a_pixel_of_data_is_a_clear_error(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "training photo 001 holds no pixel of data" in err[-1] and "--train" in err[-1], err
     assert not (tmp_path / "w" / "model.pt").exists()
+
+
+def test_frames_weigh_a_pixel_only_where_all_it_is_drawn_from_holds_data():
+    """At half resolution a frame pixel drawn from any pixel without data weighs 0 (its colour is mixed
+    with the fill), the others 1; a view without such pixels gets no mask; a frame with none left is
+    not one to score."""
+    from dibrgs_core.training.frames import frame_valid, has_data, views_to_frames
+
+    cam = _grid_cameras(1)[0]
+    img = RGB8.astype(np.float32) / 255
+    ok = np.ones((H, W), bool)
+    ok[:9, :9] = False  # odd: the half-resolution pixels (0..4, 0..4) each draw on some of it
+    masked, plain, empty = views_to_frames([View(cam, img, valid=ok), View(cam, img),
+                                            View(cam, img, valid=np.zeros((H, W), bool))], 0.5)
+    want = np.ones((H // 2, W // 2), bool)
+    want[:5, :5] = False
+    assert np.array_equal(frame_valid(masked), want) and set(np.unique(masked.mask.numpy())) == {0.0, 1.0}
+    assert plain.mask is None and frame_valid(plain) is None
+    assert has_data(masked) and has_data(plain) and not has_data(empty)

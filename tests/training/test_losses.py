@@ -177,6 +177,28 @@ def test_mask_restricts_loss_and_empty_mask_is_zero():
     assert torch.isfinite(pred.grad).all() and float(pred.grad.abs().sum()) == 0.0
 
 
+def test_pixels_of_weight_zero_take_no_part_in_the_loss(backend):
+    """Whatever is rendered where the weight is 0 (a photo's fill, a rejected pseudo-view pixel) gets no
+    gradient and changes neither term, SSIM's windows that reach it included; an SSIM score with the
+    mask is the same, and PSNR is over the weighted pixels."""
+    rng = np.random.default_rng(0)
+    gt = torch.from_numpy(rng.random((24, 24, 3), dtype=np.float32))
+    pred = (gt + 0.1 * torch.from_numpy(rng.standard_normal((24, 24, 3)).astype(np.float32))).clamp(0, 1)
+    keep = torch.ones(24, 24)
+    keep[:8, :8] = 0.0
+    keep[12:, :] = 0.5  # a pseudo view's padding: weighted, not left out
+    other = pred.clone()
+    other[:8, :8] = torch.from_numpy(rng.random((8, 8, 3), dtype=np.float32))
+    p = pred.clone().requires_grad_(True)
+    loss = photometric_loss(p, gt, mask=keep)
+    loss.backward()
+    assert float(p.grad[:8, :8].abs().max()) == 0.0 and float(p.grad[8:12].abs().max()) > 0
+    assert photometric_loss(other, gt, mask=keep).item() == pytest.approx(loss.item(), abs=1e-6)
+    assert ssim(other, gt, mask=keep).item() == pytest.approx(ssim(pred, gt, mask=keep).item(), abs=1e-6)
+    assert psnr(other, gt, mask=keep > 0).item() == pytest.approx(psnr(pred, gt, mask=keep > 0).item(), abs=1e-5)
+    assert ssim(other, gt).item() != pytest.approx(ssim(pred, gt).item(), abs=1e-4)  # without it, it does count
+
+
 def test_psnr_known_value():
     a = torch.zeros(8, 8, 3)
     b = torch.full((8, 8, 3), 0.1)
