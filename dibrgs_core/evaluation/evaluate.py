@@ -192,12 +192,11 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
                 float(10.0 * np.log10(1.0 / np.mean((img[valid].astype(np.float64) - gt[valid]) ** 2)))
         s, smap = structural_similarity(gt, scored, channel_axis=2, data_range=1.0, gaussian_weights=True,
                                         sigma=1.5, use_sample_covariance=False, full=True)
+        row: dict[str, Any] = {"psnr": p, "ssim": float(s)}
         if valid is not None:  # as scikit-image's mean: the window's half-width of border left out
             inner = np.zeros_like(valid)
             inner[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD] = True
-            s = float(smap[valid & inner].mean()) if (valid & inner).any() else float(smap[valid].mean())
-        row: dict[str, Any] = {"psnr": p, "ssim": s}
-        if valid is not None:
+            row["ssim"] = float(smap[valid & inner].mean()) if (valid & inner).any() else float(smap[valid].mean())
             row["scored_share"] = float(valid.mean())
         if not math.isfinite(p):
             row["psnr"] = None
