@@ -76,14 +76,17 @@ def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float) -> tup
     voxel = cfg.anchor_voxel * scale
     why = f"{cfg.anchor_voxel} paper units x {scale:.4g} scene units per paper unit = {voxel:.4g}"
     if cfg.max_init_anchors:
+        if not cfg.anchor_voxel_growth > 1.0:
+            raise ValueError(f"anchor_voxel_growth must be above 1, got {cfg.anchor_voxel_growth}")
         n = len(voxelize(points, voxel))
-        doublings = 0
+        steps = 0
         while n > cfg.max_init_anchors:
-            voxel *= 2.0
-            doublings += 1
+            voxel *= cfg.anchor_voxel_growth
+            steps += 1
             n = len(voxelize(points, voxel))
-        if doublings:
-            why += f"; doubled {doublings}x to {voxel:.4g} to fit the budget of {cfg.max_init_anchors} anchors"
+        if steps:
+            grown = "doubled" if cfg.anchor_voxel_growth == 2.0 else f"grown by {cfg.anchor_voxel_growth:.4g}"
+            why += f"; {grown} {steps}x to {voxel:.4g} to fit the budget of {cfg.max_init_anchors} anchors"
     return voxel, why
 
 

@@ -239,8 +239,10 @@ def preset(name: PresetName) -> TrainConfig:
 
     * ``paper``: the paper's numbers (30k iterations, full resolution).
     * ``cpu``: a 3-view scene in minutes on a 2-core CPU (images at most 512 px on the long side):
-      2,000 iterations, at most 8,000 initial anchors (the voxel grows to fit) and
-      20,000 in all; 96 pseudo views on every other iteration from 10% to the end
+      2,000 iterations, at most 3,000 initial anchors (the voxel grows by 2^(1/4) steps to
+      fit: doubling it made a scene's anchors jump 2.5-3x at a threshold of the cloud's size,
+      and more anchors cost time and fitted the three photos at the held-out views' expense;
+      docs/benchmarks.md "Initial anchors") and 20,000 in all; 96 pseudo views on every other iteration from 10% to the end
       (a short run has too few iterations for the paper's every-50th schedule to
       regularise the held-out views; more distinct poses stand in for the paper's
       fresh random ones); anchor growth threshold 4x Scaffold-GS's (growth starts
@@ -257,7 +259,8 @@ def preset(name: PresetName) -> TrainConfig:
     if name == "cpu":
         c = TrainConfig(preset="cpu", iterations=2000, checkpoint_every_s=120.0, curve_every_s=30.0,
                         max_long_side=512)
-        c.model.max_init_anchors = 8000
+        c.model.max_init_anchors = 3000
+        c.model.anchor_voxel_growth = 2 ** 0.25
         c.growth.max_anchors = 20000
         c.growth.grad_threshold = 4 * c.growth.grad_threshold
         c.pseudo.n_views = 96

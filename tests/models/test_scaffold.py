@@ -30,6 +30,29 @@ def test_anchor_budget_doubles_voxel_and_reports_it():
     assert "doubled" in why and model.voxel_size > 0.03
 
 
+def test_fine_voxel_steps_keep_the_anchors_near_the_budget():
+    """Growing the voxel by 2^(1/4) (the cpu preset) keeps every cloud's anchors within a factor 1.5 of
+    the budget, so a cloud with a sixth fewer points is not given 2.5-3x the anchors (doubling: the
+    counts of the two clouds land on either side of a step)."""
+    from dibrgs_core.models.scaffold import anchor_voxel_size
+
+    rng = np.random.default_rng(2)
+    # a ground 220 units wide: doubled to 3.84 units, its cells just outnumber the budget
+    ground = np.c_[rng.uniform(-110, 110, (20000, 2)), rng.normal(0, 0.05, 20000)]
+    cfg = TrainConfig().model
+    cfg.max_init_anchors = 3000
+    counts = {}
+    for growth in (2.0, 2 ** 0.25):
+        cfg.anchor_voxel_growth = growth
+        for share in (1.0, 0.84):  # the same ground with a sixth of it unmeasured
+            pts = ground[ground[:, 0] <= -110 + share * 220]
+            counts[growth, share] = len(voxelize(pts, anchor_voxel_size(pts, cfg, scale=1.0)[0]))
+    fine = [counts[2 ** 0.25, s] for s in (1.0, 0.84)]
+    assert all(2000 < n <= 3000 for n in fine) and max(fine) / min(fine) < 1.3, counts
+    assert max(counts[2.0, 1.0], counts[2.0, 0.84]) / min(counts[2.0, 1.0], counts[2.0, 0.84]) > 2.0, counts
+    assert "grown by 1.189 " in anchor_voxel_size(ground, cfg, scale=1.0)[1]
+
+
 def test_decode_shapes_activations_and_frustum_culling():
     """Decoded Gaussians: positive opacity only, unit quaternions, scales bounded by the anchor scale,
     colours in [0,1]; anchors behind the camera are culled."""
