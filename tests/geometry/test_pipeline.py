@@ -188,6 +188,7 @@ def test_mapping_grid_scale_completion_and_confidence(grid_scene, tmp_path):
     assert not _decisions(tmp_path / "off")[0]["completion"]["applied"]
 
 
+@pytest.mark.slow  # 2.6 s; the fast tier reads masks (tests/data/test_no_data.py) and checks the loss
 def test_pixels_without_data_are_neither_measured_nor_completed(grid_scene, tmp_path):
     """The same strip with a corner of each training photo holding no data: those pixels get no depth
     from the sweep nor from the height field (completed before: the whole photo), SfM runs on the

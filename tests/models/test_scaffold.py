@@ -38,7 +38,7 @@ def test_fine_voxel_steps_keep_the_anchors_near_the_budget():
 
     rng = np.random.default_rng(2)
     # a ground 220 units wide: doubled to 3.84 units, its cells just outnumber the budget
-    ground = np.c_[rng.uniform(-110, 110, (20000, 2)), rng.normal(0, 0.05, 20000)]
+    ground = np.c_[rng.uniform(-110, 110, (12000, 2)), rng.normal(0, 0.05, 12000)]
     cfg = TrainConfig().model
     cfg.max_init_anchors = 3000
     counts = {}
