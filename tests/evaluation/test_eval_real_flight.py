@@ -72,6 +72,7 @@ def test_a_generated_scene_is_scored_with_its_true_depth(scene24, finished_run, 
     assert bad.returncode == 2 and "no depth map" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # 6-8 s (a second run trained in a subprocess); keeps the fast tier under 3 minutes
 def test_runs_of_other_splits_are_each_scored_by_their_own_training_photos(scene24, finished_run, tmp_path):
     """Two runs of other splits that hold out some of the same photos: scored together, each gets
     the figures it gets alone (which pixels count as seen is the run's own training photos' matter)."""
