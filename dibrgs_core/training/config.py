@@ -241,9 +241,9 @@ def preset(name: PresetName) -> TrainConfig:
     * ``cpu``: a 3-view scene in minutes on a 2-core CPU (images at most 512 px on the long side):
       2,000 iterations, at most 3,000 initial anchors (the voxel grows by 2^(1/4) steps to
       fit: doubling it made a scene's anchors jump 2.5-3x at a threshold of the cloud's size,
-      and more anchors cost time and fitted the three photos at the held-out views' expense;
-      docs/benchmarks.md "Initial anchors") and 20,000 in all; 96 pseudo views on every other iteration from 10% to the end
-      (a short run has too few iterations for the paper's every-50th schedule to
+      and the extra anchors cost time for the same held-out PSNR on average; docs/benchmarks.md
+      "Initial anchors") and 20,000 in all; 96 pseudo views on every other iteration from 10%
+      to the end (a short run has too few iterations for the paper's every-50th schedule to
       regularise the held-out views; more distinct poses stand in for the paper's
       fresh random ones); anchor growth threshold 4x Scaffold-GS's (growth starts
       at iteration 100, when gradients are still large everywhere, and the extra
