@@ -56,7 +56,7 @@ def summarize(scene) -> dict:
     }
     if len(sizes) > 1:
         out["sizes"] = {f"{w}x{h}": ids for (w, h), ids in sizes.items()}
-    no_data = {k: round(v.no_data, 4) for k, v in scene.views.items() if v.no_data > 0}
+    no_data = {k: round(share, 4) for k, v in scene.views.items() if (share := v.no_data) > 0}
     if no_data:  # transparent, no-data or masked pixels, left out of training and scoring
         out["no_data"] = no_data
     ranges = [c.depth_range for c in cams if c.depth_range is not None and c.depth_range[1] > c.depth_range[0]]

@@ -35,6 +35,12 @@ def _report_no_data(path: Path, valid: np.ndarray | None, what: str) -> np.ndarr
     return valid
 
 
+def fill_no_data(image: np.ndarray, valid: np.ndarray | None, value: float = 0.0) -> np.ndarray:
+    """``image`` (H, W, C) with ``value`` (of its dtype: 0 as stored, NaN for the stages that test
+    for it) where ``valid`` (H, W) is False; ``image`` itself when ``valid`` is None."""
+    return image if valid is None else np.where(valid[..., None], image, np.asarray(value, image.dtype))
+
+
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _TIFF_EXTS = (".tif", ".tiff")
 DEPTH_EXTS = (".tiff", ".tif", ".exr")
@@ -136,7 +142,7 @@ def _tiff_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | None
         if nodata is not None:  # here on [0, 1]: within half of the smallest step of 16 bits
             valid = (valid if valid is not None else True) & ~(np.abs(rgb - nodata) < 0.5 / 65535).all(axis=2)
             valid = _report_no_data(path, np.asarray(valid), "GDAL no-data")
-            return (rgb if valid is None else np.where(valid[..., None], rgb, np.float32(0.0))), valid
+            return fill_no_data(rgb, valid), valid
         return rgb, valid
     valid = np.ones(a.shape[:2], bool)
     what = []
@@ -151,21 +157,18 @@ def _tiff_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | None
     if np.issubdtype(a.dtype, np.floating):
         valid &= np.isfinite(colour).all(axis=2)
         what.append("NaN")
-    a = colour if colour.shape[2] == 3 else np.repeat(colour, 3, axis=2)
+    a = fill_no_data(colour if colour.shape[2] == 3 else np.repeat(colour, 3, axis=2), None if valid.all() else valid)
     if a.dtype == bool:
         a = a.astype(np.float32)
     elif np.issubdtype(a.dtype, np.integer):
         a = np.clip(a, 0, None).astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
     else:
-        a = np.where(valid[..., None], a.astype(np.float32), np.float32(0.0))
-        a = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0)
+        a = np.nan_to_num(a.astype(np.float32), nan=0.0, posinf=np.inf, neginf=0.0)
         top = float(a.max(initial=0.0))
         if not np.isfinite(top) or top > 1.0 + 1e-6:
             raise InputError(path, f"floating-point image with values up to {top:g}; expected [0, 1] "
                                    "(reflectance): rescale it, or save it as 8- or 16-bit")
         a = np.clip(a, 0.0, 1.0)  # small negative reflectances (correction noise) are dark, not an error
-    if not valid.all():
-        a = np.where(valid[..., None], a, np.float32(0.0))
     if orient:
         a, valid = oriented(a, orientation), oriented(valid, orientation)
     return np.ascontiguousarray(a), _report_no_data(path, np.ascontiguousarray(valid), " or ".join(what) or "no data")
@@ -242,7 +245,7 @@ def read_masked(path: str | Path, mask: Path | None, orient: bool = True) -> tup
         return image, valid
     m = read_mask(mask, (image.shape[1], image.shape[0]), orient)
     valid = _report_no_data(Path(mask), m if valid is None else valid & m, f"masked out for {Path(path).name}")
-    return (image if valid is None else np.where(valid[..., None], image, np.float32(0.0))), valid
+    return fill_no_data(image, valid), valid
 
 
 #: Folder names of a scene's mask images, beside its photos' folder (COLMAP's ``--ImageReader.mask_path``
@@ -277,7 +280,7 @@ def _pillow_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | No
                 a = np.asarray(im, dtype=np.float32) / 65535.0
                 return np.repeat(a[..., None], 3, axis=2), valid
             rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-            return (rgb if valid is None else np.where(valid[..., None], rgb, np.float32(0.0))), valid
+            return fill_no_data(rgb, valid), valid
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:

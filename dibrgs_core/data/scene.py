@@ -241,7 +241,7 @@ def no_data_decision(scene: Scene) -> tuple[bool, str]:
                                      "everywhere): train on others (--train)")
     parts = []
     for what, ids in (("training", scene.train), ("held-out", scene.test)):
-        shares = {i: scene.views[i].no_data for i in ids if scene.views[i].no_data > 0}
+        shares = {i: share for i in ids if (share := scene.views[i].no_data) > 0}
         if shares:
             parts.append(f"{len(shares)} of {len(ids)} {what} photos ("
                          + ", ".join(f"{k} {100 * v:.1f} %" for k, v in list(shares.items())[:6])

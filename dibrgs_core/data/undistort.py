@@ -26,6 +26,7 @@ from ..common.colmap_lib import import_pycolmap
 from ..common.digest import Digest, file_digest
 from ..common.errors import InputError
 from ..common.fileio import atomic_path
+from .images import fill_no_data
 
 log = logging.getLogger("dibrgs.undistort")
 
@@ -136,5 +137,4 @@ def _undistorted(a: np.ndarray, out_cam) -> Undistorted:
     """An :class:`Undistorted` of uint8 (H, W, 3) RGB or (H, W, 4) RGB and validity (alpha 255)."""
     valid = None if a.shape[2] == 3 else a[..., 3] == 255
     image = a[..., :3].astype(np.float32) / 255.0
-    return Undistorted(image if valid is None else np.where(valid[..., None], image, np.float32(0.0)), valid,
-                       out_cam)
+    return Undistorted(fill_no_data(image, valid), valid, out_cam)

@@ -26,7 +26,7 @@ import numpy as np
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
 from ..common.modes import DepthMap, DepthPrior, choices
-from ..data.images import to_uint8
+from ..data.images import fill_no_data, to_uint8
 
 log = logging.getLogger("dibrgs.depth_prior")
 
@@ -269,7 +269,7 @@ def compute_prior(name: str, cameras: Sequence[Camera], images: Sequence[np.ndar
         from .mvs import mvs_depths
 
         if valid is not None:
-            images = [im if v is None else np.where(v[..., None], im, np.float32(np.nan)) for im, v in zip(images, valid)]
+            images = [fill_no_data(np.asarray(im, np.float32), v, np.nan) for im, v in zip(images, valid)]
         res = mvs_depths(cameras, images, sparse_points, ref_distance, mvs_config, checkpoint=checkpoint)
         return PriorMaps("depth", [r.depth for r in res], [r.confidence for r in res])
     if name == "gt":

@@ -15,6 +15,7 @@ import numpy as np
 from ..camera.frame import estimate_up, nadir_angle_deg, overlap_distance, span_factor, up_frame
 from ..camera.pinhole import Camera
 from ..common.errors import InputError
+from ..data.images import fill_no_data
 from ..common.report import Report
 from .config import LEVIR_REFERENCE_DEPTH, STAGE, InitConfig
 from .sfm import SparseCloud
@@ -88,7 +89,7 @@ def scene_geometry(scene: Any, config: InitConfig) -> SceneGeometry:
     for v, c in zip(views, cams):
         image, ok = v.pixels()
         if resize != 1.0:  # a pixel drawn from any pixel without data has none
-            image = area_resize(image if ok is None else np.where(ok[..., None], image, np.float32(np.nan)), c)
+            image = area_resize(fill_no_data(np.asarray(image, np.float32), ok, np.nan), c)
             ok = None if ok is None else np.isfinite(image).all(axis=2)
         images.append(np.nan_to_num(np.asarray(image, np.float32)))
         valid.append(ok)

@@ -94,9 +94,8 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma: flo
     """
     if mask is not None:
         m = _mask_hw1(mask, pred.shape[0], pred.shape[1], pred)
-        m = m if pred.dim() == 3 else m[..., 0]
-        s = ssim_map(torch.where(m > 0, pred, gt.to(pred.dtype)), gt, window, sigma)
-        w = m.expand_as(s)
+        s = ssim_map(_gt_where_unweighted(pred, gt, m), gt, window, sigma)
+        w = (m if pred.dim() == 3 else m[..., 0]).expand_as(s)
         return (s * w).sum() / w.sum().clamp_min(1e-12)
     m = ssim_map(pred, gt, window, sigma)
     r = window // 2
@@ -138,6 +137,12 @@ def _plain_weights(H: int, W: int, C: int, r: int, dtype: torch.dtype, device: t
     else:
         ws = wl
     return wl, ws
+
+
+def _gt_where_unweighted(pred: torch.Tensor, gt: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """``pred`` (H,W[,C]) with ``gt`` where the weight ``m`` (H,W,1, :func:`_mask_hw1`) is 0: those pixels
+    then take no part in a loss or score, SSIM's windows that reach them included."""
+    return torch.where((m if pred.dim() == 3 else m[..., 0]) > 0, pred, gt.to(pred.dtype))
 
 
 def _mask_hw1(mask: torch.Tensor, H: int, W: int, like: torch.Tensor) -> torch.Tensor:
@@ -189,7 +194,7 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     if bool((m <= 0).any()):
         # SSIM windows reaching pixels without data compare the data only: none of their gradient
         # flows into what is rendered there
-        pred = torch.where((m if pred.dim() == 3 else m[..., 0]) > 0, pred, gt)
+        pred = _gt_where_unweighted(pred, gt, m)
     if fast:
         # One contiguous weight tensor for both terms (expanded, each would be copied on its own).
         w = (m / (wsum * C)).detach().expand(H, W, C).contiguous()

@@ -46,6 +46,7 @@ from ..camera.pinhole import Camera
 from ..camera.frame import scene_depth
 from ..camera.trajectory import Trajectory, classify, sample_poses
 from ..common.fileio import atomic_path, write_json
+from ..data.images import fill_no_data
 from ..data.scene import View
 from ..geometry.pointcloud import point_spacing
 from .pseudo_depth import complete_depth, zbuffer_depth
@@ -162,8 +163,7 @@ def _source_image(v: View) -> np.ndarray:
     """A training view's float32 (H, W, 3) RGB as a warp's source: NaN where it holds no data, which
     the warp treats as not visible (:meth:`~.pseudo_warp.Projector.sample`)."""
     image, valid = v.pixels()
-    image = np.asarray(image, np.float32)[..., :3]
-    return image if valid is None else np.where(valid[..., None], image, np.float32(np.nan))
+    return fill_no_data(np.asarray(image, np.float32)[..., :3], valid, np.nan)
 
 
 def _save_view(p: Path, pv: PseudoView) -> None:
