@@ -115,3 +115,57 @@ def levir_as_transforms(levir: Path, out: Path, per_frame: bool = False, extra: 
     top = {} if per_frame else {"fl_x": c.K[0, 0], "fl_y": c.K[1, 1], "cx": c.K[0, 2], "cy": c.K[1, 2],
                                 "w": c.width, "h": c.height}
     (out / "transforms.json").write_text(json.dumps({**top, **(extra or {}), "frames": frames}))
+
+
+def _xml_numbers(v) -> str:
+    return " ".join(repr(float(x)) for x in np.ravel(v))
+
+
+def levir_as_metashape(levir: Path, out: Path, chunk: np.ndarray | None = None, component: np.ndarray | None = None,
+                       calibration: dict | None = None, unaligned: int = 0) -> None:
+    """The LEVIR scene ``levir`` written as Metashape's camera export: ``out/cameras.xml`` and the
+    photos in ``out/images`` (labels without extension). Cameras are given in the chunk's frame:
+    ``chunk`` (and ``component``, for Metashape 2's components) are 4x4 similarities taking them to
+    the world (identity when None); ``calibration`` overrides the sensor's entries (Metashape's
+    names); ``unaligned`` more cameras without a transform (photos that were not aligned)."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    (out / "images").mkdir(parents=True)
+    chunk = np.eye(4) if chunk is None else chunk
+    to_chunk = np.linalg.inv(chunk @ (np.eye(4) if component is None else component))
+    c = next(iter(scene.views.values())).camera
+    calib = {"f": c.K[1, 1], "cx": c.K[0, 2] - c.width / 2, "cy": c.K[1, 2] - c.height / 2, "b1": c.K[0, 0] - c.K[1, 1],
+             "k1": 0.0, **(calibration or {})}
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>', '<document version="2.0.0">', '  <chunk label="Chunk 1">',
+             '    <sensors next_id="1">', '      <sensor id="0" label="synth" type="frame">',
+             f'        <resolution width="{c.width}" height="{c.height}"/>',
+             '        <calibration type="frame" class="initial">'  # Metashape's initial guess: not read
+             '<resolution width="1" height="1"/><f>1</f></calibration>',
+             '        <calibration type="frame" class="adjusted">',
+             f'          <resolution width="{c.width}" height="{c.height}"/>']
+    lines += [f"          <{k}>{float(v)!r}</{k}>" for k, v in calib.items()]
+    lines += ["        </calibration>", "      </sensor>", "    </sensors>"]
+    if component is not None:
+        s = np.cbrt(np.linalg.det(component[:3, :3]))
+        lines += ['    <components next_id="1" active_id="0">', '      <component id="0" label="Component 1">',
+                  f"        <transform><rotation>{_xml_numbers(component[:3, :3] / s)}</rotation>"
+                  f"<translation>{_xml_numbers(component[:3, 3])}</translation><scale>{s!r}</scale></transform>",
+                  "      </component>", "    </components>"]
+    lines.append('    <cameras next_id="99" next_group_id="1">')
+    lines.append('      <group id="0" label="flight">')  # a camera group: cameras nest one level deeper
+    for k, (vid, v) in enumerate(scene.views.items()):
+        shutil.copyfile(levir / "Images" / f"{vid}.png", out / "images" / f"{vid}.png")
+        m = to_chunk @ np.linalg.inv(v.camera.w2c)
+        comp = ' component_id="0"' if component is not None else ""
+        lines.append(f'        <camera id="{k}" sensor_id="0"{comp} label="{vid}"><transform>{_xml_numbers(m)}'
+                     "</transform><orientation>1</orientation></camera>")
+    lines.append("      </group>")
+    for k in range(unaligned):
+        lines.append(f'      <camera id="{50 + k}" sensor_id="0" label="dropped{k}"/>')
+    lines.append("    </cameras>")
+    s = np.cbrt(np.linalg.det(chunk[:3, :3]))
+    lines += [f"    <transform><rotation locked=\"true\">{_xml_numbers(chunk[:3, :3] / s)}</rotation>"
+              f"<translation locked=\"true\">{_xml_numbers(chunk[:3, 3])}</translation>"
+              f"<scale locked=\"true\">{s!r}</scale></transform>", "  </chunk>", "</document>"]
+    (out / "cameras.xml").write_text("\n".join(lines) + "\n")

@@ -6,11 +6,11 @@ track) with numpy and the standard library only: Cams files through the
 library's own parser, image sizes and EXIF orientations from file headers
 (:mod:`.imagesize`), COLMAP models with :mod:`.colmap_model` (cameras with lens
 distortion as the undistorted pinholes the library trains them as; the image paths
-are the photos as taken) and transforms layouts through the library's own parser
-(``data.transforms``). It applies the same rules and messages as the library's
-readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
-``data.transforms.read_transforms_scene``), which ``tests/bridge/test_bridge.py``
-checks on LEVIR, COLMAP (text and binary) and transforms scenes. The description is::
+are the photos as taken) and frame layouts (transforms.json, Metashape XML) through the
+library's own parsers (``data.frame_layouts``). It applies the same rules and messages as
+the library's readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
+``data.frame_layouts.read_frames_scene``), which ``tests/bridge/test_bridge.py``
+checks on LEVIR, COLMAP (text and binary), transforms and Metashape scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
@@ -48,14 +48,14 @@ from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
-from ..data.transforms import find_transforms, frames_and_ids, layout_split, stored_or_upright
+from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
 from .colmap_model import ColmapCamera, read_model
 from .imagesize import image_header
 
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
-    """The description of the LEVIR-NVS, COLMAP or transforms scene at ``root`` (its ``split.json``,
-    else the layout's own split, else the default)."""
+    """The description of the LEVIR-NVS, COLMAP, transforms or Metashape scene at ``root`` (its
+    ``split.json``, else the layout's own split, else the default)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
@@ -64,8 +64,8 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         views, images, track = _levir(root)
     elif find_colmap_model(root) is not None:
         views, images, track = _colmap(root)
-    elif find_transforms(root):
-        views, images, layout = _transforms(root)
+    elif find_frame_layout(root) is not None:
+        views, images, layout = _frames(root)
         track = []
     else:
         raise InputError(root, NOT_A_SCENE)
@@ -136,7 +136,7 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, b
     return {k: views[k] for k in ids}, paths, []
 
 
-def _transforms(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], tuple | None]:
+def _frames(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, bool]], tuple | None]:
     frames, ids = frames_and_ids(root)
     views: dict[str, Camera] = {}
     paths: dict[str, tuple[Path, int, bool]] = {}

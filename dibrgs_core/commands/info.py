@@ -1,4 +1,5 @@
-"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model or transforms.json).
+"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model, transforms.json
+or Metashape cameras XML).
 
 Prints the number of views, resolution (photos of several sizes: the most common, and ``sizes``
 lists each size's views), train/test split and where it came from
@@ -25,7 +26,8 @@ from .options import add_split
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a JSON summary of a scene", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS layout, COLMAP model or transforms.json)")
+    p.add_argument("scene", type=Path,
+                   help="scene folder (LEVIR-NVS layout, COLMAP model, transforms.json or Metashape XML)")
     add_split(p)
     p.set_defaults(func=run)
 

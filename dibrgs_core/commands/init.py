@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="SfM with the known poses, an aligned dense depth prior, overlap removal, "
                                    "voxel downsampling and the height map. Writes WORK/init/points.ply, "
                                    "height_map.npz (when it applies) and init_report.json.")
-    p.add_argument("scene", type=Path, help="scene folder (LEVIR-NVS, COLMAP or transforms.json layout)")
+    p.add_argument("scene", type=Path,
+                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json or Metashape cameras XML)")
     p.add_argument("--out", type=Path, required=True, help="work folder; outputs go to OUT/init/")
     add_split(p)
     p.add_argument("--train-ids", dest="train", type=name_list, default=argparse.SUPPRESS,

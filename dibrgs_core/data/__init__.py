@@ -1,1 +1,2 @@
-"""Scene input and output: the Scene/View model and splits, LEVIR-NVS and COLMAP layouts, images and depth maps, PLY point clouds."""
+"""Scene input and output: the Scene/View model and splits, LEVIR-NVS, COLMAP, transforms.json and
+Metashape layouts, images and depth maps, PLY point clouds."""

@@ -1,5 +1,5 @@
-"""Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model or a transforms.json), or
-any cameras to render."""
+"""Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model, a transforms.json or a
+Metashape cameras XML), or any cameras to render."""
 from __future__ import annotations
 
 import json
@@ -18,7 +18,8 @@ from .scene import Scene
 def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
                    test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
-    itself) or a transforms layout (:mod:`.transforms`), in a frame of its own when it lies far from
+    itself) or a frame layout (a transforms.json or a Metashape cameras XML: :mod:`.frame_layouts`), in
+    a frame of its own when it lies far from
     its coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
@@ -29,16 +30,17 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 
     if find_colmap_model(root) is not None:
         return read_colmap_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
-    from .transforms import find_transforms, read_transforms_scene
+    from .frame_layouts import find_frame_layout, read_frames_scene
 
-    if find_transforms(root):
-        return read_transforms_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
+    if find_frame_layout(root) is not None:
+        return read_frames_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
     raise InputError(root, NOT_A_SCENE)
 
 
 #: What a scene folder holds (the library's and the add-on's readers say it alike).
 NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model (cameras/images/points3D "
-               ".bin or .txt in sparse/N, sparse/ or the folder) or a transforms.json (instant-ngp, nerfstudio)")
+               ".bin or .txt in sparse/N, sparse/ or the folder), a transforms.json (instant-ngp, nerfstudio) or a "
+               "Metashape cameras XML (cameras.xml, photos in images/)")
 
 
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
@@ -57,21 +59,21 @@ def read_any_cameras(path: str | Path) -> list[Camera]:
     of them or a LEVIR scene (its ``Cams/``), a JSON camera list (:func:`~.levir.read_cameras`), a
     COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
     named by its view id, with the pinhole camera training uses - undistorted where the model has
-    distortion - at the photo's full size), or a transforms layout's folder or one of its files
-    (likewise)."""
+    distortion - at the photo's full size), or a frame layout's folder or one of its files (a
+    transforms JSON or a Metashape XML; likewise)."""
     path = Path(path)
     if path.is_dir() and not (path / "Cams").is_dir():
         from .colmap import find_colmap_model, read_colmap_cameras
-        from .transforms import find_transforms, read_transforms_cameras
+        from .frame_layouts import find_frame_layout, read_frames_cameras
 
         if find_colmap_model(path) is not None:
             return read_colmap_cameras(path)
-        if find_transforms(path):
-            return read_transforms_cameras(path)
-    if path.is_file() and path.suffix.lower() == ".json" and _has_frames(path):
-        from .transforms import read_transforms_cameras
+        if find_frame_layout(path) is not None:
+            return read_frames_cameras(path)
+    if path.is_file() and (path.suffix.lower() == ".xml" or path.suffix.lower() == ".json" and _has_frames(path)):
+        from .frame_layouts import read_frames_cameras
 
-        return read_transforms_cameras(path)
+        return read_frames_cameras(path)
     return read_cameras(path)
 
 

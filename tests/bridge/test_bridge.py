@@ -841,6 +841,25 @@ def test_describe_matches_the_library_on_transforms_layouts(tiny_scene, tmp_path
     assert len(desc["train"]) == 7 and len(desc["test"]) == 7
 
 
+def test_describe_matches_the_library_on_metashape_exports(tiny_scene, tmp_path, monkeypatch):
+    """A Metashape cameras XML in a georeferenced chunk (far from the origin: both move it near) with
+    lens distortion: the add-on's reader gives the library's cameras, origin and split."""
+    from photo_synth import levir_as_metashape
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "ms"
+    levir_as_metashape(tiny_scene, out, calibration={"k1": -0.15, "p1": 0.002})
+    xml = (out / "cameras.xml").read_text()  # the chunk moved to geocentric metres
+    far = '<translation locked="true">3900000.0 210000.0 5000000.0</translation>'
+    (out / "cameras.xml").write_text(xml.replace('<translation locked="true">0.0 0.0 0.0</translation>', far))
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    assert np.abs(scene.origin).max() > 1e6
+    _same_description(desc, scene, atol=1e-9)
+    assert all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     from dibrgs_core.data.load import read_any_scene
 

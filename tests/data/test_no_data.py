@@ -17,7 +17,7 @@ from dibrgs_core.data.colmap import read_colmap_scene
 from dibrgs_core.data.images import read_pixels
 from dibrgs_core.data.levir import read_scene, write_scene
 from dibrgs_core.data.scene import View
-from dibrgs_core.data.transforms import read_transforms_scene
+from dibrgs_core.data.frame_layouts import read_frames_scene
 
 from photo_synth import H, W, pattern, write_distorted_model
 
@@ -160,16 +160,16 @@ def test_transforms_mask_path_and_a_bad_mask(tmp_path):
     (tmp_path / "masks").mkdir()  # COLMAP's naming, beside the photos' folder
     Image.fromarray(np.where(~_corner(), 255, 0).astype(np.uint8)).save(
         tmp_path / "masks" / "f2.png.png")
-    s = read_transforms_scene(tmp_path)
+    s = read_frames_scene(tmp_path)
     valid = [v.valid for v in s.views.values()]
     assert valid[0] is None and np.array_equal(valid[1], _corner()) and np.array_equal(valid[2], ~_corner())
     Image.fromarray(np.zeros((H // 2, W // 2), np.uint8)).save(tmp_path / "m" / "f1.png")
     with pytest.raises(InputError, match=r"f1.png.*mask is 48x32 but its photo is 96x64"):
-        read_transforms_scene(tmp_path)
+        read_frames_scene(tmp_path)
     frames[1]["mask_path"] = "m/gone.png"
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match="mask_path m/gone.png not found"):
-        read_transforms_scene(tmp_path)
+        read_frames_scene(tmp_path)
 
 
 def test_a_training_photo_without_a_pixel_of_data_is_a_clear_error(tmp_path, capsys):

@@ -141,7 +141,7 @@ def test_bad_transforms_files_are_one_clear_error(tmp_path):
              json.dumps({"fl_x": 5.0, "frames": [{**ok, "transform_matrix": [[1, 0], [0, 1]]}]}): "finite 4x4",
              json.dumps({"fl_x": "wide", "frames": [ok]}): "fl_x must be a finite number",
              json.dumps({"frames": [ok]}): "neither fl_x nor camera_angle_x",
-             json.dumps({"fl_x": 5.0, "w": 9, "h": 8, "frames": [ok]}): "image is 8x8 but its transforms entry says 9x8",
+             json.dumps({"fl_x": 5.0, "w": 9, "h": 8, "frames": [ok]}): "image is 8x8 but its camera entry says 9x8",
              json.dumps({"fl_x": 5.0, "frames": [{**ok, "k4": 0.01}]}): "k4 is a fisheye coefficient"}
     for text, msg in cases.items():
         (root / "transforms.json").write_text(text)

@@ -1,0 +1,132 @@
+"""Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`) or a
+Metashape cameras export (:mod:`.metashape`). Each reader turns its file into
+:class:`~.photo_frame.Frame` objects; this module makes them views, cameras and a split, the same
+way for both (the library's reader and the add-on's description share it). Distorted cameras are
+undistorted on load as COLMAP's (pycolmap, cached).
+"""
+from __future__ import annotations
+
+import logging
+from functools import partial
+from pathlib import Path
+from typing import Iterable, Literal
+
+import numpy as np
+
+from ..camera.pinhole import Camera
+from ..common.colmap_lib import import_pycolmap
+from ..common.errors import InputError
+from .colmap import read_photo
+from .images import image_size, turned_to_fit
+from .metashape import find_metashape, read_metashape_frames
+from .photo_frame import Frame
+from .scene import ImageFile, Scene, View, validate_camera_arrays
+from .split import make_split, view_ids
+from .transforms import PART_FILES, find_transforms, read_transforms_frames, read_transforms_file
+from .undistort import undistorted_camera
+
+log = logging.getLogger("dibrgs.io_frames")
+
+FrameLayout = Literal["transforms", "metashape"]
+
+
+def find_frame_layout(root: str | Path) -> FrameLayout | None:
+    """Which frame layout the scene folder ``root`` holds (a transforms file first), or None."""
+    if find_transforms(root):
+        return "transforms"
+    if find_metashape(root) is not None:
+        return "metashape"
+    return None
+
+
+def layout_frames(path: str | Path) -> list[Frame]:
+    """The frames of a frame layout's folder, or of one of its files (a transforms JSON or a
+    Metashape XML); InputError naming the file when malformed."""
+    path = Path(path)
+    if path.is_file():
+        return read_metashape_frames(path) if path.suffix.lower() == ".xml" else read_transforms_file(path)
+    return read_transforms_frames(path) if find_frame_layout(path) == "transforms" else read_metashape_frames(path)
+
+
+def stored_or_upright(frame: Frame, stored: tuple[int, int], upright: tuple[int, int]) -> tuple[tuple[int, int], bool]:
+    """(the view's size, whether its photo is turned upright by its EXIF orientation): the stored
+    pixels unless the layout gives a size that only the upright photo has (the layouts' tools read
+    the stored order, as COLMAP does)."""
+    if frame.size is None:
+        return stored, False
+    turned = turned_to_fit(stored, upright, frame.size)
+    if turned is None:
+        raise InputError(frame.photo, f"image is {stored[0]}x{stored[1]} but its camera entry says "
+                                      f"{frame.size[0]}x{frame.size[1]}")
+    return frame.size, turned
+
+
+def layout_split(frames: list[Frame], ids: dict[str, str]) -> tuple[list[str], list[str], str] | None:
+    """The split a transforms layout's part files give (train / test; val views are left out), or None."""
+    if not any(f.part for f in frames):
+        return None
+    train = sorted(ids[f.name] for f in frames if f.part == "train")
+    test = sorted(ids[f.name] for f in frames if f.part == "test")
+    return train, test, " + ".join(PART_FILES[p] for p in ("train", "test") if any(f.part == p for f in frames))
+
+
+def frames_and_ids(path: str | Path) -> tuple[list[Frame], dict[str, str]]:
+    """The frames of a frame layout's folder (or of one of its files) and the view id of each
+    frame's ``name`` (:func:`~.split.view_ids`)."""
+    path = Path(path)
+    frames = layout_frames(path)
+    try:
+        return frames, view_ids([f.name for f in frames])
+    except ValueError as e:
+        raise InputError(path, str(e)) from None
+
+
+def read_frames_scene(root: str | Path, train_ids: Iterable[str] | None = None,
+                          test_ids: Iterable[str] | None = None) -> Scene:
+    """Read a frame layout and its photos as a :class:`~.scene.Scene` (no depth): every photo
+    decoded (and undistorted: pycolmap, cached) once to check it, then left in its file."""
+    root = Path(root)
+    frames, ids = frames_and_ids(root)
+    views: dict[str, View] = {}
+    undistorted = 0
+    for f in frames:
+        cam, ccam, oriented = _camera(f, ids[f.name])
+        pixels, got = ImageFile.checked(f.photo, partial(read_photo, f.photo, ccam, oriented, ccam is not None,
+                                                         f.mask))
+        if got != (cam.width, cam.height):
+            raise InputError(f.photo, f"image is {got[0]}x{got[1]} but its camera is {cam.width}x{cam.height}")
+        views[cam.name] = View(camera=cam, image=pixels)
+        undistorted += ccam is not None
+    views = {k: views[k] for k in sorted(views)}
+    try:
+        train, test, source = make_split(root, list(views), train_ids, test_ids, layout=layout_split(frames, ids))
+    except ValueError as e:
+        raise InputError(root, str(e)) from None
+    log.info("read %s layout %s: %d views (%d undistorted), train %s (split: %s)", find_frame_layout(root), root,
+             len(views), undistorted, train, source)
+    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source)
+
+
+def read_frames_cameras(path: str | Path) -> list[Camera]:
+    """The cameras of a frame layout's folder or of one of its files (sorted by view id),
+    as a scene's views have them, from the photos' headers (the pixels are not read)."""
+    frames, ids = frames_and_ids(path)
+    return sorted((_camera(f, ids[f.name])[0] for f in frames), key=lambda c: c.name)
+
+
+def _camera(f: Frame, name: str) -> tuple[Camera, object, bool]:
+    """(the view's camera - undistorted where the frame's camera has distortion -, the pycolmap
+    camera of the photo when it is to be undistorted else None, whether the photo is turned upright)."""
+    (W, H), oriented = stored_or_upright(f, image_size(f.photo, orient=False), image_size(f.photo, orient=True))
+    model, params = f.camera_model(W, H)
+    ccam = None
+    if model == "PINHOLE":
+        K, size = np.array([[params[0], 0.0, params[2]], [0.0, params[1], params[3]], [0.0, 0.0, 1.0]]), (W, H)
+    else:
+        pycolmap = import_pycolmap()
+
+        ccam = pycolmap.Camera(model=model, width=W, height=H, params=params)
+        pin = undistorted_camera(ccam)
+        K, size = np.asarray(pin.calibration_matrix(), np.float64), (pin.width, pin.height)
+    validate_camera_arrays(f.w2c, K, None, f.photo)
+    return Camera(K=K, w2c=f.w2c, width=size[0], height=size[1], name=name), ccam, oriented

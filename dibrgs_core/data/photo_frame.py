@@ -1,0 +1,81 @@
+"""One photo of a frame layout with its camera, as the transforms.json and Metashape readers give it
+(:mod:`.transforms`, :mod:`.metashape`; :mod:`.frame_layouts` makes views of them).
+
+Conventions: ``w2c`` is world-to-camera with OpenCV axes (+x right, +y down, looking along +z);
+intrinsics are in pixels with the principal point in COLMAP's convention (the image spans [0, w])
+and OpenCV's distortion coefficients.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..common.errors import InputError
+from .images import IMAGE_EXTS
+
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass
+class Frame:
+    """One photo of a frame layout, before its size is known.
+
+    Attributes:
+        name: the photo's name as the layout gives it (relative to the scene folder or the photos'
+            folder; view ids come from it).
+        photo: the photo file.
+        w2c: 4x4 world-to-camera, OpenCV axes.
+        size: (width, height) the layout gives, or None (the photo's own).
+        intrinsics: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``camera_angle_x``, ``camera_angle_y``
+            (those given) and OpenCV distortion ``k1``, ``k2``, ``p1``, ``p2``, ``k3``.
+        part: ``"train"``, ``"test"``, ``"val"`` (from a transforms part file) or None.
+        mask: the photo's mask image (black pixels hold no data), or None.
+    """
+
+    name: str
+    photo: Path
+    w2c: np.ndarray
+    size: tuple[int, int] | None
+    intrinsics: dict[str, float]
+    part: str | None
+    mask: Path | None = None
+
+    def camera_model(self, width: int, height: int) -> tuple[str, list[float]]:
+        """The COLMAP camera model and parameters of this frame's camera for a photo of
+        ``width`` x ``height``: ``PINHOLE`` [fx, fy, cx, cy], ``OPENCV`` [.., k1, k2, p1, p2] or
+        ``FULL_OPENCV`` [.., k1, k2, p1, p2, k3, 0, 0, 0]."""
+        i = self.intrinsics
+        fx = i.get("fl_x")
+        if fx is None:
+            if "camera_angle_x" not in i:
+                raise InputError(self.photo, "its camera has neither fl_x nor camera_angle_x")
+            fx = 0.5 * width / math.tan(0.5 * i["camera_angle_x"])
+        fy = i.get("fl_y")
+        if fy is None:
+            fy = 0.5 * height / math.tan(0.5 * i["camera_angle_y"]) if "camera_angle_y" in i else fx
+        pin = [fx, fy, i.get("cx", width / 2.0), i.get("cy", height / 2.0)]
+        k = [i.get(key, 0.0) for key in DISTORTION_KEYS]
+        if k[4]:
+            return "FULL_OPENCV", pin + k + [0.0, 0.0, 0.0]
+        if any(k[:4]):
+            return "OPENCV", pin + k[:4]
+        return "PINHOLE", pin
+
+
+def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
+    """The photo ``name`` in ``folder``: as written, or with an image extension added (Blender's
+    synthetic scenes write ``./train/r_0`` for ``train/r_0.png``; Metashape labels may drop it).
+    InputError naming ``where`` and ``what`` (the entry) when there is none."""
+    p = folder / name
+    if p.suffix.lower() in IMAGE_EXTS and p.is_file():
+        return p
+    for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
+        q = p.with_name(p.name + ext)
+        if q.is_file():
+            return q
+    if p.is_file():
+        return p  # another extension: the image readers say whether they can read it
+    raise InputError(where, f"{what}: photo {name} not found in {folder}")
