@@ -624,6 +624,39 @@ def test_a_transforms_json_scene_imports_with_its_cameras(scene64, fresh, tmp_pa
         np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
 
 
+def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
+    """The generated scene as Metashape's camera export (cameras.xml with the cameras in a chunk frame
+    that a scaled, turned, shifted chunk transform takes to the world; photos in images/ named by
+    label): every view object has the Cams file's camera."""
+    root = tmp_path / "metashape"
+    (root / "images").mkdir(parents=True)
+    c, s = np.cos(0.7), np.sin(0.7)
+    chunk = np.array([[2 * c, -2 * s, 0, 30.0], [2 * s, 2 * c, 0, -12.0], [0, 0, 2, 5.0], [0, 0, 0, 1]])
+    cameras = []
+    for k, cams in enumerate(sorted((scene64 / "Cams").glob("*.txt"))):
+        w2c, K = _cams_file(cams)
+        (root / "images" / f"{cams.stem}.png").symlink_to(scene64 / "Images" / f"{cams.stem}.png")
+        m = np.linalg.inv(chunk) @ np.linalg.inv(w2c)
+        cameras.append(f'<camera id="{k}" sensor_id="0" label="{cams.stem}"><transform>'
+                       + " ".join(repr(float(v)) for v in m.ravel()) + "</transform></camera>")
+    rot = " ".join(repr(float(v)) for v in (chunk[:3, :3] / 2).ravel())
+    (root / "cameras.xml").write_text(
+        '<?xml version="1.0"?><document version="2.0.0"><chunk><sensors><sensor id="0" type="frame">'
+        f'<resolution width="64" height="64"/><calibration type="frame" class="adjusted"><f>{K[1, 1]!r}</f>'
+        f"<cx>{K[0, 2] - 32!r}</cx><cy>{K[1, 2] - 32!r}</cy><b1>{K[0, 0] - K[1, 1]!r}</b1></calibration></sensor>"
+        f"</sensors><cameras>{''.join(cameras)}</cameras><transform><rotation>{rot}</rotation>"
+        "<translation>30 -12 5</translation><scale>2</scale></transform></chunk></document>")
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
+    for vid, obj in objs.items():
+        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
+        cam = sb.camera_from_object(obj, fresh)
+        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""
