@@ -54,7 +54,8 @@ def _is_curve(self, obj) -> bool:
 
 class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
     scene_dir: StringProperty(name="Scene", subtype="DIR_PATH",
-                              description="LEVIR-NVS, COLMAP, transforms.json or Metashape (cameras XML) scene folder")
+                              description="LEVIR-NVS, COLMAP, transforms.json, Metashape (cameras XML) or "
+                                          "OpenDroneMap / OpenSfM scene folder")
     work_dir: StringProperty(name="Run folder", subtype="DIR_PATH",
                              description="Where training writes its checkpoint, logs and renders")
     scene_json: StringProperty(description="Name of the text datablock holding the imported scene description")

@@ -169,3 +169,33 @@ def levir_as_metashape(levir: Path, out: Path, chunk: np.ndarray | None = None, 
               f"<translation locked=\"true\">{_xml_numbers(chunk[:3, 3])}</translation>"
               f"<scale locked=\"true\">{s!r}</scale></transform>", "  </chunk>", "</document>"]
     (out / "cameras.xml").write_text("\n".join(lines) + "\n")
+
+
+def levir_as_opensfm(levir: Path, out: Path, camera: dict | None = None, odm: bool = True) -> None:
+    """The LEVIR scene ``levir`` written as OpenSfM leaves it: ``reconstruction.json`` (in
+    ``out/opensfm/`` as OpenDroneMap's project has it, else in ``out``) and the photos in
+    ``out/images``; ``camera`` overrides the camera's entries (OpenSfM's names, normalised by the
+    larger side; a ``brown`` camera unless it gives another ``projection_type``)."""
+    from scipy.spatial.transform import Rotation
+
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    (out / "images").mkdir(parents=True)
+    c = next(iter(scene.views.values())).camera
+    size = max(c.width, c.height)
+    cam = {"projection_type": "brown", "width": c.width, "height": c.height, "focal_x": c.K[0, 0] / size,
+           "focal_y": c.K[1, 1] / size, "c_x": (c.K[0, 2] - c.width / 2) / size,
+           "c_y": (c.K[1, 2] - c.height / 2) / size, "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0,
+           **(camera or {})}
+    shots = {}
+    for vid, v in scene.views.items():
+        shutil.copyfile(levir / "Images" / f"{vid}.png", out / "images" / f"{vid}.png")
+        rotvec = Rotation.from_matrix(v.camera.w2c[:3, :3]).as_rotvec()
+        shots[f"{vid}.png"] = {"rotation": rotvec.tolist(), "translation": v.camera.w2c[:3, 3].tolist(),
+                               "camera": "v2 synth", "orientation": 1, "gps_dop": 5.0}
+    recs = [{"cameras": {"v2 synth": cam}, "shots": shots, "points": {}},
+            {"cameras": {"v2 synth": cam}, "shots": dict(list(shots.items())[:2]), "points": {}}]
+    folder = out / "opensfm" if odm else out
+    folder.mkdir(exist_ok=True)
+    (folder / "reconstruction.json").write_text(json.dumps(recs))

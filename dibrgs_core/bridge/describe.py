@@ -6,11 +6,12 @@ track) with numpy and the standard library only: Cams files through the
 library's own parser, image sizes and EXIF orientations from file headers
 (:mod:`.imagesize`), COLMAP models with :mod:`.colmap_model` (cameras with lens
 distortion as the undistorted pinholes the library trains them as; the image paths
-are the photos as taken) and frame layouts (transforms.json, Metashape XML) through the
-library's own parsers (``data.frame_layouts``). It applies the same rules and messages as
-the library's readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
-``data.frame_layouts.read_frames_scene``), which ``tests/bridge/test_bridge.py``
-checks on LEVIR, COLMAP (text and binary), transforms and Metashape scenes. The description is::
+are the photos as taken) and frame layouts (transforms.json, Metashape XML, OpenSfM /
+OpenDroneMap reconstruction.json) through the library's own parsers
+(``data.frame_layouts``). It applies the same rules and messages as the library's readers
+(``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
+``data.frame_layouts.read_frames_scene``), which ``tests/bridge/test_bridge.py`` checks on
+LEVIR, COLMAP (text and binary), transforms, Metashape and OpenSfM scenes. The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
@@ -54,8 +55,8 @@ from .imagesize import image_header
 
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
-    """The description of the LEVIR-NVS, COLMAP, transforms or Metashape scene at ``root`` (its
-    ``split.json``, else the layout's own split, else the default)."""
+    """The description of the LEVIR-NVS, COLMAP or frame-layout (transforms, Metashape, OpenSfM)
+    scene at ``root`` (its ``split.json``, else the layout's own split, else the default)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")

@@ -1,5 +1,5 @@
-"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model, transforms.json
-or Metashape cameras XML).
+"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model, transforms.json,
+Metashape cameras XML or OpenDroneMap / OpenSfM reconstruction).
 
 Prints the number of views, resolution (photos of several sizes: the most common, and ``sizes``
 lists each size's views), train/test split and where it came from
@@ -27,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a JSON summary of a scene", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS layout, COLMAP model, transforms.json or Metashape XML)")
+                   help="scene folder (LEVIR-NVS layout, COLMAP model, transforms.json, Metashape XML or "
+                        "OpenSfM reconstruction)")
     add_split(p)
     p.set_defaults(func=run)
 

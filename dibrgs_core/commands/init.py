@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "voxel downsampling and the height map. Writes WORK/init/points.ply, "
                                    "height_map.npz (when it applies) and init_report.json.")
     p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json or Metashape cameras XML)")
+                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json, Metashape cameras XML or "
+                        "OpenDroneMap / OpenSfM reconstruction)")
     p.add_argument("--out", type=Path, required=True, help="work folder; outputs go to OUT/init/")
     add_split(p)
     p.add_argument("--train-ids", dest="train", type=name_list, default=argparse.SUPPRESS,

@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train DIBR-GS or the 3DGS baseline", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json or Metashape cameras XML)")
+                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json, Metashape cameras XML or "
+                        "OpenDroneMap / OpenSfM reconstruction)")
     p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
     p.add_argument("--preset", default="cpu", choices=choices(PresetName),
                    help="; ".join(f"{k}: {v}" for k, v in PRESET_SUMMARY.items()))
@@ -48,8 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
                         "(anything `dibrgs render --cameras` takes: LEVIR Cams file/folder, JSON list, COLMAP model, "
-                        "transforms.json or Metashape XML; intrinsics in the scene's pixels, resized with "
-                        "its images); every pose is used, and the log names those mostly of padding")
+                        "transforms.json, Metashape XML or OpenSfM reconstruction; intrinsics in the scene's pixels, "
+                        "resized with its images); every pose is used, and the log names those mostly of padding")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
     g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")

@@ -1,11 +1,13 @@
-"""Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`) or a
-Metashape cameras export (:mod:`.metashape`). Each reader turns its file into
-:class:`~.photo_frame.Frame` objects; this module makes them views, cameras and a split, the same
-way for both (the library's reader and the add-on's description share it). Distorted cameras are
+"""Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`), a
+Metashape cameras export (:mod:`.metashape`) or an OpenDroneMap / OpenSfM ``reconstruction.json``
+(:mod:`.opensfm`). Each reader turns its file into :class:`~.photo_frame.Frame` objects; this
+module makes them views, cameras and a split, the same way for all (the library's reader and the
+add-on's description share it). Distorted cameras are
 undistorted on load as COLMAP's (pycolmap, cached).
 """
 from __future__ import annotations
 
+import json
 import logging
 from functools import partial
 from pathlib import Path
@@ -19,6 +21,7 @@ from ..common.errors import InputError
 from .colmap import read_photo
 from .images import image_size, turned_to_fit
 from .metashape import find_metashape, read_metashape_frames
+from .opensfm import find_opensfm, read_opensfm_frames
 from .photo_frame import Frame
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
@@ -27,25 +30,48 @@ from .undistort import undistorted_camera
 
 log = logging.getLogger("dibrgs.io_frames")
 
-FrameLayout = Literal["transforms", "metashape"]
+FrameLayout = Literal["transforms", "metashape", "opensfm"]
 
 
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
-    """Which frame layout the scene folder ``root`` holds (a transforms file first), or None."""
+    """Which frame layout the scene folder ``root`` holds (in this order), or None."""
     if find_transforms(root):
         return "transforms"
     if find_metashape(root) is not None:
         return "metashape"
+    if find_opensfm(root) is not None:
+        return "opensfm"
+    return None
+
+
+def file_layout(path: str | Path) -> FrameLayout | None:
+    """The frame layout whose file ``path`` is (a Metashape XML, a transforms JSON: an object with
+    "frames", an OpenSfM reconstruction: a list of objects with "shots"), or None (a JSON camera
+    list, or a file no reader takes: its reader says what is wrong with it)."""
+    path = Path(path)
+    if path.suffix.lower() == ".xml":
+        return "metashape"
+    if path.suffix.lower() != ".json":
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if isinstance(data, dict) and "frames" in data:
+        return "transforms"
+    if isinstance(data, list) and data and isinstance(data[0], dict) and "shots" in data[0]:
+        return "opensfm"
     return None
 
 
 def layout_frames(path: str | Path) -> list[Frame]:
-    """The frames of a frame layout's folder, or of one of its files (a transforms JSON or a
-    Metashape XML); InputError naming the file when malformed."""
+    """The frames of a frame layout's folder, or of one of its files (a transforms JSON, a Metashape
+    XML or an OpenSfM reconstruction); InputError naming the file when malformed."""
     path = Path(path)
-    if path.is_file():
-        return read_metashape_frames(path) if path.suffix.lower() == ".xml" else read_transforms_file(path)
-    return read_transforms_frames(path) if find_frame_layout(path) == "transforms" else read_metashape_frames(path)
+    layout = (file_layout(path) or "transforms") if path.is_file() else find_frame_layout(path)
+    if layout == "transforms":
+        return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
+    return read_opensfm_frames(path) if layout == "opensfm" else read_metashape_frames(path)
 
 
 def stored_or_upright(frame: Frame, stored: tuple[int, int], upright: tuple[int, int]) -> tuple[tuple[int, int], bool]:

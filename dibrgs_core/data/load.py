@@ -1,8 +1,7 @@
-"""Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model, a transforms.json or a
-Metashape cameras XML), or any cameras to render."""
+"""Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model, a transforms.json, a
+Metashape cameras XML or an OpenDroneMap / OpenSfM reconstruction), or any cameras to render."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -18,9 +17,9 @@ from .scene import Scene
 def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_depth: bool = True,
                    test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
-    itself) or a frame layout (a transforms.json or a Metashape cameras XML: :mod:`.frame_layouts`), in
-    a frame of its own when it lies far from
-    its coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
+    itself) or a frame layout (a transforms.json, a Metashape cameras XML or an OpenSfM
+    reconstruction: :mod:`.frame_layouts`), in a frame of its own when it lies far from its
+    coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "scene folder not found")
@@ -39,8 +38,9 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 
 #: What a scene folder holds (the library's and the add-on's readers say it alike).
 NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model (cameras/images/points3D "
-               ".bin or .txt in sparse/N, sparse/ or the folder), a transforms.json (instant-ngp, nerfstudio) or a "
-               "Metashape cameras XML (cameras.xml, photos in images/)")
+               ".bin or .txt in sparse/N, sparse/ or the folder), a transforms.json (instant-ngp, nerfstudio), a "
+               "Metashape cameras XML (cameras.xml, photos in images/) or an OpenDroneMap / OpenSfM "
+               "reconstruction (opensfm/reconstruction.json or reconstruction.json, photos in images/)")
 
 
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
@@ -60,30 +60,19 @@ def read_any_cameras(path: str | Path) -> list[Camera]:
     COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
     named by its view id, with the pinhole camera training uses - undistorted where the model has
     distortion - at the photo's full size), or a frame layout's folder or one of its files (a
-    transforms JSON or a Metashape XML; likewise)."""
+    transforms JSON, a Metashape XML or an OpenSfM reconstruction; likewise)."""
+    from .colmap import find_colmap_model, read_colmap_cameras
+    from .frame_layouts import file_layout, find_frame_layout, read_frames_cameras
+
     path = Path(path)
     if path.is_dir() and not (path / "Cams").is_dir():
-        from .colmap import find_colmap_model, read_colmap_cameras
-        from .frame_layouts import find_frame_layout, read_frames_cameras
-
         if find_colmap_model(path) is not None:
             return read_colmap_cameras(path)
         if find_frame_layout(path) is not None:
             return read_frames_cameras(path)
-    if path.is_file() and (path.suffix.lower() == ".xml" or path.suffix.lower() == ".json" and _has_frames(path)):
-        from .frame_layouts import read_frames_cameras
-
+    if path.is_file() and file_layout(path) is not None:
         return read_frames_cameras(path)
     return read_cameras(path)
-
-
-def _has_frames(path: Path) -> bool:
-    """Whether a JSON file is a transforms file (an object with "frames"), not a camera list."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
-        return False  # the camera-list reader says what is wrong with it
-    return isinstance(data, dict) and "frames" in data
 
 
 def cameras_digest(cams: Sequence[Camera]) -> str:

@@ -860,6 +860,21 @@ def test_describe_matches_the_library_on_metashape_exports(tiny_scene, tmp_path,
     assert all(v["undistorted"] for v in desc["views"])
 
 
+def test_describe_matches_the_library_on_opensfm_reconstructions(tiny_scene, tmp_path, monkeypatch):
+    """An OpenDroneMap project (opensfm/reconstruction.json, two reconstructions) with a Brown
+    camera: the add-on's reader gives the library's cameras and split."""
+    from photo_synth import levir_as_opensfm
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "odm"
+    levir_as_opensfm(tiny_scene, out, camera={"k1": -0.15, "p2": 0.002})
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    _same_description(desc, scene)
+    assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     from dibrgs_core.data.load import read_any_scene
 
