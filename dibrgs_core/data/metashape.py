@@ -4,7 +4,7 @@ reader and the add-on's description share both).
 
 Accepted layout: a scene folder holding the XML (``cameras.xml``, or the folder's only Metashape
 XML) and the photos in ``images/`` beside it (else beside the XML), named by each camera's label
-with or without its extension. Masks as for COLMAP (``masks/NAME.png`` beside the photos' folder).
+with or without its extension, also in subfolders where the name is unique. Masks as for COLMAP (``masks/NAME.png`` beside the photos' folder).
 
 Conventions (Metashape's, from the frame camera model of its manual, Appendix C): a camera's
 ``<transform>`` is a row-major 4x4 camera-to-chunk matrix with OpenCV camera axes (+x right, +y
@@ -29,7 +29,7 @@ import numpy as np
 
 from ..common.errors import InputError
 from .photo_frame import Frame, find_photo
-from .images import find_mask
+from .images import IMAGE_EXTS, find_mask
 
 log = logging.getLogger("dibrgs.io_metashape")
 
@@ -136,6 +136,28 @@ def _sensors(chunk: ET.Element, where: Path) -> dict[str, tuple[tuple[int, int],
     return out
 
 
+def _labelled_photo(folder: Path, label: str, where: Path, index: dict[str, list[Path]]) -> Path:
+    """The photo of a camera label (a file name, with or without its extension): in ``folder``, else
+    the one photo of that name in its subfolders (a drone's card keeps 100MEDIA/, 101MEDIA/, ...),
+    looked up in ``index`` (name and stem -> photos; filled on the first miss)."""
+    try:
+        return find_photo(folder, label, where, f"camera {label}")
+    except InputError:
+        if not index:
+            for p in sorted(folder.rglob("*")):
+                if p.suffix.lower() in IMAGE_EXTS and p.is_file():
+                    index.setdefault(p.name, []).append(p)
+                    index.setdefault(p.stem, []).append(p)
+        found = index.get(label, [])
+        if len(found) == 1:
+            return found[0]
+        if found:
+            raise InputError(where, f"camera {label}: several photos of that name ("
+                                    f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): "
+                                    "rename them and the cameras' labels to tell them apart") from None
+        raise
+
+
 def read_metashape_frames(path: str | Path) -> list[Frame]:
     """The frames of a Metashape cameras XML, or of the one in a scene folder (InputError naming the
     file when malformed, or a camera's photo when it is missing)."""
@@ -160,7 +182,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
                   for c in chunk.findall("components/component")}
     sensors = _sensors(chunk, path)
     folder = next((path.parent / d for d in PHOTO_FOLDERS if (path.parent / d).is_dir()), path.parent)
-    frames, unaligned = [], []
+    frames, unaligned, index = [], [], {}
     for cam in chunk.iterfind("cameras//camera"):
         label = cam.get("label", cam.get("id", "?"))
         m = _numbers(cam.find("transform"), 16, path, f"camera {label} transform")
@@ -179,7 +201,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
         R, C = c2w[:3, :3] / scale, c2w[:3, 3]
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R.T, -R.T @ C
-        photo = find_photo(folder, label, path, f"camera {label}")
+        photo = _labelled_photo(folder, label, path, index)
         name = photo.relative_to(folder).as_posix()
         frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intrinsics), part=None,
                             mask=find_mask(folder, name)))

@@ -47,9 +47,14 @@ def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path,
         cams = read_any_cameras(where)
         assert [c.name for c in cams] == list(ms.views)
         np.testing.assert_array_equal(cams[3].w2c, ms.views[cams[3].name].camera.w2c)
-    # any name: the folder's only Metashape XML
+    # any name: the folder's only Metashape XML; photos in the card's folders (labels carry no folder)
     (out / "cameras.xml").rename(out / "flight 3 export.xml")
-    assert list(read_any_scene(out).views) == list(levir.views)
+    (out / "images" / "101MEDIA").mkdir()
+    for p in sorted((out / "images").glob("01*.png")):
+        p.rename(out / "images" / "101MEDIA" / p.name)
+    moved = read_any_scene(out)
+    assert list(moved.views) == list(levir.views)
+    np.testing.assert_array_equal(moved.views["012"].image, levir.views["012"].image)
 
 
 def test_metashape_lens_model_projects_as_its_manual_says(tiny_scene, tmp_path, monkeypatch):
@@ -85,7 +90,8 @@ def test_metashape_lens_model_projects_as_its_manual_says(tiny_scene, tmp_path, 
     assert np.abs(view.image - photo.image).mean() > 0.01  # undistorted
 
 
-@pytest.mark.parametrize("case", ["k4", "skew", "fisheye", "uncalibrated", "photo", "broken", "two", "none"])
+@pytest.mark.parametrize("case", ["k4", "skew", "fisheye", "uncalibrated", "photo", "same-name", "broken", "two",
+                                  "none"])
 def test_metashape_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     out = tmp_path / "ms"
     levir_as_metashape(tiny_scene, out, calibration={"k4": 0.01} if case == "k4" else
@@ -95,6 +101,7 @@ def test_metashape_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     expect = {"k4": "k4 has no equivalent", "skew": "skew b2 = 2.0 moves the image's edge",
               "fisheye": "sensor synth is a fisheye camera", "uncalibrated": "sensor synth has no calibration",
               "photo": "camera 004: photo 004 not found", "broken": "unreadable Metashape XML",
+              "same-name": "camera 004: several photos of that name (100MEDIA/004.png, 101MEDIA/004.png)",
               "two": "several Metashape camera files (a.xml, b.xml)",
               "none": "no aligned cameras"}[case]
     if case == "fisheye":
@@ -103,6 +110,11 @@ def test_metashape_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
         start, end = text.index("<calibration"), text.rindex("</calibration>") + len("</calibration>")
         xml.write_text(text[:start] + text[end:])
     elif case == "photo":
+        (out / "images" / "004.png").unlink()
+    elif case == "same-name":  # a drone numbering its photos again on a new card folder
+        for d in ("100MEDIA", "101MEDIA"):
+            (out / "images" / d).mkdir()
+            shutil.copyfile(out / "images" / "004.png", out / "images" / d / "004.png")
         (out / "images" / "004.png").unlink()
     elif case == "broken":
         xml.write_text(text[: len(text) // 2])
