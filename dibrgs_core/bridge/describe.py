@@ -46,7 +46,7 @@ from ..common.errors import InputError
 from ..data.colmap import find_colmap_model, image_folder, split_folder
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
-from ..data.load import NOT_A_SCENE
+from ..data.load import NOT_A_SCENE, not_a_folder
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
 from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
@@ -59,7 +59,7 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
     scene at ``root`` (its ``split.json``, else the layout's own split, else the default)."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(root, "scene folder not found")
+        raise InputError(root, not_a_folder(root))
     layout = None
     if (root / "Cams").is_dir():
         views, images, track = _levir(root)

@@ -22,7 +22,7 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
     coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(root, "scene folder not found")
+        raise InputError(root, not_a_folder(root))
     if (root / "Cams").is_dir():
         return read_scene(root, train_ids=train_ids, load_depth=load_depth, test_ids=test_ids).recentred()
     from .colmap import find_colmap_model, read_colmap_scene
@@ -34,6 +34,14 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
     if find_frame_layout(root) is not None:
         return read_frames_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
     raise InputError(root, NOT_A_SCENE)
+
+
+def not_a_folder(root: Path) -> str:
+    """What is wrong with a scene path that is no folder (the library's and the add-on's readers
+    say it alike)."""
+    if not root.exists():
+        return "scene folder not found"
+    return "not a folder (a scene is the folder holding the camera file and the photos)"
 
 
 #: What a scene folder holds (the library's and the add-on's readers say it alike).
@@ -48,9 +56,6 @@ def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     """Read a scene folder for a run, with its split (``--train`` / ``--test``, else ``split.json``,
     else the default; :func:`~dibrgs_core.data.split.make_split`). ``InputError`` when it does not
     exist or is no scene."""
-    root = Path(root)
-    if not root.is_dir():
-        raise InputError(root, "scene folder does not exist" if not root.exists() else "not a folder")
     return read_any_scene(root, train_ids=train_ids, test_ids=test_ids, load_depth=load_depth)
 
 
