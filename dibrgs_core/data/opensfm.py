@@ -121,10 +121,9 @@ def read_opensfm_frames(path: str | Path) -> list[Frame]:
     intrinsics = {}
     frames = []
     for name, shot in sorted(shots.items()):
-        if not isinstance(shot, dict) or shot.get("camera") not in cameras:
-            raise InputError(path, f"shot {name}: camera {shot.get('camera') if isinstance(shot, dict) else None!r} "
-                                   "is not in the reconstruction")
-        cid = shot["camera"]
+        cid = shot.get("camera") if isinstance(shot, dict) else None
+        if not isinstance(cid, str) or cid not in cameras:
+            raise InputError(path, f"shot {name}: camera {cid!r} is not in the reconstruction")
         if cid not in intrinsics:
             if not isinstance(cameras[cid], dict):
                 raise InputError(path, f"camera {cid}: expected an object")
