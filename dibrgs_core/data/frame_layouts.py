@@ -2,8 +2,8 @@
 Metashape cameras export (:mod:`.metashape`) or an OpenDroneMap / OpenSfM ``reconstruction.json``
 (:mod:`.opensfm`). Each reader turns its file into :class:`~.photo_frame.Frame` objects; this
 module makes them views, cameras and a split, the same way for all (the library's reader and the
-add-on's description share it). Distorted cameras are
-undistorted on load as COLMAP's (pycolmap, cached).
+add-on's description share it). Distorted cameras are undistorted on load as COLMAP's (pycolmap,
+cached).
 """
 from __future__ import annotations
 
@@ -108,7 +108,7 @@ def frames_and_ids(path: str | Path) -> tuple[list[Frame], dict[str, str]]:
 
 
 def read_frames_scene(root: str | Path, train_ids: Iterable[str] | None = None,
-                          test_ids: Iterable[str] | None = None) -> Scene:
+                      test_ids: Iterable[str] | None = None) -> Scene:
     """Read a frame layout and its photos as a :class:`~.scene.Scene` (no depth): every photo
     decoded (and undistorted: pycolmap, cached) once to check it, then left in its file."""
     root = Path(root)

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .photo_frame import DISTORTION_KEYS, Frame, find_photo
 from .images import find_mask
+from .photo_frame import DISTORTION_KEYS, Frame, find_photo
 
 TRANSFORMS_FILE = "transforms.json"
 #: The files of a layout split in parts (Blender's synthetic NeRF scenes), in reading order.
