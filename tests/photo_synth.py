@@ -163,6 +163,8 @@ def levir_as_metashape(levir: Path, out: Path, chunk: np.ndarray | None = None, 
     lines.append("      </group>")
     for k in range(unaligned):
         lines.append(f'      <camera id="{50 + k}" sensor_id="0" label="dropped{k}"/>')
+    lines.append('      <camera id="60" sensor_id="0" label="unchecked" enabled="false"><transform>'
+                 f'{_xml_numbers(np.eye(4))}</transform></camera>')  # disabled by the user: no photo needed
     lines.append("    </cameras>")
     s = np.cbrt(np.linalg.det(chunk[:3, :3]))
     lines += [f"    <transform><rotation locked=\"true\">{_xml_numbers(chunk[:3, :3] / s)}</rotation>"

@@ -4,7 +4,8 @@ reader and the add-on's description share both).
 
 Accepted layout: a scene folder holding the XML (``cameras.xml``, or the folder's only Metashape
 XML) and the photos in ``images/`` beside it (else beside the XML), named by each camera's label
-with or without its extension, also in subfolders where the name is unique. Masks as for COLMAP (``masks/NAME.png`` beside the photos' folder).
+with or without its extension, also in subfolders where the name is unique. Masks as for COLMAP
+(``masks/NAME.png`` beside the photos' folder).
 
 Conventions (Metashape's, from the frame camera model of its manual, Appendix C): a camera's
 ``<transform>`` is a row-major 4x4 camera-to-chunk matrix with OpenCV camera axes (+x right, +y
@@ -17,7 +18,7 @@ there are several): ``f`` (pixels), ``cx``, ``cy`` (from the image centre), ``b1
 multiplies r^2 + 2x^2 (OpenCV's ``p2``) and its ``p2`` the 2xy term (OpenCV's ``p1``). ``k4``, higher
 tangential terms and a skew that moves the image's edge by half a pixel or more have no COLMAP
 equivalent and are refused, as are fisheye and spherical sensors. Cameras without a transform (not
-aligned) are left out and counted in the log.
+aligned) and cameras disabled in Metashape (``enabled="false"``) are left out and counted in the log.
 """
 from __future__ import annotations
 
@@ -182,9 +183,12 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
                   for c in chunk.findall("components/component")}
     sensors = _sensors(chunk, path)
     folder = next((path.parent / d for d in PHOTO_FOLDERS if (path.parent / d).is_dir()), path.parent)
-    frames, unaligned, index = [], [], {}
+    frames, unaligned, disabled, index = [], [], [], {}
     for cam in chunk.iterfind("cameras//camera"):
         label = cam.get("label", cam.get("id", "?"))
+        if cam.get("enabled", "true").lower() in ("false", "0"):  # unchecked in Metashape: left out there
+            disabled.append(label)
+            continue
         m = _numbers(cam.find("transform"), 16, path, f"camera {label} transform")
         if m is None:
             unaligned.append(label)
@@ -205,9 +209,10 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
         name = photo.relative_to(folder).as_posix()
         frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intrinsics), part=None,
                             mask=find_mask(folder, name)))
-    if unaligned:
-        log.info("%s: %d cameras without a transform (not aligned) left out: %s%s", path, len(unaligned),
-                 ", ".join(unaligned[:5]), " ..." if len(unaligned) > 5 else "")
+    for what, labels in (("without a transform (not aligned)", unaligned), ("disabled in Metashape", disabled)):
+        if labels:
+            log.info("%s: %d cameras %s left out: %s%s", path, len(labels), what, ", ".join(labels[:5]),
+                     " ..." if len(labels) > 5 else "")
     if not frames:
         raise InputError(path, "no aligned cameras (none has a <transform>)")
     return frames

@@ -27,8 +27,8 @@ def _similarity(scale: float, euler_deg, t) -> np.ndarray:
 
 def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path, caplog):
     """Cameras stored in a chunk's frame (a scaled, turned, shifted one, as a georeferenced project
-    has), inside a component and a camera group, two cameras not aligned: the world cameras of the
-    LEVIR files, the split of the LEVIR default (no split.json), the photos' pixels."""
+    has), inside a component and a camera group, two cameras not aligned and one disabled: the world
+    cameras of the LEVIR files, the split of the LEVIR default (no split.json), the photos' pixels."""
     out = tmp_path / "ms"
     levir_as_metashape(tiny_scene, out, chunk=_similarity(2.5, [10, -30, 70], [100.0, -40.0, 7.0]),
                        component=_similarity(0.5, [0, 0, 20], [1.0, 2.0, 3.0]), unaligned=2)
@@ -43,6 +43,7 @@ def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path,
         np.testing.assert_allclose(v.camera.w2c, want.w2c, atol=1e-9)
         np.testing.assert_array_equal(v.image, levir.views[vid].image)
     assert "2 cameras without a transform (not aligned) left out: dropped0, dropped1" in caplog.text
+    assert "1 cameras disabled in Metashape left out: unchecked" in caplog.text
     for where in (out, out / "cameras.xml"):  # `dibrgs render --cameras` takes the folder or the file
         cams = read_any_cameras(where)
         assert [c.name for c in cams] == list(ms.views)
