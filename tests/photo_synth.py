@@ -117,6 +117,18 @@ def levir_as_transforms(levir: Path, out: Path, per_frame: bool = False, extra: 
     (out / "transforms.json").write_text(json.dumps({**top, **(extra or {}), "frames": frames}))
 
 
+def assert_same_views(got, want) -> None:
+    """Scene ``got`` (the generated scene ``want`` written in another layout) has ``want``'s views:
+    the same names, cameras and pixels."""
+    assert list(got.views) == list(want.views)
+    for vid, v in got.views.items():
+        w = want.views[vid].camera
+        assert (v.camera.width, v.camera.height) == (w.width, w.height)
+        np.testing.assert_allclose(v.camera.K, w.K, rtol=1e-12)
+        np.testing.assert_allclose(v.camera.w2c, w.w2c, atol=1e-9)
+        np.testing.assert_array_equal(v.image, want.views[vid].image)
+
+
 def _xml_numbers(v) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(v))
 

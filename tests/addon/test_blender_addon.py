@@ -599,6 +599,19 @@ def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch)
     assert sb.scene_description()["train"] == ["001", "008", "015"] and ops._run(bpy.context).split is None
 
 
+def _imports_with_the_cams_files_cameras(root, scene64, fresh) -> None:
+    """Import ``root`` (the generated scene in another layout): every view object has the Cams file's camera."""
+    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    sb = _mod("scene_build")
+    objs = _view_objects()
+    assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
+    for vid, obj in objs.items():
+        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
+        cam = sb.camera_from_object(obj, fresh)
+        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+
+
 def test_a_transforms_json_scene_imports_with_its_cameras(scene64, fresh, tmp_path):
     """The generated scene written as a transforms.json (OpenGL camera-to-world, as instant-ngp and
     nerfstudio write it): every view object has the Cams file's camera."""
@@ -613,15 +626,7 @@ def test_a_transforms_json_scene_imports_with_its_cameras(scene64, fresh, tmp_pa
         frames.append({"file_path": f"images/{cams.stem}.png", "transform_matrix": c2w.tolist()})
     (root / "transforms.json").write_text(json.dumps({"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2],
                                                       "cy": K[1, 2], "w": 64, "h": 64, "frames": frames}))
-    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
-    sb = _mod("scene_build")
-    objs = _view_objects()
-    assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
-    for vid, obj in objs.items():
-        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
-        cam = sb.camera_from_object(obj, fresh)
-        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+    _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 
 def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
@@ -646,15 +651,7 @@ def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
         f"<cx>{K[0, 2] - 32!r}</cx><cy>{K[1, 2] - 32!r}</cy><b1>{K[0, 0] - K[1, 1]!r}</b1></calibration></sensor>"
         f"</sensors><cameras>{''.join(cameras)}</cameras><transform><rotation>{rot}</rotation>"
         "<translation>30 -12 5</translation><scale>2</scale></transform></chunk></document>")
-    assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
-    sb = _mod("scene_build")
-    objs = _view_objects()
-    assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
-    for vid, obj in objs.items():
-        w2c, K = _cams_file(scene64 / "Cams" / f"{vid}.txt")
-        cam = sb.camera_from_object(obj, fresh)
-        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(cam.R, w2c[:3, :3], atol=1e-5)
+    _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):

@@ -15,7 +15,7 @@ from dibrgs_core.data.load import read_any_cameras, read_any_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from photo_synth import levir_as_metashape  # noqa: E402
+from photo_synth import assert_same_views, levir_as_metashape  # noqa: E402
 
 
 def _similarity(scale: float, euler_deg, t) -> np.ndarray:
@@ -35,13 +35,7 @@ def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path,
     levir = read_any_scene(tiny_scene, load_depth=False)
     with caplog.at_level("INFO", logger="dibrgs"):
         ms = read_any_scene(out)
-    assert list(ms.views) == list(levir.views)
-    for vid, v in ms.views.items():
-        want = levir.views[vid].camera
-        assert (v.camera.width, v.camera.height) == (want.width, want.height)
-        np.testing.assert_allclose(v.camera.K, want.K, rtol=1e-12)
-        np.testing.assert_allclose(v.camera.w2c, want.w2c, atol=1e-9)
-        np.testing.assert_array_equal(v.image, levir.views[vid].image)
+    assert_same_views(ms, levir)
     assert "2 cameras without a transform (not aligned) left out: dropped0, dropped1" in caplog.text
     assert "1 cameras disabled in Metashape left out: unchecked" in caplog.text
     for where in (out, out / "cameras.xml"):  # `dibrgs render --cameras` takes the folder or the file
@@ -53,9 +47,7 @@ def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path,
     (out / "images" / "101MEDIA").mkdir()
     for p in sorted((out / "images").glob("01*.png")):
         p.rename(out / "images" / "101MEDIA" / p.name)
-    moved = read_any_scene(out)
-    assert list(moved.views) == list(levir.views)
-    np.testing.assert_array_equal(moved.views["012"].image, levir.views["012"].image)
+    assert_same_views(read_any_scene(out), levir)
 
 
 def test_metashape_lens_model_projects_as_its_manual_says(tiny_scene, tmp_path, monkeypatch):

@@ -14,7 +14,7 @@ from dibrgs_core.data.load import read_any_cameras, read_any_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from photo_synth import levir_as_opensfm  # noqa: E402
+from photo_synth import assert_same_views, levir_as_opensfm  # noqa: E402
 
 
 @pytest.mark.parametrize("odm", [True, False], ids=["odm-project", "opensfm-dataset"])
@@ -24,13 +24,8 @@ def test_reconstruction_json_reads_the_cameras_of_the_same_views(tiny_scene, tmp
     levir = read_any_scene(tiny_scene, load_depth=False)
     with caplog.at_level("INFO", logger="dibrgs"):
         scene = read_any_scene(out)
-    assert list(scene.views) == list(levir.views) and scene.train == levir.train
-    for vid, v in scene.views.items():
-        want = levir.views[vid].camera
-        assert (v.camera.width, v.camera.height) == (want.width, want.height)
-        np.testing.assert_allclose(v.camera.K, want.K, rtol=1e-12)
-        np.testing.assert_allclose(v.camera.w2c, want.w2c, atol=1e-9)
-        np.testing.assert_array_equal(v.image, levir.views[vid].image)
+    assert_same_views(scene, levir)
+    assert scene.train == levir.train
     assert "2 reconstructions (21, 2 shots), reading the largest" in caplog.text
     rec = out / "opensfm" / "reconstruction.json" if odm else out / "reconstruction.json"
     for where in (out, rec):  # `dibrgs render --cameras` takes the folder or the file

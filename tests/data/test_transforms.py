@@ -14,7 +14,7 @@ from dibrgs_core.data.load import read_any_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from photo_synth import levir_as_transforms, opengl_c2w  # noqa: E402
+from photo_synth import assert_same_views, levir_as_transforms, opengl_c2w  # noqa: E402
 
 
 @pytest.mark.parametrize("per_frame", [False, True], ids=["shared-intrinsics", "per-frame"])
@@ -22,13 +22,8 @@ def test_transforms_json_reads_the_cameras_of_the_same_views(tiny_scene, tmp_pat
     out = tmp_path / "ngp"
     levir_as_transforms(tiny_scene, out, per_frame)
     levir, ngp = read_any_scene(tiny_scene, load_depth=False), read_any_scene(out)
-    assert list(ngp.views) == list(levir.views) and ngp.train == levir.train
-    for vid, v in ngp.views.items():
-        want = levir.views[vid].camera
-        assert (v.camera.width, v.camera.height) == (want.width, want.height)
-        np.testing.assert_allclose(v.camera.K, want.K, rtol=1e-12)
-        np.testing.assert_allclose(v.camera.w2c, want.w2c, atol=1e-9)
-        np.testing.assert_array_equal(v.image, levir.views[vid].image)
+    assert_same_views(ngp, levir)
+    assert ngp.train == levir.train
     # as cameras to render (`dibrgs render --cameras FOLDER`): the views' cameras, from the headers
     from dibrgs_core.data.load import read_any_cameras
 
