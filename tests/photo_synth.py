@@ -213,3 +213,33 @@ def levir_as_opensfm(levir: Path, out: Path, camera: dict | None = None, odm: bo
     folder = out / "opensfm" if odm else out
     folder.mkdir(exist_ok=True)
     (folder / "reconstruction.json").write_text(json.dumps(recs))
+
+
+def levir_as_realitycapture(levir: Path, out: Path, xcr: dict | None = None, folder: str = "images") -> None:
+    """The LEVIR scene ``levir`` written as RealityCapture's registration export: each photo in
+    ``out/folder`` with a ``NAME.xmp`` sidecar (world-to-camera rotation, centre, focal length for a
+    36 mm frame on the longer side, principal point from the centre in units of that side); ``xcr``
+    overrides the sidecars' attributes (RealityCapture's names)."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    (out / folder).mkdir(parents=True, exist_ok=True)
+    for vid, v in scene.views.items():
+        shutil.copyfile(levir / "Images" / f"{vid}.png", out / folder / f"{vid}.png")
+        c = v.camera
+        side = max(c.width, c.height)
+        R, C = c.w2c[:3, :3], -c.w2c[:3, :3].T @ c.w2c[:3, 3]
+        attrs = {"Version": "3", "PosePrior": "locked", "Coordinates": "absolute", "DistortionModel": "brown3",
+                 "FocalLength35mm": repr(c.K[0, 0] / side * 36.0), "Skew": "0", "AspectRatio": "1",
+                 "PrincipalPointU": repr((c.K[0, 2] - c.width / 2) / side),
+                 "PrincipalPointV": repr((c.K[1, 2] - c.height / 2) / side), **(xcr or {})}
+        coeffs = attrs.pop("DistortionCoeficients", "0 0 0 0 0 0")
+        (out / folder / f"{vid}.xmp").write_text(
+            '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+            '  <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+            '    <rdf:Description xmlns:xcr="http://www.capturingreality.com/ns/xcr/1.1#" '
+            + " ".join(f'xcr:{k}="{val}"' for k, val in attrs.items()) + ">\n"
+            f"      <xcr:Rotation>{_xml_numbers(R)}</xcr:Rotation>\n"
+            f"      <xcr:Position>{_xml_numbers(C)}</xcr:Position>\n"
+            f"      <xcr:DistortionCoeficients>{coeffs}</xcr:DistortionCoeficients>\n"
+            "    </rdf:Description>\n  </rdf:RDF>\n</x:xmpmeta>\n")

@@ -1,5 +1,4 @@
-"""``dibrgs info DIR``: JSON summary of a scene (LEVIR-NVS folder, COLMAP model, transforms.json,
-Metashape cameras XML or OpenDroneMap / OpenSfM reconstruction).
+"""``dibrgs info DIR``: JSON summary of a scene (any layout ``dibrgs train`` reads).
 
 Prints the number of views, resolution (photos of several sizes: the most common, and ``sizes``
 lists each size's views), train/test split and where it came from
@@ -20,15 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .options import add_split
+from .options import SCENE_LAYOUTS, add_split
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a JSON summary of a scene", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS layout, COLMAP model, transforms.json, Metashape XML or "
-                        "OpenSfM reconstruction)")
+    p.add_argument("scene", type=Path, help=f"scene folder ({SCENE_LAYOUTS})")
     add_split(p)
     p.set_defaults(func=run)
 

@@ -11,7 +11,8 @@ import argparse
 from pathlib import Path
 
 from ..common.modes import DepthMap, DepthPrior, Refine, choices
-from .options import add_split, add_compute, apply_compute, locked, name_list, nonnegative_float, positive_float
+from .options import (SCENE_LAYOUTS, add_compute, add_split, apply_compute, locked, name_list, nonnegative_float,
+                      positive_float)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,9 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="SfM with the known poses, an aligned dense depth prior, overlap removal, "
                                    "voxel downsampling and the height map. Writes WORK/init/points.ply, "
                                    "height_map.npz (when it applies) and init_report.json.")
-    p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json, Metashape cameras XML or "
-                        "OpenDroneMap / OpenSfM reconstruction)")
+    p.add_argument("scene", type=Path, help=f"scene folder ({SCENE_LAYOUTS})")
     p.add_argument("--out", type=Path, required=True, help="work folder; outputs go to OUT/init/")
     add_split(p)
     p.add_argument("--train-ids", dest="train", type=name_list, default=argparse.SUPPRESS,

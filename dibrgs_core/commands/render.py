@@ -3,8 +3,8 @@
 PATH is a LEVIR-NVS Cams file, a folder of them, a JSON camera list, a COLMAP
 model (a scene folder or the model's own folder: its posed images' cameras, at the
 photos' full size, undistorted as training reads them), a transforms.json, a
-Metashape cameras XML or an OpenDroneMap / OpenSfM reconstruction.json (its folder or
-the file; likewise). Each camera gives
+Metashape cameras XML, an OpenDroneMap / OpenSfM reconstruction.json or RealityCapture
+XMP sidecars (the folder or one file; likewise). Each camera gives
 ``DIR/NAME.png`` (named after the camera, e.g. ``002.png`` for ``Cams/002.txt``) and its
 z-depth ``DIR/NAME_depth.exr`` (0 where nothing was hit).
 ``DIR`` has one writer at a time (a second render into it is refused).
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_compute, apply_compute, locked
+from .options import SCENE_LAYOUTS, add_compute, apply_compute, locked
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,8 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("work", type=Path, help="run folder of `dibrgs train`")
     p.add_argument("--cameras", type=Path, required=True,
-                   help="Cams file, folder of Cams files, JSON list, COLMAP model, transforms.json, Metashape "
-                        "cameras XML or OpenSfM reconstruction.json (its folder or the file)")
+                   help=f"Cams file, folder of Cams files, JSON list, or a scene's cameras ({SCENE_LAYOUTS}; the "
+                        "folder or one file)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--no-depth", action="store_true", help="skip the depth EXR files")
     add_compute(p)

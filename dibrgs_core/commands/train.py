@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..common.modes import DepthPrior, IbrEncoder, MethodName, PresetName, Switch, choices
 from ..training.config import PRESET_SUMMARY
-from .options import (add_split, add_compute, apply_compute, locked, nonnegative_float, positive_int,
+from .options import (SCENE_LAYOUTS, add_split, add_compute, apply_compute, locked, nonnegative_float, positive_int,
                       resolution_scale, seed)
 
 log = logging.getLogger("dibrgs.train")
@@ -27,9 +27,7 @@ log = logging.getLogger("dibrgs.train")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train DIBR-GS or the 3DGS baseline", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path,
-                   help="scene folder (LEVIR-NVS, COLMAP, transforms.json, Metashape cameras XML or "
-                        "OpenDroneMap / OpenSfM reconstruction)")
+    p.add_argument("scene", type=Path, help=f"scene folder ({SCENE_LAYOUTS})")
     p.add_argument("--out", type=Path, required=True, help="run folder (WORK)")
     p.add_argument("--preset", default="cpu", choices=choices(PresetName),
                    help="; ".join(f"{k}: {v}" for k, v in PRESET_SUMMARY.items()))
@@ -48,9 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-json", action="store_true", help="JSON progress lines on stdout")
     p.add_argument("--pseudo-path", default=None,
                    help="cameras for pseudo views instead of poses sampled along the training cameras' trajectory "
-                        "(anything `dibrgs render --cameras` takes: LEVIR Cams file/folder, JSON list, COLMAP model, "
-                        "transforms.json, Metashape XML or OpenSfM reconstruction; intrinsics in the scene's pixels, "
-                        "resized with its images); every pose is used, and the log names those mostly of padding")
+                        "(anything `dibrgs render --cameras` takes: a LEVIR Cams file or folder, a JSON list, or a "
+                        "scene's cameras in any layout; intrinsics in the scene's pixels, resized with its images); "
+                        "every pose is used, and the log names those mostly of padding")
     g = p.add_argument_group("ablations")
     g.add_argument("--no-dense-init", action="store_true", help="anchors from sparse SfM points only")
     g.add_argument("--ibr", default="auto", choices=choices(IbrEncoder), help="IBR encoder")

@@ -1,6 +1,6 @@
 """Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`), a
-Metashape cameras export (:mod:`.metashape`) or an OpenDroneMap / OpenSfM ``reconstruction.json``
-(:mod:`.opensfm`). Each reader turns its file into :class:`~.photo_frame.Frame` objects; this
+Metashape cameras export (:mod:`.metashape`), an OpenDroneMap / OpenSfM ``reconstruction.json``
+(:mod:`.opensfm`) or RealityCapture's XMP sidecars (:mod:`.realitycapture`). Each reader turns its file into :class:`~.photo_frame.Frame` objects; this
 module makes them views, cameras and a split, the same way for all (the library's reader and the
 add-on's description share it). Distorted cameras are undistorted on load as COLMAP's (pycolmap,
 cached).
@@ -23,6 +23,7 @@ from .images import image_size, turned_to_fit
 from .metashape import find_metashape, read_metashape_frames
 from .opensfm import find_opensfm, read_opensfm_frames
 from .photo_frame import Frame
+from .realitycapture import find_realitycapture, read_realitycapture_frames
 from .scene import ImageFile, Scene, View, validate_camera_arrays
 from .split import make_split, view_ids
 from .transforms import PART_FILES, find_transforms, read_transforms_frames, read_transforms_file
@@ -30,7 +31,7 @@ from .undistort import undistorted_camera
 
 log = logging.getLogger("dibrgs.io_frames")
 
-FrameLayout = Literal["transforms", "metashape", "opensfm"]
+FrameLayout = Literal["transforms", "metashape", "opensfm", "realitycapture"]
 
 
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
@@ -41,16 +42,20 @@ def find_frame_layout(root: str | Path) -> FrameLayout | None:
         return "metashape"
     if find_opensfm(root) is not None:
         return "opensfm"
+    if find_realitycapture(root) is not None:
+        return "realitycapture"
     return None
 
 
 def file_layout(path: str | Path) -> FrameLayout | None:
-    """The frame layout whose file ``path`` is (a Metashape XML, a transforms JSON: an object with
-    "frames", an OpenSfM reconstruction: a list of objects with "shots"), or None (a JSON camera
-    list, or a file no reader takes: its reader says what is wrong with it)."""
+    """The frame layout whose file ``path`` is (a Metashape XML, a RealityCapture XMP, a transforms
+    JSON: an object with "frames", an OpenSfM reconstruction: a list of objects with "shots"), or
+    None (a JSON camera list, or a file no reader takes: its reader says what is wrong with it)."""
     path = Path(path)
     if path.suffix.lower() == ".xml":
         return "metashape"
+    if path.suffix.lower() == ".xmp":
+        return "realitycapture"
     if path.suffix.lower() != ".json":
         return None
     try:
@@ -66,12 +71,14 @@ def file_layout(path: str | Path) -> FrameLayout | None:
 
 def layout_frames(path: str | Path) -> list[Frame]:
     """The frames of a frame layout's folder, or of one of its files (a transforms JSON, a Metashape
-    XML or an OpenSfM reconstruction); InputError naming the file when malformed."""
+    XML, an OpenSfM reconstruction or a RealityCapture XMP); InputError naming the file when
+    malformed."""
     path = Path(path)
     layout = (file_layout(path) or "transforms") if path.is_file() else find_frame_layout(path)
     if layout == "transforms":
         return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
-    return read_opensfm_frames(path) if layout == "opensfm" else read_metashape_frames(path)
+    read = {"opensfm": read_opensfm_frames, "realitycapture": read_realitycapture_frames}.get(layout)
+    return (read or read_metashape_frames)(path)
 
 
 def stored_or_upright(frame: Frame, stored: tuple[int, int], upright: tuple[int, int]) -> tuple[tuple[int, int], bool]:

@@ -29,8 +29,10 @@ class Frame:
         photo: the photo file.
         w2c: 4x4 world-to-camera, OpenCV axes.
         size: (width, height) the layout gives, or None (the photo's own).
-        intrinsics: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``camera_angle_x``, ``camera_angle_y``
-            (those given) and OpenCV distortion ``k1``, ``k2``, ``p1``, ``p2``, ``k3``.
+        intrinsics: ``fl_x``, ``fl_y``, ``cx``, ``cy`` (pixels), ``camera_angle_x``,
+            ``camera_angle_y`` (radians), or ``fl_long``, ``cx_long``, ``cy_long`` (the focal length,
+            and the principal point's offset from the image centre, in units of the photo's longer
+            side), those given, and OpenCV distortion ``k1``, ``k2``, ``p1``, ``p2``, ``k3``.
         part: ``"train"``, ``"test"``, ``"val"`` (from a transforms part file) or None.
         mask: the photo's mask image (black pixels hold no data), or None.
     """
@@ -48,6 +50,10 @@ class Frame:
         ``width`` x ``height``: ``PINHOLE`` [fx, fy, cx, cy], ``OPENCV`` [.., k1, k2, p1, p2] or
         ``FULL_OPENCV`` [.., k1, k2, p1, p2, k3, 0, 0, 0]."""
         i = self.intrinsics
+        if "fl_long" in i:  # in units of the longer side: any size of the photo
+            side = max(width, height)
+            i = {**i, "fl_x": i["fl_long"] * side, "cx": width / 2.0 + i.get("cx_long", 0.0) * side,
+                 "cy": height / 2.0 + i.get("cy_long", 0.0) * side}
         fx = i.get("fl_x")
         if fx is None:
             if "camera_angle_x" not in i:

@@ -875,6 +875,22 @@ def test_describe_matches_the_library_on_opensfm_reconstructions(tiny_scene, tmp
     assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
 
 
+def test_describe_matches_the_library_on_realitycapture_sidecars(tiny_scene, tmp_path, monkeypatch):
+    """Photos with RealityCapture XMP sidecars (a brown3t2 lens): the add-on's reader, which sizes
+    the photos from their headers, gives the library's cameras and split."""
+    from photo_synth import levir_as_realitycapture
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "rc"
+    levir_as_realitycapture(tiny_scene, out, xcr={"DistortionModel": "brown3t2",
+                                                  "DistortionCoeficients": "-0.15 0.02 0 0 0.001 0.002"})
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    _same_description(desc, scene)
+    assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     from dibrgs_core.data.load import read_any_scene
 
