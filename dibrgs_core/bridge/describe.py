@@ -7,11 +7,12 @@ library's own parser, image sizes and EXIF orientations from file headers
 (:mod:`.imagesize`), COLMAP models with :mod:`.colmap_model` (cameras with lens
 distortion as the undistorted pinholes the library trains them as; the image paths
 are the photos as taken) and frame layouts (transforms.json, Metashape XML, OpenSfM /
-OpenDroneMap reconstruction.json) through the library's own parsers
-(``data.frame_layouts``). It applies the same rules and messages as the library's readers
-(``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
+OpenDroneMap reconstruction.json, RealityCapture XMP sidecars) through the library's own
+parsers (``data.frame_layouts``). It applies the same rules and messages as the library's
+readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
 ``data.frame_layouts.read_frames_scene``), which ``tests/bridge/test_bridge.py`` checks on
-LEVIR, COLMAP (text and binary), transforms, Metashape and OpenSfM scenes. The description is::
+LEVIR, COLMAP (text and binary), transforms, Metashape, OpenSfM and RealityCapture scenes.
+The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
@@ -44,19 +45,20 @@ from ..camera.pinhole import Camera
 from ..camera.serialize import camera_to_dict
 from ..common.errors import InputError
 from ..data.colmap import find_colmap_model, image_folder, split_folder
+from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import NOT_A_SCENE, not_a_folder
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
-from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
 from .colmap_model import ColmapCamera, read_model
 from .imagesize import image_header
 
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
-    """The description of the LEVIR-NVS, COLMAP or frame-layout (transforms, Metashape, OpenSfM)
-    scene at ``root`` (its ``split.json``, else the layout's own split, else the default)."""
+    """The description of the LEVIR-NVS, COLMAP or frame-layout (transforms, Metashape, OpenSfM,
+    RealityCapture) scene at ``root`` (its ``split.json``, else the layout's own split, else the
+    default)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, not_a_folder(root))

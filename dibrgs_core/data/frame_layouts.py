@@ -1,9 +1,9 @@
 """Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`), a
 Metashape cameras export (:mod:`.metashape`), an OpenDroneMap / OpenSfM ``reconstruction.json``
-(:mod:`.opensfm`) or RealityCapture's XMP sidecars (:mod:`.realitycapture`). Each reader turns its file into :class:`~.photo_frame.Frame` objects; this
-module makes them views, cameras and a split, the same way for all (the library's reader and the
-add-on's description share it). Distorted cameras are undistorted on load as COLMAP's (pycolmap,
-cached).
+(:mod:`.opensfm`) or RealityCapture's XMP sidecars (:mod:`.realitycapture`). Each reader turns its
+files into :class:`~.photo_frame.Frame` objects; this module makes them views, cameras and a
+split, the same way for all (the library's reader and the add-on's description share it).
+Distorted cameras are undistorted on load as COLMAP's (pycolmap, cached).
 """
 from __future__ import annotations
 

@@ -19,8 +19,9 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
                    test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
     itself) or a frame layout (a transforms.json, a Metashape cameras XML, an OpenSfM
-    reconstruction or RealityCapture sidecars: :mod:`.frame_layouts`), in a frame of its own when it lies far from its
-    coordinate origin (``Scene.origin``, :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
+    reconstruction or RealityCapture sidecars: :mod:`.frame_layouts`), in a frame of its own when
+    it lies far from its coordinate origin (``Scene.origin``,
+    :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, not_a_folder(root))
