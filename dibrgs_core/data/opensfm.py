@@ -5,7 +5,8 @@ add-on's description share both).
 Accepted layouts: an ODM project folder (``opensfm/reconstruction.json``, photos in ``images/``) or
 an OpenSfM dataset folder (``reconstruction.json`` beside ``images/``). The file holds a list of
 reconstructions (OpenSfM writes one a part of the flight it could join); the one with the most
-shots is read and the log lists them. Masks as for COLMAP (``masks/NAME.png`` beside ``images/``).
+shots is read and the log lists them. Masks as OpenDroneMap takes them (``NAME_mask.EXT`` beside
+the photo) or as for COLMAP (``masks/NAME.png`` beside ``images/``).
 
 Conventions (OpenSfM's documentation, "Geometric Models"): a shot's ``rotation`` (axis-angle,
 radians) and ``translation`` take world coordinates to camera coordinates with OpenCV axes (+x
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .images import find_mask
+from .images import IMAGE_EXTS, find_mask
 from .photo_frame import Frame, find_photo
 
 log = logging.getLogger("dibrgs.io_opensfm")
@@ -141,5 +142,11 @@ def read_opensfm_frames(path: str | Path) -> list[Frame]:
         photo = find_photo(folder, name, path, f"shot {name}")
         rel = photo.relative_to(folder).as_posix()
         frames.append(Frame(name=rel, photo=photo, w2c=w2c, size=size, intrinsics=dict(intr), part=None,
-                            mask=find_mask(folder, rel)))
+                            mask=find_mask(folder, rel) or _odm_mask(photo)))
     return frames
+
+
+def _odm_mask(photo: Path) -> Path | None:
+    """OpenDroneMap's mask of a photo: ``NAME_mask.EXT`` beside it (any image extension), or None."""
+    return next((m for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS)
+                 if (m := photo.with_name(f"{photo.stem}_mask{ext}")).is_file()), None)

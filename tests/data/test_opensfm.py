@@ -97,3 +97,20 @@ def test_reconstructions_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     with pytest.raises(InputError) as e:
         read_any_scene(out)
     assert expect in str(e.value)
+
+
+def test_odm_masks_beside_the_photos_mark_pixels_without_data(tiny_scene, tmp_path):
+    """OpenDroneMap's masks (NAME_mask.EXT beside the photo, black = left out): the view's pixels
+    under black are without data, the others are the photo's."""
+    from PIL import Image
+
+    out = tmp_path / "odm"
+    levir_as_opensfm(tiny_scene, out)
+    mask = np.full((64, 64), 255, np.uint8)
+    mask[:, :16] = 0
+    Image.fromarray(mask).save(out / "images" / "003_mask.png")
+    scene, levir = read_any_scene(out), read_any_scene(tiny_scene, load_depth=False)
+    valid = scene.views["003"].valid
+    assert valid is not None and not valid[:, :16].any() and valid[:, 16:].all()
+    np.testing.assert_array_equal(scene.views["003"].image[:, 16:], levir.views["003"].image[:, 16:])
+    assert scene.views["004"].valid is None  # no mask: every pixel holds data
