@@ -243,3 +243,28 @@ def levir_as_realitycapture(levir: Path, out: Path, xcr: dict | None = None, fol
             f"      <xcr:Position>{_xml_numbers(C)}</xcr:Position>\n"
             f"      <xcr:DistortionCoeficients>{coeffs}</xcr:DistortionCoeficients>\n"
             "    </rdf:Description>\n  </rdf:RDF>\n</x:xmpmeta>\n")
+
+
+def levir_as_bundler(levir: Path, out: Path, k: tuple[float, float] = (0.0, 0.0), unregistered: int = 0) -> None:
+    """The LEVIR scene ``levir`` (square pixels, principal point at the image centre) written in
+    Bundler's format: ``out/bundle.out`` (OpenGL camera axes, P = R X + t; radial ``k``), the image
+    list ``out/list.txt`` and the photos in ``out/images``; ``unregistered`` more cameras of f = 0
+    listed with photos that do not exist."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    (out / "images").mkdir(parents=True)
+    flip = np.diag([1.0, -1.0, -1.0])
+    cams, names = [], []
+    for vid, v in scene.views.items():
+        shutil.copyfile(levir / "Images" / f"{vid}.png", out / "images" / f"{vid}.png")
+        c = v.camera
+        assert abs(c.K[0, 0] - c.K[1, 1]) < 1e-9 and abs(c.K[0, 2] - c.width / 2) < 1e-9
+        cams.append(f"{c.K[0, 0]!r} {k[0]!r} {k[1]!r}\n" + "\n".join(_xml_numbers(r) for r in flip @ c.w2c[:3, :3])
+                    + "\n" + _xml_numbers(flip @ c.w2c[:3, 3]))
+        names.append(f"images/{vid}.png 0 {c.K[0, 0]!r}")
+    for j in range(unregistered):
+        cams.append("0 0 0\n0 0 0\n0 0 0\n0 0 0\n0 0 0")
+        names.append(f"images/lost{j}.png")
+    (out / "bundle.out").write_text(f"# Bundle file v0.3\n{len(cams)} 0\n" + "\n".join(cams) + "\n")
+    (out / "list.txt").write_text("\n".join(names) + "\n")

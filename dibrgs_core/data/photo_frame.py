@@ -1,6 +1,6 @@
 """One photo of a frame layout with its camera, as the readers of one camera a photo give it
-(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.realitycapture`;
-:mod:`.frame_layouts` makes views of them).
+(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.bundler`,
+:mod:`.realitycapture`; :mod:`.frame_layouts` makes views of them).
 
 Conventions: ``w2c`` is world-to-camera with OpenCV axes (+x right, +y down, looking along +z);
 intrinsics are in pixels with the principal point in COLMAP's convention (the image spans [0, w])

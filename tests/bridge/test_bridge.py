@@ -891,6 +891,21 @@ def test_describe_matches_the_library_on_realitycapture_sidecars(tiny_scene, tmp
     assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
 
 
+def test_describe_matches_the_library_on_bundler_files(tiny_scene, tmp_path, monkeypatch):
+    """A Bundler bundle.out with a radial lens and an unregistered camera: the add-on's reader gives
+    the library's cameras and split."""
+    from photo_synth import levir_as_bundler
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "bundler"
+    levir_as_bundler(tiny_scene, out, k=(-0.1, 0.01), unregistered=1)
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    _same_description(desc, scene)
+    assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     from dibrgs_core.data.load import read_any_scene
 
