@@ -37,17 +37,18 @@ FrameLayout = Literal["transforms", "metashape", "opensfm", "bundler", "realityc
 
 
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
-    """Which frame layout the scene folder ``root`` holds (in this order), or None."""
+    """Which frame layout the scene folder ``root`` holds, or None; of several, the first in this
+    order (Bundler, whose lens has no principal point, last)."""
     if find_transforms(root):
         return "transforms"
     if find_metashape(root) is not None:
         return "metashape"
     if find_opensfm(root) is not None:
         return "opensfm"
-    if find_bundler(root) is not None:
-        return "bundler"
     if find_realitycapture(root) is not None:
         return "realitycapture"
+    if find_bundler(root) is not None:
+        return "bundler"
     return None
 
 

@@ -86,3 +86,16 @@ def test_bundler_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     with pytest.raises(InputError) as e:
         read_any_scene(out)
     assert expect in str(e.value)
+
+
+def test_of_a_folder_holding_sidecars_and_a_bundle_file_the_sidecars_are_read(tiny_scene, tmp_path, caplog):
+    """RealityCapture can export both: its XMP sidecars carry the principal point and tangential
+    terms that Bundler's format lacks, so they are read."""
+    from photo_synth import levir_as_realitycapture
+
+    out = tmp_path / "both"
+    levir_as_bundler(tiny_scene, out)
+    levir_as_realitycapture(tiny_scene, out)  # sidecars beside the same photos in images/
+    with caplog.at_level("INFO", logger="dibrgs"):
+        read_any_scene(out)
+    assert "read realitycapture layout" in caplog.text
