@@ -29,7 +29,8 @@ from ..common.errors import InputError
 from .images import IMAGE_EXTS, find_mask
 from .photo_frame import Frame
 
-XCR = "{http://www.capturingreality.com/ns/xcr/1.1#}"
+#: The namespace of RealityCapture's properties (its version, 1.1 today, is not checked).
+XCR_NAMESPACE = "capturingreality.com/ns/xcr"
 PHOTO_FOLDERS = ("images", "Images")
 _MODELS = ("perspective", "brown3", "brown3t2", "brown4", "brown4t2")
 
@@ -37,7 +38,7 @@ _MODELS = ("perspective", "brown3", "brown3t2", "brown4", "brown4t2")
 def _is_rc(path: Path) -> bool:
     try:
         with open(path, "rb") as f:
-            return b"capturingreality.com/ns/xcr" in f.read(4096)
+            return XCR_NAMESPACE.encode() in f.read(4096)
     except OSError:
         return False
 
@@ -56,11 +57,15 @@ def find_realitycapture(root: str | Path) -> Path | None:
     return next((d for d in [root / f for f in PHOTO_FOLDERS] + [root] if sidecars(d)), None)
 
 
+def _is_xcr(tag: str, key: str) -> bool:
+    return tag.endswith("}" + key) and XCR_NAMESPACE in tag
+
+
 def _value(desc: ET.Element, key: str) -> str | None:
     """An xcr property, written as an attribute or as a child element."""
-    v = desc.get(XCR + key)
-    if v is None and desc.find(XCR + key) is not None:
-        v = desc.find(XCR + key).text
+    v = next((v for k, v in desc.attrib.items() if _is_xcr(k, key)), None)
+    if v is None:
+        v = next((c.text or "" for c in desc if _is_xcr(c.tag, key)), None)
     return None if v is None else v.strip()
 
 
@@ -80,6 +85,9 @@ def _numbers(desc: ET.Element, key: str, n: int, where: Path, default: list[floa
 
 
 def _photo_of(xmp: Path) -> Path | None:
+    """The photo of a sidecar: ``NAME.EXT`` beside ``NAME.xmp`` (or ``NAME.EXT.xmp``)."""
+    if Path(xmp.stem).suffix.lower() in IMAGE_EXTS and xmp.with_suffix("").is_file():
+        return xmp.with_suffix("")
     for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
         if xmp.with_suffix(ext).is_file():
             return xmp.with_suffix(ext)

@@ -96,3 +96,20 @@ def test_other_tools_sidecars_are_no_scene(tiny_scene, tmp_path):
                                "</rdf:RDF></x:xmpmeta>")
     with pytest.raises(InputError, match="not a scene"):
         read_any_scene(out.parent)
+
+
+def test_sidecars_in_other_serialisations_read_alike(tiny_scene, tmp_path):
+    """A property written as an element instead of an attribute, another version of the xcr
+    namespace, and a sidecar named NAME.png.xmp: the same cameras."""
+    import re
+
+    out = tmp_path / "rc"
+    levir_as_realitycapture(tiny_scene, out)
+    xmp = out / "images" / "006.xmp"
+    text = xmp.read_text().replace("ns/xcr/1.1#", "ns/xcr/1.2#")
+    focal = re.search(r' xcr:FocalLength35mm="([^"]+)"', text)
+    text = text.replace(focal.group(0), "").replace(
+        "<xcr:Rotation>", f"<xcr:FocalLength35mm>{focal.group(1)}</xcr:FocalLength35mm><xcr:Rotation>")
+    xmp.unlink()
+    (out / "images" / "006.png.xmp").write_text(text)
+    assert_same_views(read_any_scene(out), read_any_scene(tiny_scene, load_depth=False))
