@@ -24,7 +24,7 @@ import numpy as np
 
 from ..common.errors import InputError
 from .images import find_mask
-from .photo_frame import Frame, find_photo
+from .photo_frame import Frame, find_photo, layout_file
 
 log = logging.getLogger("dibrgs.io_bundler")
 
@@ -64,11 +64,7 @@ def read_bundler_frames(path: str | Path) -> list[Frame]:
     when malformed, or a camera's photo when it is missing)."""
     path = Path(path)
     root = path if path.is_dir() else path.parent
-    if path.is_dir():
-        found = find_bundler(path)
-        if found is None:
-            raise InputError(path, f"no Bundler file ({HEADER})")
-        path = found
+    path = layout_file(path, find_bundler, f"no Bundler file ({HEADER})")
     if root.name == "bundle" and path.parent == root:
         root = root.parent
     cams = _cameras(path)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .photo_frame import Frame, find_photo
+from .photo_frame import Frame, find_photo, layout_file
 from .images import IMAGE_EXTS, find_mask
 
 log = logging.getLogger("dibrgs.io_metashape")
@@ -163,11 +163,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
     """The frames of a Metashape cameras XML, or of the one in a scene folder (InputError naming the
     file when malformed, or a camera's photo when it is missing)."""
     path = Path(path)
-    if path.is_dir():
-        xml = find_metashape(path)
-        if xml is None:
-            raise InputError(path, f"no Metashape cameras XML ({METASHAPE_FILE})")
-        path = xml
+    path = layout_file(path, find_metashape, f"no Metashape cameras XML ({METASHAPE_FILE})")
     try:
         doc = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as e:

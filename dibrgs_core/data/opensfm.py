@@ -29,7 +29,7 @@ import numpy as np
 
 from ..common.errors import InputError
 from .images import IMAGE_EXTS, find_mask
-from .photo_frame import Frame, find_photo
+from .photo_frame import Frame, find_photo, layout_file
 
 log = logging.getLogger("dibrgs.io_opensfm")
 
@@ -102,11 +102,7 @@ def read_opensfm_frames(path: str | Path) -> list[Frame]:
     """The frames of an OpenSfM ``reconstruction.json``, or of the one in a scene folder
     (InputError naming the file when malformed, or a shot's photo when it is missing)."""
     path = Path(path)
-    if path.is_dir():
-        found = find_opensfm(path)
-        if found is None:
-            raise InputError(path, f"no {RECONSTRUCTION_FILE} (or opensfm/{RECONSTRUCTION_FILE})")
-        path = found
+    path = layout_file(path, find_opensfm, f"no {RECONSTRUCTION_FILE} (or opensfm/{RECONSTRUCTION_FILE})")
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:

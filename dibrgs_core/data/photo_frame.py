@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -86,3 +87,14 @@ def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
     if p.is_file():
         return p  # another extension: the image readers say whether they can read it
     raise InputError(where, f"{what}: photo {name} not found in {folder}")
+
+
+def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -> Path:
+    """``path`` when it is a layout's file, else the file ``find`` finds in the folder ``path``
+    (InputError naming the folder with ``missing`` when there is none)."""
+    if not path.is_dir():
+        return path
+    found = find(path)
+    if found is None:
+        raise InputError(path, missing)
+    return found
