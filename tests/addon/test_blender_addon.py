@@ -654,6 +654,39 @@ def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
     _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 
+@pytest.mark.parametrize("layout", ["bundler", "realitycapture"])
+def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, tmp_path, layout):
+    """The generated scene as a Bundler file (OpenGL camera axes, list.txt) and as RealityCapture's
+    XMP sidecars (world-to-camera rotation, centre, 35 mm focal length): every view object has the
+    Cams file's camera."""
+    root = tmp_path / layout
+    (root / "images").mkdir(parents=True)
+    num = lambda a: " ".join(repr(float(v)) for v in np.ravel(a))  # noqa: E731
+    cams, names = [], []
+    for cams_file in sorted((scene64 / "Cams").glob("*.txt")):
+        w2c, K = _cams_file(cams_file)
+        vid = cams_file.stem
+        (root / "images" / f"{vid}.png").symlink_to(scene64 / "Images" / f"{vid}.png")
+        assert K[0, 0] == K[1, 1] and K[0, 2] == 32 and K[1, 2] == 32  # what both formats can say
+        if layout == "bundler":
+            flip = np.diag([1.0, -1.0, -1.0])
+            cams.append(f"{K[0, 0]!r} 0 0\n" + "\n".join(num(r) for r in flip @ w2c[:3, :3]) + "\n"
+                        + num(flip @ w2c[:3, 3]))
+            names.append(f"images/{vid}.png")
+        else:
+            R, C = w2c[:3, :3], -w2c[:3, :3].T @ w2c[:3, 3]
+            (root / "images" / f"{vid}.xmp").write_text(
+                '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+                '<rdf:Description xmlns:xcr="http://www.capturingreality.com/ns/xcr/1.1#" xcr:Coordinates="absolute" '
+                f'xcr:DistortionModel="brown3" xcr:FocalLength35mm="{K[0, 0] / 64 * 36!r}">'
+                f"<xcr:Rotation>{num(R)}</xcr:Rotation><xcr:Position>{num(C)}</xcr:Position>"
+                "</rdf:Description></rdf:RDF></x:xmpmeta>")
+    if layout == "bundler":
+        (root / "bundle.out").write_text(f"# Bundle file v0.3\n{len(cams)} 0\n" + "\n".join(cams) + "\n")
+        (root / "list.txt").write_text("\n".join(names) + "\n")
+    _imports_with_the_cams_files_cameras(root, scene64, fresh)
+
+
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):
     """A training photo cut to 64x48 and a held-out one to 48x64 among 64x64 photos: the render size is
     the scene camera's (the first training view) and each view object gives back its own camera."""
