@@ -654,15 +654,34 @@ def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
     _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 
-@pytest.mark.parametrize("layout", ["bundler", "realitycapture"])
+def _rotation_vector(R: np.ndarray) -> np.ndarray:
+    """The axis-angle vector of a rotation matrix (through its unit quaternion; no scipy in Blender)."""
+    w = np.sqrt(max(0.0, 1.0 + np.trace(R))) / 2.0
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if w < 0.5:  # near a half turn: the axis from the largest diagonal entry
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q = np.empty(3)
+        q[i] = np.sqrt(max(0.0, 1.0 + R[i, i] - R[j, j] - R[k, k])) / 2.0
+        q[j], q[k] = (R[j, i] + R[i, j]) / (4 * q[i]), (R[k, i] + R[i, k]) / (4 * q[i])
+        w = (R[k, j] - R[j, k]) / (4 * q[i])
+        v = q * np.sign(w or 1.0)
+        w = abs(w)
+    else:
+        v = v / (4 * w)
+    s = np.linalg.norm(v)
+    return np.zeros(3) if s < 1e-15 else v / s * 2.0 * np.arctan2(s, w)
+
+
+@pytest.mark.parametrize("layout", ["bundler", "realitycapture", "opendronemap"])
 def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, tmp_path, layout):
-    """The generated scene as a Bundler file (OpenGL camera axes, list.txt) and as RealityCapture's
-    XMP sidecars (world-to-camera rotation, centre, 35 mm focal length): every view object has the
-    Cams file's camera."""
+    """The generated scene as a Bundler file (OpenGL camera axes, list.txt), as RealityCapture's XMP
+    sidecars (world-to-camera rotation, centre, 35 mm focal length) and as an OpenDroneMap project
+    (axis-angle poses, a normalised camera): every view object has the Cams file's camera."""
     root = tmp_path / layout
     (root / "images").mkdir(parents=True)
     num = lambda a: " ".join(repr(float(v)) for v in np.ravel(a))  # noqa: E731
-    cams, names = [], []
+    cams, names, shots = [], [], {}
     for cams_file in sorted((scene64 / "Cams").glob("*.txt")):
         w2c, K = _cams_file(cams_file)
         vid = cams_file.stem
@@ -673,6 +692,9 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
             cams.append(f"{K[0, 0]!r} 0 0\n" + "\n".join(num(r) for r in flip @ w2c[:3, :3]) + "\n"
                         + num(flip @ w2c[:3, 3]))
             names.append(f"images/{vid}.png")
+        elif layout == "opendronemap":
+            shots[f"{vid}.png"] = {"rotation": _rotation_vector(w2c[:3, :3]).tolist(),
+                                   "translation": w2c[:3, 3].tolist(), "camera": "c"}
         else:
             R, C = w2c[:3, :3], -w2c[:3, :3].T @ w2c[:3, 3]
             (root / "images" / f"{vid}.xmp").write_text(
@@ -684,6 +706,10 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
     if layout == "bundler":
         (root / "bundle.out").write_text(f"# Bundle file v0.3\n{len(cams)} 0\n" + "\n".join(cams) + "\n")
         (root / "list.txt").write_text("\n".join(names) + "\n")
+    if layout == "opendronemap":
+        (root / "opensfm").mkdir()
+        cam = {"projection_type": "perspective", "width": 64, "height": 64, "focal": K[0, 0] / 64}
+        (root / "opensfm" / "reconstruction.json").write_text(json.dumps([{"cameras": {"c": cam}, "shots": shots}]))
     _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 
