@@ -46,6 +46,15 @@ _TIFF_EXTS = (".tif", ".tiff")
 DEPTH_EXTS = (".tiff", ".tif", ".exr")
 
 
+def image_named(folder: Path, base: str) -> Path | None:
+    """The image file ``base`` + an image extension (either case: cameras write ``.JPG``) in
+    ``folder``, or None."""
+    for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
+        if (folder / f"{base}{ext}").is_file():
+            return folder / f"{base}{ext}"
+    return None
+
+
 #: EXIF orientations (tag 274) that swap width and height (transposed / rotated by 90 degrees).
 TRANSPOSING = {5, 6, 7, 8}
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .images import IMAGE_EXTS, find_mask
+from .images import find_mask, image_named
 from .photo_frame import Frame, find_photo, layout_file
 
 log = logging.getLogger("dibrgs.io_opensfm")
@@ -144,5 +144,4 @@ def read_opensfm_frames(path: str | Path) -> list[Frame]:
 
 def _odm_mask(photo: Path) -> Path | None:
     """OpenDroneMap's mask of a photo: ``NAME_mask.EXT`` beside it (any image extension), or None."""
-    return next((m for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS)
-                 if (m := photo.with_name(f"{photo.stem}_mask{ext}")).is_file()), None)
+    return image_named(photo.parent, f"{photo.stem}_mask")

@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 
 from ..common.errors import InputError
-from .images import IMAGE_EXTS
+from .images import IMAGE_EXTS, image_named
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
@@ -80,10 +80,9 @@ def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
     p = folder / name
     if p.suffix.lower() in IMAGE_EXTS and p.is_file():
         return p
-    for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
-        q = p.with_name(p.name + ext)
-        if q.is_file():
-            return q
+    q = image_named(p.parent, p.name)
+    if q is not None:
+        return q
     if p.is_file():
         return p  # another extension: the image readers say whether they can read it
     raise InputError(where, f"{what}: photo {name} not found in {folder}")

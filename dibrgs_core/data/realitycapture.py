@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .images import IMAGE_EXTS, find_mask
+from .images import IMAGE_EXTS, find_mask, image_named
 from .photo_frame import Frame
 
 #: The namespace of RealityCapture's properties (its version, 1.1 today, is not checked).
@@ -88,10 +88,7 @@ def _photo_of(xmp: Path) -> Path | None:
     """The photo of a sidecar: ``NAME.EXT`` beside ``NAME.xmp`` (or ``NAME.EXT.xmp``)."""
     if Path(xmp.stem).suffix.lower() in IMAGE_EXTS and xmp.with_suffix("").is_file():
         return xmp.with_suffix("")
-    for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
-        if xmp.with_suffix(ext).is_file():
-            return xmp.with_suffix(ext)
-    return None
+    return image_named(xmp.parent, xmp.stem)
 
 
 def read_sidecar(xmp: Path, photo: Path) -> Frame:
