@@ -286,9 +286,9 @@ def _pillow_image(path: Path, orient: bool) -> tuple[np.ndarray, np.ndarray | No
             if "A" in im.getbands() or "transparency" in im.info:
                 valid = _report_no_data(path, np.asarray(im.convert("RGBA").getchannel("A")) >= 128, "transparent")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-                a = np.asarray(im, dtype=np.float32) / 65535.0
-                return np.repeat(a[..., None], 3, axis=2), valid
-            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+                rgb = np.repeat((np.asarray(im, dtype=np.float32) / 65535.0)[..., None], 3, axis=2)
+            else:
+                rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
             return fill_no_data(rgb, valid), valid
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None

@@ -135,6 +135,6 @@ def undistort_photo(path: Path, cam, oriented: bool, read: Callable[[], tuple[np
 
 def _undistorted(a: np.ndarray, out_cam) -> Undistorted:
     """An :class:`Undistorted` of uint8 (H, W, 3) RGB or (H, W, 4) RGB and validity (alpha 255)."""
-    valid = None if a.shape[2] == 3 else a[..., 3] == 255
+    valid = None if a.shape[2] == 3 or (a[..., 3] == 255).all() else a[..., 3] == 255
     image = a[..., :3].astype(np.float32) / 255.0
     return Undistorted(fill_no_data(image, valid), valid, out_cam)
