@@ -7,9 +7,10 @@ up axis estimated from the cameras (with its confidence), the mean angle off
 nadir, the training cameras' acquisition trajectory (orbit, strips or free, and
 why: what pseudo views are sampled along) and, for an orbit, the circle fitted
 through the orbit views. ``no_data``: the share of each photo's pixels that hold no data
-(transparent, a no-data value, masked), for the photos that have any. ``origin``: where the scene's own frame has its (0, 0, 0) in the files'
-coordinates (non-zero for a scene far from its coordinate origin, e.g. georeferenced; positions
-printed here, like the orbit's centre, are relative to it). Bad input exits with code 2 and a
+(transparent, a no-data value, masked), for the photos that have any. ``origin``: where the
+scene's own frame has its (0, 0, 0) in the files' coordinates (non-zero for a scene far from its
+coordinate origin, e.g. georeferenced; positions printed here, like the orbit's centre, are
+relative to it). Bad input exits with code 2 and a
 message naming the file.
 """
 from __future__ import annotations
