@@ -268,3 +268,72 @@ def levir_as_bundler(levir: Path, out: Path, k: tuple[float, float] = (0.0, 0.0)
         names.append(f"images/lost{j}.png")
     (out / "bundle.out").write_text(f"# Bundle file v0.3\n{len(cams)} 0\n" + "\n".join(cams) + "\n")
     (out / "list.txt").write_text("\n".join(names) + "\n")
+
+
+def sfm_intrinsic(version: tuple[int, int, int], w: int, h: int, fx: float, fy: float, cx: float, cy: float,
+                  distortion: str = "none", params: tuple = (), sensor_width: float = 36.0) -> dict:
+    """An AliceVision intrinsic as file ``version`` stores it (every value a string, as AliceVision's
+    JSON writer leaves it): the focal length in pixels before 1.2.2, else in mm over the sensor width
+    with ``pixelRatio`` as that version reads it; the principal point from the top-left corner
+    before 1.2.1, else from the centre; one ``type`` string before 1.2.8."""
+    s = lambda v: repr(float(v))  # noqa: E731
+    out = {"intrinsicId": "7", "width": str(w), "height": str(h), "sensorWidth": s(sensor_width),
+           "sensorHeight": "24", "serialNumber": "synth", "initializationMode": "unknown", "locked": "false",
+           "distortionParams": [s(p) for p in params] if params else ""}
+    pp = (cx, cy) if version < (1, 2, 1) else (cx - w / 2, cy - h / 2)
+    out["principalPoint"] = [s(pp[0]), s(pp[1])]
+    mm = sensor_width / w  # millimetres a pixel
+    if version < (1, 2, 0):
+        assert fx == fy
+        out["pxFocalLength"] = s(fx)
+    elif version < (1, 2, 2):
+        out["pxFocalLength"] = [s(fx), s(fy)]
+    elif version < (1, 2, 5):
+        out.update(focalLength=s(fx * mm), pixelRatio=s(fx / fy))
+    elif version < (1, 2, 11):
+        out.update(focalLength=s(fx * mm), pixelRatio=s(fy / fx))
+    else:
+        out.update(focalLength=s(fy * mm), pixelRatio=s(fy / fx))
+    if version < (1, 2, 8):
+        out["type"] = {"none": "pinhole", "radialk1": "radial1", "radialk3": "radial3"}.get(distortion, distortion)
+    else:
+        out.update(type="pinhole", distortionType=distortion, undistortionType="none")
+    return out
+
+
+def sfm_pose(w2c: np.ndarray) -> dict:
+    """An AliceVision pose of a world-to-camera 4x4: rotation stored column-major, centre."""
+    R = w2c[:3, :3]
+    return {"rotation": [repr(float(v)) for v in R.T.ravel()],
+            "center": [repr(float(v)) for v in -R.T @ w2c[:3, 3]]}
+
+
+def levir_as_meshroom(levir: Path, out: Path, version: tuple[int, int, int] = (1, 2, 11),
+                      photos: Path | None = None, intrinsic: dict | None = None, unposed: int = 0) -> Path:
+    """The LEVIR scene ``levir`` written as a Meshroom project in ``out``: the StructureFromMotion
+    node's ``MeshroomCache/StructureFromMotion/<id>/cameras.sfm`` (file ``version``) whose views name
+    the photos by absolute path, copied to ``photos`` (default ``out/images``); ``intrinsic``
+    overrides the intrinsic's entries; the last ``unposed`` views get no pose. Returns the file."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    photos = photos or out / "images"
+    photos.mkdir(parents=True, exist_ok=True)
+    c = next(iter(scene.views.values())).camera
+    intr = {**sfm_intrinsic(version, c.width, c.height, c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]),
+            **(intrinsic or {})}
+    views, poses = [], []
+    for k, (vid, v) in enumerate(scene.views.items()):
+        shutil.copyfile(levir / "Images" / f"{vid}.png", photos / f"{vid}.png")
+        view_id, pose_id = str(1000 + k), str(5000 + k)
+        views.append({"viewId": view_id, "poseId": pose_id, "frameId": str(k), "intrinsicId": "7",
+                      "path": str((photos / f"{vid}.png").resolve()), "width": str(c.width),
+                      "height": str(c.height), "metadata": {"Exif:FocalLength": "4.5"}})
+        if k < len(scene.views) - unposed:
+            poses.append({"poseId": pose_id, "pose": {"transform": sfm_pose(v.camera.w2c), "locked": "0"}})
+    data = {"version": [str(x) for x in version], "featuresFolders": [], "matchesFolders": [], "views": views,
+            "intrinsics": [intr], "poses": poses}
+    node = out / "MeshroomCache" / "StructureFromMotion" / "2f9c0e1d7a"
+    node.mkdir(parents=True)
+    (node / "cameras.sfm").write_text(json.dumps(data, indent=4))
+    return node / "cameras.sfm"

@@ -26,8 +26,8 @@ from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.openmp import wait_policy
 
 #: The scene layouts the readers take (``data.load.read_any_scene``), as the commands' help names them.
-SCENE_LAYOUTS = ("LEVIR-NVS, COLMAP, transforms.json, Metashape XML, OpenDroneMap / OpenSfM, Bundler .out or "
-                 "RealityCapture XMP")
+SCENE_LAYOUTS = ("LEVIR-NVS, COLMAP, transforms.json, Metashape XML, OpenDroneMap / OpenSfM, Meshroom "
+                 "cameras.sfm, Bundler .out or RealityCapture XMP")
 
 log = logging.getLogger("dibrgs")
 

@@ -1,7 +1,7 @@
 """Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`), a
 Metashape cameras export (:mod:`.metashape`), an OpenDroneMap / OpenSfM ``reconstruction.json``
-(:mod:`.opensfm`), a Bundler ``bundle.out`` (:mod:`.bundler`) or RealityCapture's XMP sidecars
-(:mod:`.realitycapture`). Each reader turns its
+(:mod:`.opensfm`), a Meshroom / AliceVision ``cameras.sfm`` (:mod:`.meshroom`), a Bundler
+``bundle.out`` (:mod:`.bundler`) or RealityCapture's XMP sidecars (:mod:`.realitycapture`). Each reader turns its
 files into :class:`~.photo_frame.Frame` objects; this module makes them views, cameras and a
 split, the same way for all (the library's reader and the add-on's description share it).
 Distorted cameras are undistorted on load as COLMAP's (pycolmap, cached).
@@ -22,6 +22,7 @@ from ..common.errors import InputError
 from .bundler import find_bundler, read_bundler_frames
 from .colmap import read_photo
 from .images import image_size, turned_to_fit
+from .meshroom import find_meshroom, is_sfm_data, read_meshroom_frames
 from .metashape import find_metashape, read_metashape_frames
 from .opensfm import find_opensfm, read_opensfm_frames
 from .photo_frame import Frame
@@ -33,7 +34,7 @@ from .undistort import undistorted_camera
 
 log = logging.getLogger("dibrgs.io_frames")
 
-FrameLayout = Literal["transforms", "metashape", "opensfm", "bundler", "realitycapture"]
+FrameLayout = Literal["transforms", "metashape", "opensfm", "meshroom", "bundler", "realitycapture"]
 
 
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
@@ -45,6 +46,8 @@ def find_frame_layout(root: str | Path) -> FrameLayout | None:
         return "metashape"
     if find_opensfm(root) is not None:
         return "opensfm"
+    if find_meshroom(root) is not None:
+        return "meshroom"
     if find_realitycapture(root) is not None:
         return "realitycapture"
     if find_bundler(root) is not None:
@@ -54,11 +57,12 @@ def find_frame_layout(root: str | Path) -> FrameLayout | None:
 
 def file_layout(path: str | Path) -> FrameLayout | None:
     """The frame layout whose file ``path`` is (a Metashape XML, a RealityCapture XMP, a Bundler
-    ``.out``, a transforms JSON: an object with "frames", an OpenSfM reconstruction: a list of
-    objects with "shots"), or None (a JSON camera list, or a file no reader takes: its reader says
-    what is wrong with it)."""
+    ``.out``, a Meshroom ``.sfm``, a transforms JSON: an object with "frames", an OpenSfM
+    reconstruction: a list of objects with "shots", an AliceVision SfMData JSON), or None (a JSON
+    camera list, or a file no reader takes: its reader says what is wrong with it)."""
     path = Path(path)
-    layout = {".xml": "metashape", ".xmp": "realitycapture", ".out": "bundler"}.get(path.suffix.lower())
+    layout = {".xml": "metashape", ".xmp": "realitycapture", ".out": "bundler",
+              ".sfm": "meshroom"}.get(path.suffix.lower())
     if layout is not None:
         return layout
     if path.suffix.lower() != ".json":
@@ -71,18 +75,20 @@ def file_layout(path: str | Path) -> FrameLayout | None:
         return "transforms"
     if isinstance(data, list) and data and isinstance(data[0], dict) and "shots" in data[0]:
         return "opensfm"
+    if is_sfm_data(data):
+        return "meshroom"
     return None
 
 
 def layout_frames(path: str | Path) -> list[Frame]:
     """The frames of a frame layout's folder, or of one of its files (a transforms JSON, a Metashape
-    XML, an OpenSfM reconstruction, a Bundler file or a RealityCapture XMP); InputError naming the
-    file when malformed."""
+    XML, an OpenSfM reconstruction, a Meshroom SfMData file, a Bundler file or a RealityCapture
+    XMP); InputError naming the file when malformed."""
     path = Path(path)
     layout = (file_layout(path) or "transforms") if path.is_file() else find_frame_layout(path)
     if layout == "transforms":
         return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
-    read = {"opensfm": read_opensfm_frames, "bundler": read_bundler_frames,
+    read = {"opensfm": read_opensfm_frames, "meshroom": read_meshroom_frames, "bundler": read_bundler_frames,
             "realitycapture": read_realitycapture_frames}.get(layout)
     return (read or read_metashape_frames)(path)
 

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .photo_frame import Frame, find_photo, layout_file
-from .images import IMAGE_EXTS, find_mask
+from .images import find_mask
+from .photo_frame import Frame, labelled_photo, layout_file
 
 log = logging.getLogger("dibrgs.io_metashape")
 
@@ -137,28 +137,6 @@ def _sensors(chunk: ET.Element, where: Path) -> dict[str, tuple[tuple[int, int],
     return out
 
 
-def _labelled_photo(folder: Path, label: str, where: Path, index: dict[str, list[Path]]) -> Path:
-    """The photo of a camera label (a file name, with or without its extension): in ``folder``, else
-    the one photo of that name in its subfolders (a drone's card keeps 100MEDIA/, 101MEDIA/, ...),
-    looked up in ``index`` (name and stem -> photos; filled on the first miss)."""
-    try:
-        return find_photo(folder, label, where, f"camera {label}")
-    except InputError:
-        if not index:
-            for p in sorted(folder.rglob("*")):
-                if p.suffix.lower() in IMAGE_EXTS and p.is_file():
-                    index.setdefault(p.name, []).append(p)
-                    index.setdefault(p.stem, []).append(p)
-        found = index.get(label, [])
-        if len(found) == 1:
-            return found[0]
-        if found:
-            raise InputError(where, f"camera {label}: several photos of that name ("
-                                    f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): "
-                                    "rename them and the cameras' labels to tell them apart") from None
-        raise
-
-
 def read_metashape_frames(path: str | Path) -> list[Frame]:
     """The frames of a Metashape cameras XML, or of the one in a scene folder (InputError naming the
     file when malformed, or a camera's photo when it is missing)."""
@@ -201,7 +179,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
         R, C = c2w[:3, :3] / scale, c2w[:3, 3]
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R.T, -R.T @ C
-        photo = _labelled_photo(folder, label, path, index)
+        photo = labelled_photo(folder, label, path, index)
         name = photo.relative_to(folder).as_posix()
         frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intrinsics), part=None,
                             mask=find_mask(folder, name)))

@@ -1,5 +1,5 @@
 """One photo of a frame layout with its camera, as the readers of one camera a photo give it
-(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.bundler`,
+(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.meshroom`, :mod:`.bundler`,
 :mod:`.realitycapture`; :mod:`.frame_layouts` makes views of them).
 
 Conventions: ``w2c`` is world-to-camera with OpenCV axes (+x right, +y down, looking along +z);
@@ -86,6 +86,29 @@ def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
     if p.is_file():
         return p  # another extension: the image readers say whether they can read it
     raise InputError(where, f"{what}: photo {name} not found in {folder}")
+
+
+def labelled_photo(folder: Path, label: str, where: Path, index: dict[str, list[Path]]) -> Path:
+    """The photo of a camera label (a file name, with or without its extension, as Metashape and
+    Meshroom give it): in ``folder``, else the one photo of that name in its subfolders (a drone's
+    card keeps 100MEDIA/, 101MEDIA/, ...), looked up in ``index`` (name and stem -> photos; filled
+    on the first miss)."""
+    try:
+        return find_photo(folder, label, where, f"camera {label}")
+    except InputError:
+        if not index:
+            for p in sorted(folder.rglob("*")):
+                if p.suffix.lower() in IMAGE_EXTS and p.is_file():
+                    index.setdefault(p.name, []).append(p)
+                    index.setdefault(p.stem, []).append(p)
+        found = index.get(label, [])
+        if len(found) == 1:
+            return found[0]
+        if found:
+            raise InputError(where, f"camera {label}: several photos of that name ("
+                                    f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): "
+                                    "rename them and the cameras' labels to tell them apart") from None
+        raise
 
 
 def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -> Path:

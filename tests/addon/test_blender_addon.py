@@ -673,15 +673,16 @@ def _rotation_vector(R: np.ndarray) -> np.ndarray:
     return np.zeros(3) if s < 1e-15 else v / s * 2.0 * np.arctan2(s, w)
 
 
-@pytest.mark.parametrize("layout", ["bundler", "realitycapture", "opendronemap"])
+@pytest.mark.parametrize("layout", ["bundler", "realitycapture", "opendronemap", "meshroom"])
 def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, tmp_path, layout):
     """The generated scene as a Bundler file (OpenGL camera axes, list.txt), as RealityCapture's XMP
-    sidecars (world-to-camera rotation, centre, 35 mm focal length) and as an OpenDroneMap project
-    (axis-angle poses, a normalised camera): every view object has the Cams file's camera."""
+    sidecars (world-to-camera rotation, centre, 35 mm focal length), as an OpenDroneMap project
+    (axis-angle poses, a normalised camera) and as a Meshroom project (column-major world-to-camera
+    rotations, centres, a focal length in mm): every view object has the Cams file's camera."""
     root = tmp_path / layout
     (root / "images").mkdir(parents=True)
     num = lambda a: " ".join(repr(float(v)) for v in np.ravel(a))  # noqa: E731
-    cams, names, shots = [], [], {}
+    cams, names, shots, views, poses = [], [], {}, [], []
     for cams_file in sorted((scene64 / "Cams").glob("*.txt")):
         w2c, K = _cams_file(cams_file)
         vid = cams_file.stem
@@ -695,6 +696,11 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
         elif layout == "opendronemap":
             shots[f"{vid}.png"] = {"rotation": _rotation_vector(w2c[:3, :3]).tolist(),
                                    "translation": w2c[:3, 3].tolist(), "camera": "c"}
+        elif layout == "meshroom":
+            R = w2c[:3, :3]
+            views.append({"viewId": vid, "poseId": vid, "intrinsicId": "0", "path": f"/shoot/{vid}.png"})
+            poses.append({"poseId": vid, "pose": {"transform": {"rotation": [str(v) for v in R.T.ravel()],
+                                                                "center": [str(v) for v in -R.T @ w2c[:3, 3]]}}})
         else:
             R, C = w2c[:3, :3], -w2c[:3, :3].T @ w2c[:3, 3]
             (root / "images" / f"{vid}.xmp").write_text(
@@ -710,6 +716,14 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
         (root / "opensfm").mkdir()
         cam = {"projection_type": "perspective", "width": 64, "height": 64, "focal": K[0, 0] / 64}
         (root / "opensfm" / "reconstruction.json").write_text(json.dumps([{"cameras": {"c": cam}, "shots": shots}]))
+    if layout == "meshroom":
+        node = root / "MeshroomCache" / "StructureFromMotion" / "9d1e"
+        node.mkdir(parents=True)
+        intr = {"intrinsicId": "0", "width": "64", "height": "64", "sensorWidth": "6.4", "type": "pinhole",
+                "distortionType": "none", "undistortionType": "none", "focalLength": str(K[0, 0] / 10),
+                "pixelRatio": "1", "principalPoint": ["0", "0"], "distortionParams": ""}
+        (node / "cameras.sfm").write_text(json.dumps({"version": ["1", "2", "11"], "views": views,
+                                                      "intrinsics": [intr], "poses": poses}))
     _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 

@@ -875,6 +875,23 @@ def test_describe_matches_the_library_on_opensfm_reconstructions(tiny_scene, tmp
     assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
 
 
+def test_describe_matches_the_library_on_meshroom_projects(tiny_scene, tmp_path, monkeypatch):
+    """A Meshroom project (MeshroomCache/StructureFromMotion/<id>/cameras.sfm, file version 1.2.4,
+    a Brown lens, two views without a pose, photos named by absolute path): the add-on's reader
+    gives the library's cameras and split."""
+    from photo_synth import levir_as_meshroom, sfm_intrinsic
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "mr"
+    intr = sfm_intrinsic((1, 2, 4), 64, 64, 70.0, 69.0, 33.0, 31.5, "brown", (-0.15, 0.02, 0.0, 0.001, -0.002))
+    levir_as_meshroom(tiny_scene, out, version=(1, 2, 4), photos=tmp_path / "photos", intrinsic=intr, unposed=2)
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    _same_description(desc, scene)
+    assert len(desc["views"]) == 19 and all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_matches_the_library_on_realitycapture_sidecars(tiny_scene, tmp_path, monkeypatch):
     """Photos with RealityCapture XMP sidecars (a brown3t2 lens): the add-on's reader, which sizes
     the photos from their headers, gives the library's cameras and split."""
