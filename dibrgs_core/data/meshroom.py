@@ -158,16 +158,16 @@ def _intrinsics(intr: dict, version: tuple[int, int, int],
         fx, fy = float(f[0]), float(f[1])
     else:
         fmm, ratio, per_mm = number("focalLength", 1.0), number("pixelRatio", 1.0), w / number("sensorWidth", 36.0)
-        if not ratio > 0.0:
-            raise InputError(where, f"intrinsic {iid}: pixelRatio must be positive, got {ratio}")
+        if not (ratio > 0.0 and per_mm > 0.0):
+            return (w, h), f"intrinsic {iid}: pixelRatio and sensorWidth must be positive, got {ratio}, {w / per_mm}"
         if version < (1, 2, 5):  # pixelRatio held fx / fy
             fx, fy = fmm * per_mm, fmm * per_mm / ratio
         elif version < (1, 2, 11):
             fx, fy = fmm * per_mm, fmm * ratio * per_mm
         else:
             fx, fy = fmm / ratio * per_mm, fmm * per_mm
-    if not (fx > 0.0 and fy > 0.0 and math.isfinite(fx) and math.isfinite(fy)):
-        raise InputError(where, f"intrinsic {iid}: focal length must be positive, got {fx}, {fy}")
+    if not (fx > 0.0 and fy > 0.0 and math.isfinite(fx) and math.isfinite(fy)):  # -1: never estimated
+        return (w, h), f"intrinsic {iid}: focal length must be positive, got {fx}, {fy}"
     keys = _DISTORTION_PARAMS[dist]
     k = _numbers(intr.get("distortionParams", ""), None, where, f"intrinsic {iid}: distortionParams")
     if len(k) != len(keys) and not (len(k) == 0 and not keys):

@@ -97,8 +97,9 @@ def test_brown_lenses_project_as_alicevision_says(tiny_scene, tmp_path, monkeypa
 
 def test_rig_views_unposed_views_and_moved_photos(tiny_scene, tmp_path, caplog):
     """A view of a rig (not pose-independent) is its sub-pose after the rig's pose; a sub-pose not
-    yet estimated and views without a pose are left out and counted; photos whose written paths are
-    gone (a Windows path) are found by name in images/ beside the project, also in a subfolder."""
+    yet estimated and views without a pose are left out and counted (an intrinsic only they use
+    may never have been estimated: focal length -1); photos whose written paths are gone (a Windows
+    path) are found by name in images/ beside the project, also in a subfolder."""
     out = tmp_path / "mr"
     sfm = levir_as_meshroom(tiny_scene, out, unposed=2)
     levir = read_any_scene(tiny_scene, load_depth=False)
@@ -112,6 +113,8 @@ def test_rig_views_unposed_views_and_moved_photos(tiny_scene, tmp_path, caplog):
     data["rigs"] = [{"rigId": "0", "subPoses": [{"status": "uninitialized", "pose": sfm_pose(np.eye(4))},
                                                 {"status": "estimated", "pose": sfm_pose(b @ np.linalg.inv(a))}]}]
     data["poses"] = list(poses.values())
+    data["intrinsics"].append({**data["intrinsics"][0], "intrinsicId": "8", "focalLength": "-1"})
+    views["019"]["intrinsicId"] = "8"
     for v in data["views"]:
         v["path"] = "C:\\Users\\pilot\\Flight 3\\" + os.path.basename(v["path"])
     sfm.write_text(json.dumps(data))
@@ -140,7 +143,7 @@ def test_sfm_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
               "photo": "camera 004.png: photo 004.png not found",
               "unposed": "no reconstructed views (no view has a pose)",
               "several": "several Meshroom SfMData files (a.sfm, b.sfm)",
-              "focal": "intrinsic 7: focal length must be positive",
+              "focal": "view 000.png: intrinsic 7: focal length must be positive",
               "rotation": "pose 5003: rotation is not a rotation matrix"}[case]
     if case == "fisheye":
         intr["type"] = "fisheye4"
