@@ -129,6 +129,23 @@ def assert_same_views(got, want) -> None:
         np.testing.assert_array_equal(v.image, want.views[vid].image)
 
 
+
+def reads_as_levir(out: Path, levir: Path, camera_files: list[Path]):
+    """Read the scene folder ``out`` (the generated scene ``levir`` written in another layout) and
+    check it has ``levir``'s views, cameras, pixels and split, and that ``dibrgs render --cameras``
+    takes the folder and each of ``camera_files`` with those cameras. Returns the scene."""
+    from dibrgs_core.data.load import read_any_cameras, read_any_scene
+
+    scene, want = read_any_scene(out), read_any_scene(levir, load_depth=False)
+    assert_same_views(scene, want)
+    assert scene.train == want.train
+    for where in (out, *camera_files):
+        cams = read_any_cameras(where)
+        assert [c.name for c in cams] == list(scene.views)
+        for c in cams:
+            np.testing.assert_array_equal(c.w2c, scene.views[c.name].camera.w2c)
+    return scene
+
 def _xml_numbers(v) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(v))
 

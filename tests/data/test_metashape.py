@@ -11,11 +11,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dibrgs_core.common.errors import InputError
-from dibrgs_core.data.load import read_any_cameras, read_any_scene
+from dibrgs_core.data.load import read_any_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from photo_synth import assert_same_views, levir_as_metashape  # noqa: E402
+from photo_synth import assert_same_views, levir_as_metashape, reads_as_levir  # noqa: E402
 
 
 def _similarity(scale: float, euler_deg, t) -> np.ndarray:
@@ -34,14 +34,9 @@ def test_metashape_xml_reads_the_cameras_of_the_same_views(tiny_scene, tmp_path,
                        component=_similarity(0.5, [0, 0, 20], [1.0, 2.0, 3.0]), unaligned=2)
     levir = read_any_scene(tiny_scene, load_depth=False)
     with caplog.at_level("INFO", logger="dibrgs"):
-        ms = read_any_scene(out)
-    assert_same_views(ms, levir)
+        reads_as_levir(out, tiny_scene, [out / "cameras.xml"])
     assert "2 cameras without a transform (not aligned) left out: dropped0, dropped1" in caplog.text
     assert "1 cameras disabled in Metashape left out: unchecked" in caplog.text
-    for where in (out, out / "cameras.xml"):  # `dibrgs render --cameras` takes the folder or the file
-        cams = read_any_cameras(where)
-        assert [c.name for c in cams] == list(ms.views)
-        np.testing.assert_array_equal(cams[3].w2c, ms.views[cams[3].name].camera.w2c)
     # any name: the folder's only Metashape XML; photos in the card's folders (labels carry no folder)
     (out / "cameras.xml").rename(out / "flight 3 export.xml")
     (out / "images" / "101MEDIA").mkdir()
