@@ -3,7 +3,8 @@ StructureFromMotion node's "Views and Poses" output, or any ``.sfm`` / ``.json``
 parsed with the standard library into the frames :mod:`.frame_layouts` makes a scene of (the
 library's reader and the add-on's description share both).
 
-Accepted layouts: a folder holding ``cameras.sfm`` (else its only ``.sfm`` file), or a Meshroom
+Accepted layouts: a folder holding ``cameras.sfm`` (else its only ``.sfm`` file or SfMData
+``.json``, as the ConvertSfMFormat node writes it), or a Meshroom
 project folder (``MeshroomCache/StructureFromMotion/<id>/cameras.sfm``; the newest of several,
 named in the log). Photos: ``images/`` (or ``Images/``) beside the file or the project, by the file
 name of each view's ``path`` (also in subfolders where the name is unique), else the ``path`` as
@@ -65,13 +66,26 @@ def cache_results(root: Path) -> list[Path]:
     return sorted(root.glob(CACHE_GLOB), key=lambda p: p.stat().st_mtime, reverse=True)
 
 
+def _sniffed_sfm_data(path: Path) -> bool:
+    """Whether a ``.json`` file starts as an AliceVision SfMData file does (its "version" and "views"
+    come first, before any large structure)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536)
+    except OSError:
+        return False
+    return head.lstrip().startswith(b"{") and b'"version"' in head and b'"views"' in head
+
+
 def find_meshroom(root: str | Path) -> Path | None:
-    """The SfMData file of a scene folder: ``cameras.sfm``, else its only ``.sfm`` file (InputError
-    naming them when there are several), else the newest in its ``MeshroomCache``, else None."""
+    """The SfMData file of a scene folder: ``cameras.sfm``, else its only ``.sfm`` file or SfMData
+    ``.json`` (ConvertSfMFormat's; InputError naming them when there are several), else the newest
+    in its ``MeshroomCache``, else None."""
     root = Path(root)
     if (root / MESHROOM_FILE).is_file():
         return root / MESHROOM_FILE
-    found = sorted(p for p in root.glob("*") if p.suffix.lower() == ".sfm" and p.is_file())
+    found = sorted(p for p in root.glob("*") if p.is_file() and (
+        p.suffix.lower() == ".sfm" or (p.suffix.lower() == ".json" and _sniffed_sfm_data(p))))
     if len(found) > 1:
         raise InputError(root, f"several Meshroom SfMData files ({', '.join(p.name for p in found)}): "
                                f"name the one to read {MESHROOM_FILE}")

@@ -169,7 +169,8 @@ def test_sfm_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
 
 def test_the_newest_of_several_results_is_read_and_named(tiny_scene, tmp_path, caplog):
     """Two StructureFromMotion results in a project: the newest is read and the log says so; a
-    folder holding cameras.sfm itself (the node's own folder) reads it."""
+    folder holding cameras.sfm itself (the node's own folder) reads it, and so does a folder holding
+    ConvertSfMFormat's sfm.json beside other JSON files."""
     out = tmp_path / "mr"
     sfm = levir_as_meshroom(tiny_scene, out)
     old = sfm.parent.parent / "0a1b2c" / "cameras.sfm"
@@ -183,3 +184,8 @@ def test_the_newest_of_several_results_is_read_and_named(tiny_scene, tmp_path, c
     assert "2 StructureFromMotion results, reading the newest (MeshroomCache/StructureFromMotion/2f9c0e1d7a" \
         in caplog.text
     assert len(read_any_cameras(old.parent)) == 4
+    convert = out / "MeshroomCache" / "ConvertSfMFormat" / "77ab"
+    convert.mkdir(parents=True)
+    (convert / "sfm.json").write_text(json.dumps(data))
+    (convert / "notes.json").write_text(json.dumps({"views": "not this one"}))
+    assert len(read_any_cameras(convert)) == 4
