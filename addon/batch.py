@@ -38,7 +38,7 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
         prog=prog, description="DIBR-GS batch mode: import, initialise, path, train, results, save .blend.")
     p.add_argument("--scene", type=Path, required=True,
                    help="scene folder: LEVIR-NVS, COLMAP, transforms.json, Metashape XML, OpenDroneMap, "
-                        "Meshroom, Bundler or RealityCapture XMP")
+                        "Meshroom, OpenMVG, Bundler or RealityCapture XMP")
     p.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, renders, the .blend)")
     p.add_argument("--preset", choices=train_config.PRESETS, default="cpu")
     p.add_argument("--method", choices=jobs.METHODS, default="dibrgs")

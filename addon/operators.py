@@ -170,7 +170,7 @@ def _render_camera(context) -> bpy.types.Object | None:
 # import and path
 # ---------------------------------------------------------------------------
 class DIBRGS_OT_import_scene(bpy.types.Operator):
-    """Import a scene (LEVIR-NVS, COLMAP, transforms.json, Metashape, OpenDroneMap, Meshroom, Bundler, RealityCapture): one camera per view, the path, the render size"""
+    """Import a scene (LEVIR-NVS, COLMAP, transforms.json, Metashape, OpenDroneMap, Meshroom, OpenMVG, Bundler, RealityCapture): one camera per view, the path, the render size"""
 
     bl_idname = "dibrgs.import_scene"
     bl_label = "Import Scene"

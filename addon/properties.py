@@ -55,7 +55,7 @@ def _is_curve(self, obj) -> bool:
 class DIBRGS_SceneSettings(bpy.types.PropertyGroup):
     scene_dir: StringProperty(name="Scene", subtype="DIR_PATH",
                               description="Scene folder: LEVIR-NVS, COLMAP, transforms.json, Metashape XML, "
-                                          "OpenDroneMap, Meshroom, Bundler or RealityCapture XMP")
+                                          "OpenDroneMap, Meshroom, OpenMVG, Bundler or RealityCapture XMP")
     work_dir: StringProperty(name="Run folder", subtype="DIR_PATH",
                              description="Where training writes its checkpoint, logs and renders")
     scene_json: StringProperty(description="Name of the text datablock holding the imported scene description")

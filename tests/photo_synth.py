@@ -354,3 +354,43 @@ def levir_as_meshroom(levir: Path, out: Path, version: tuple[int, int, int] = (1
     node.mkdir(parents=True)
     (node / "cameras.sfm").write_text(json.dumps(data, indent=4))
     return node / "cameras.sfm"
+
+
+def levir_as_openmvg(levir: Path, out: Path, camera: str = "pinhole_radial_k3", disto: tuple = (0.0, 0.0, 0.0),
+                     photos: Path | None = None, unposed: int = 0) -> Path:
+    """The LEVIR scene ``levir`` written as OpenMVG's output folder ``out``: ``matches/sfm_data.json``
+    (views and intrinsics, as SfMInit_ImageListing writes it) and
+    ``reconstruction_sequential/sfm_data.json`` (with the poses, as ConvertSfM_DataFormat writes the
+    reconstruction), photos copied to ``photos`` (default ``out/images``) and named by ``root_path``;
+    two intrinsics of model ``camera`` (distortion ``disto``), cereal naming the type on the first
+    only; the last ``unposed`` views get no pose. Returns the reconstruction's file."""
+    from dibrgs_core.data.load import read_any_scene
+
+    scene = read_any_scene(levir, load_depth=False)
+    photos = photos or out / "images"
+    photos.mkdir(parents=True, exist_ok=True)
+    c = next(iter(scene.views.values())).camera
+    field = {"pinhole_radial_k1": "disto_k1", "pinhole_radial_k3": "disto_k3", "pinhole_brown_t2": "disto_t2",
+             "fisheye": "fisheye"}.get(camera)
+    intrinsics = []
+    for key in (0, 1):
+        data = {"width": c.width, "height": c.height, "focal_length": c.K[0, 0],
+                "principal_point": [c.K[0, 2], c.K[1, 2]], **({field: list(disto)} if field else {})}
+        value = {"polymorphic_id": 0x80000001, "polymorphic_name": camera} if key == 0 else {"polymorphic_id": 1}
+        intrinsics.append({"key": key, "value": {**value, "ptr_wrapper": {"id": 0x80000100 + key, "data": data}}})
+    views, extrinsics = [], []
+    for k, (vid, v) in enumerate(scene.views.items()):
+        shutil.copyfile(levir / "Images" / f"{vid}.png", photos / f"{vid}.png")
+        views.append({"key": k, "value": {"polymorphic_id": 0x40000000, "ptr_wrapper": {"id": 0x80000001 + k, "data": {
+            "local_path": "", "filename": f"{vid}.png", "width": c.width, "height": c.height, "id_view": k,
+            "id_intrinsic": k % 2, "id_pose": k}}}})
+        if k < len(scene.views) - unposed:
+            R = v.camera.w2c[:3, :3]
+            C = -R.T @ v.camera.w2c[:3, 3]
+            extrinsics.append({"key": k, "value": {"rotation": R.tolist(), "center": C.tolist()}})
+    base = {"sfm_data_version": "0.3", "root_path": str(photos.resolve()), "views": views, "intrinsics": intrinsics}
+    for folder, poses in (("matches", []), ("reconstruction_sequential", extrinsics)):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+        (out / folder / "sfm_data.json").write_text(json.dumps(
+            {**base, "extrinsics": poses, "structure": [], "control_points": []}, indent=4))
+    return out / "reconstruction_sequential" / "sfm_data.json"

@@ -7,12 +7,13 @@ library's own parser, image sizes and EXIF orientations from file headers
 (:mod:`.imagesize`), COLMAP models with :mod:`.colmap_model` (cameras with lens
 distortion as the undistorted pinholes the library trains them as; the image paths
 are the photos as taken) and frame layouts (transforms.json, Metashape XML, OpenSfM /
-OpenDroneMap reconstruction.json, Meshroom cameras.sfm, Bundler files, RealityCapture XMP sidecars) through the
-library's own parsers (``data.frame_layouts``). It applies the same rules and messages as the library's
+OpenDroneMap reconstruction.json, Meshroom cameras.sfm, OpenMVG sfm_data.json, Bundler
+files, RealityCapture XMP sidecars) through the library's own parsers
+(``data.frame_layouts``). It applies the same rules and messages as the library's
 readers (``data.levir.read_scene``, ``data.colmap.read_colmap_scene``,
 ``data.frame_layouts.read_frames_scene``), which ``tests/bridge/test_bridge.py`` checks on
-LEVIR, COLMAP (text and binary), transforms, Metashape, OpenSfM, Meshroom, Bundler and RealityCapture
-scenes.
+LEVIR, COLMAP (text and binary), transforms, Metashape, OpenSfM, Meshroom, OpenMVG, Bundler
+and RealityCapture scenes.
 The description is::
 
     {"root": str, "views": [{"name", "split": "train"|"test"|"other",
@@ -58,8 +59,8 @@ from .imagesize import image_header
 
 def describe_scene(root: str | Path) -> dict[str, Any]:
     """The description of the LEVIR-NVS, COLMAP or frame-layout (transforms, Metashape, OpenSfM,
-    Meshroom, Bundler, RealityCapture) scene at ``root`` (its ``split.json``, else the layout's own split, else the
-    default)."""
+    Meshroom, OpenMVG, Bundler, RealityCapture) scene at ``root`` (its ``split.json``, else the
+    layout's own split, else the default)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, not_a_folder(root))

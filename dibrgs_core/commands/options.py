@@ -27,7 +27,7 @@ from ..common.openmp import wait_policy
 
 #: The scene layouts the readers take (``data.load.read_any_scene``), as the commands' help names them.
 SCENE_LAYOUTS = ("LEVIR-NVS, COLMAP, transforms.json, Metashape XML, OpenDroneMap / OpenSfM, Meshroom "
-                 "cameras.sfm, Bundler .out or RealityCapture XMP")
+                 "cameras.sfm, OpenMVG sfm_data.json, Bundler .out or RealityCapture XMP")
 
 log = logging.getLogger("dibrgs")
 

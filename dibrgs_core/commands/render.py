@@ -4,7 +4,7 @@ PATH is a LEVIR-NVS Cams file, a folder of them, a JSON camera list, a COLMAP
 model (a scene folder or the model's own folder: its posed images' cameras, at the
 photos' full size, undistorted as training reads them), a transforms.json, a
 Metashape cameras XML, an OpenDroneMap / OpenSfM reconstruction.json, a Meshroom
-cameras.sfm, a Bundler file or RealityCapture XMP sidecars (the folder or one file; likewise). Each camera gives
+cameras.sfm, an OpenMVG sfm_data.json, a Bundler file or RealityCapture XMP sidecars (the folder or one file; likewise). Each camera gives
 ``DIR/NAME.png`` (named after the camera, e.g. ``002.png`` for ``Cams/002.txt``) and its
 z-depth ``DIR/NAME_depth.exr`` (0 where nothing was hit).
 ``DIR`` has one writer at a time (a second render into it is refused).

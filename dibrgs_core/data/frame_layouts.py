@@ -1,7 +1,8 @@
 """Scenes given as one posed camera a photo: a ``transforms.json`` (:mod:`.transforms`), a
 Metashape cameras export (:mod:`.metashape`), an OpenDroneMap / OpenSfM ``reconstruction.json``
-(:mod:`.opensfm`), a Meshroom / AliceVision ``cameras.sfm`` (:mod:`.meshroom`), a Bundler
-``bundle.out`` (:mod:`.bundler`) or RealityCapture's XMP sidecars (:mod:`.realitycapture`). Each reader turns its
+(:mod:`.opensfm`), a Meshroom / AliceVision ``cameras.sfm`` (:mod:`.meshroom`), an OpenMVG
+``sfm_data.json`` (:mod:`.openmvg`), a Bundler ``bundle.out`` (:mod:`.bundler`) or RealityCapture's
+XMP sidecars (:mod:`.realitycapture`). Each reader turns its
 files into :class:`~.photo_frame.Frame` objects; this module makes them views, cameras and a
 split, the same way for all (the library's reader and the add-on's description share it).
 Distorted cameras are undistorted on load as COLMAP's (pycolmap, cached).
@@ -24,6 +25,7 @@ from .colmap import read_photo
 from .images import image_size, turned_to_fit
 from .meshroom import find_meshroom, is_sfm_data, read_meshroom_frames
 from .metashape import find_metashape, read_metashape_frames
+from .openmvg import find_openmvg, is_openmvg, read_openmvg_frames
 from .opensfm import find_opensfm, read_opensfm_frames
 from .photo_frame import Frame
 from .realitycapture import find_realitycapture, read_realitycapture_frames
@@ -34,7 +36,7 @@ from .undistort import undistorted_camera
 
 log = logging.getLogger("dibrgs.io_frames")
 
-FrameLayout = Literal["transforms", "metashape", "opensfm", "meshroom", "bundler", "realitycapture"]
+FrameLayout = Literal["transforms", "metashape", "opensfm", "meshroom", "openmvg", "bundler", "realitycapture"]
 
 
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
@@ -48,6 +50,8 @@ def find_frame_layout(root: str | Path) -> FrameLayout | None:
         return "opensfm"
     if find_meshroom(root) is not None:
         return "meshroom"
+    if find_openmvg(root) is not None:
+        return "openmvg"
     if find_realitycapture(root) is not None:
         return "realitycapture"
     if find_bundler(root) is not None:
@@ -58,7 +62,8 @@ def find_frame_layout(root: str | Path) -> FrameLayout | None:
 def file_layout(path: str | Path) -> FrameLayout | None:
     """The frame layout whose file ``path`` is (a Metashape XML, a RealityCapture XMP, a Bundler
     ``.out``, a Meshroom ``.sfm``, a transforms JSON: an object with "frames", an OpenSfM
-    reconstruction: a list of objects with "shots", an AliceVision SfMData JSON), or None (a JSON
+    reconstruction: a list of objects with "shots", an AliceVision SfMData JSON, an OpenMVG
+    SfM_Data JSON), or None (a JSON
     camera list, or a file no reader takes: its reader says what is wrong with it)."""
     path = Path(path)
     layout = {".xml": "metashape", ".xmp": "realitycapture", ".out": "bundler",
@@ -77,18 +82,21 @@ def file_layout(path: str | Path) -> FrameLayout | None:
         return "opensfm"
     if is_sfm_data(data):
         return "meshroom"
+    if is_openmvg(data):
+        return "openmvg"
     return None
 
 
 def layout_frames(path: str | Path) -> list[Frame]:
     """The frames of a frame layout's folder, or of one of its files (a transforms JSON, a Metashape
-    XML, an OpenSfM reconstruction, a Meshroom SfMData file, a Bundler file or a RealityCapture
-    XMP); InputError naming the file when malformed."""
+    XML, an OpenSfM reconstruction, a Meshroom SfMData file, an OpenMVG sfm_data.json, a Bundler
+    file or a RealityCapture XMP); InputError naming the file when malformed."""
     path = Path(path)
     layout = (file_layout(path) or "transforms") if path.is_file() else find_frame_layout(path)
     if layout == "transforms":
         return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
-    read = {"opensfm": read_opensfm_frames, "meshroom": read_meshroom_frames, "bundler": read_bundler_frames,
+    read = {"opensfm": read_opensfm_frames, "meshroom": read_meshroom_frames, "openmvg": read_openmvg_frames,
+            "bundler": read_bundler_frames,
             "realitycapture": read_realitycapture_frames}.get(layout)
     return (read or read_metashape_frames)(path)
 

@@ -1,6 +1,6 @@
 """Reading any supported scene folder (LEVIR-NVS ``Cams/``, a COLMAP model, a transforms.json, a
-Metashape cameras XML, an OpenDroneMap / OpenSfM reconstruction, a Meshroom cameras.sfm, a Bundler
-file or RealityCapture's XMP sidecars), or any cameras to render."""
+Metashape cameras XML, an OpenDroneMap / OpenSfM reconstruction, a Meshroom cameras.sfm, an OpenMVG
+sfm_data.json, a Bundler file or RealityCapture's XMP sidecars), or any cameras to render."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,7 +19,8 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
                    test_ids: Iterable[str] | None = None) -> Scene:
     """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
     itself) or a frame layout (a transforms.json, a Metashape cameras XML, an OpenSfM
-    reconstruction, a Meshroom SfMData file, a Bundler file or RealityCapture sidecars:
+    reconstruction, a Meshroom SfMData file, an OpenMVG sfm_data.json, a Bundler file or
+    RealityCapture sidecars:
     :mod:`.frame_layouts`), in a frame of its own when it lies far from its coordinate origin (``Scene.origin``,
     :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
@@ -51,7 +52,8 @@ NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model 
                ".bin or .txt in sparse/N, sparse/ or the folder), a transforms.json (instant-ngp, nerfstudio), a "
                "Metashape cameras XML (cameras.xml, photos in images/), an OpenDroneMap / OpenSfM "
                "reconstruction (opensfm/reconstruction.json or reconstruction.json, photos in images/), a "
-               "Meshroom cameras.sfm (or a project's MeshroomCache), a Bundler bundle.out with its list.txt, or "
+               "Meshroom cameras.sfm (or a project's MeshroomCache), an OpenMVG sfm_data.json, a Bundler bundle.out "
+               "with its list.txt, or "
                "RealityCapture XMP sidecars beside the photos")
 
 
@@ -69,8 +71,8 @@ def read_any_cameras(path: str | Path) -> list[Camera]:
     COLMAP model (a folder holding one in ``sparse/0``, ``sparse/`` or itself: every posed image,
     named by its view id, with the pinhole camera training uses - undistorted where the model has
     distortion - at the photo's full size), or a frame layout's folder or one of its files (a
-    transforms JSON, a Metashape XML, an OpenSfM reconstruction, a Meshroom .sfm, a Bundler file or
-    a RealityCapture XMP; likewise)."""
+    transforms JSON, a Metashape XML, an OpenSfM reconstruction, a Meshroom .sfm, an OpenMVG
+    sfm_data.json, a Bundler file or a RealityCapture XMP; likewise)."""
     from .colmap import find_colmap_model, read_colmap_cameras
     from .frame_layouts import file_layout, find_frame_layout, read_frames_cameras
 

@@ -36,14 +36,13 @@ import numpy as np
 
 from ..common.errors import InputError
 from .images import find_mask
-from .photo_frame import Frame, labelled_photo
+from .photo_frame import Frame, photo_folder, written_photo
 
 log = logging.getLogger("dibrgs.io_meshroom")
 
 MESHROOM_FILE = "cameras.sfm"
 #: Where a Meshroom project keeps its reconstructions' cameras.
 CACHE_GLOB = f"MeshroomCache/StructureFromMotion/*/{MESHROOM_FILE}"
-PHOTO_FOLDERS = ("images", "Images")
 #: The newest SfMData file version whose conventions this reader follows; newer files are read so.
 KNOWN_VERSION = (1, 2, 11)
 _DISTORTION_PARAMS = {"none": (), "radialk1": ("k1",), "radialk3": ("k1", "k2", "k3"),
@@ -212,12 +211,6 @@ def _by_id(items: object, key: str, where: Path) -> dict[str, dict]:
     return {str(i[key]): i for i in items}
 
 
-def _photo_folder(path: Path, root: Path | None) -> Path | None:
-    """``images/`` (or ``Images/``) of the scene folder, the file's folder or the Meshroom project."""
-    places = [root, path.parent] + [p.parent for p in path.parents if p.name == "MeshroomCache"]
-    return next((d / f for d in places if d is not None for f in PHOTO_FOLDERS if (d / f).is_dir()), None)
-
-
 def read_meshroom_frames(path: str | Path) -> list[Frame]:
     """The frames of an AliceVision SfMData JSON file, or of the one in a scene folder or Meshroom
     project (InputError naming the file when malformed, or a view's photo when it is missing)."""
@@ -243,7 +236,8 @@ def read_meshroom_frames(path: str | Path) -> list[Frame]:
                   for i, d in _by_id(data.get("intrinsics"), "intrinsicId", path).items()}
     poses = _by_id(data.get("poses"), "poseId", path)
     rigs = _by_id(data.get("rigs"), "rigId", path)
-    folder = _photo_folder(path, root)
+    # images/ of the scene folder, of the file's folder or of the Meshroom project
+    folder = photo_folder([root, path.parent, *(p.parent for p in path.parents if p.name == "MeshroomCache")])
     frames, unposed, index = [], [], {}
     for view in _by_id(data.get("views"), "viewId", path).values():
         written = str(view.get("path", ""))
@@ -258,14 +252,7 @@ def read_meshroom_frames(path: str | Path) -> list[Frame]:
         size, intr = intrinsics[iid]
         if isinstance(intr, str):
             raise InputError(path, f"view {label}: {intr}")
-        if folder is not None:
-            photo = labelled_photo(folder, label, path, index)
-            name, masks = photo.relative_to(folder).as_posix(), folder
-        else:
-            photo = Path(written) if Path(written).is_absolute() else path.parent / written
-            if not written or not photo.is_file():
-                raise InputError(path, f"view {label}: photo {written} not found (nor images/ beside {path.name})")
-            name, masks = photo.name, photo.parent
+        photo, name, masks = written_photo(written, folder, path, f"view {label}", index)
         frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intr), part=None,
                             mask=find_mask(masks, name)))
     if unposed:

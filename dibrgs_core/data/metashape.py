@@ -30,12 +30,11 @@ import numpy as np
 
 from ..common.errors import InputError
 from .images import find_mask
-from .photo_frame import Frame, labelled_photo, layout_file
+from .photo_frame import Frame, labelled_photo, layout_file, photo_folder
 
 log = logging.getLogger("dibrgs.io_metashape")
 
 METASHAPE_FILE = "cameras.xml"
-PHOTO_FOLDERS = ("images", "Images")
 #: A skew term (b2) shifting the image's top and bottom rows by less than this (pixels) is dropped.
 MAX_SKEW_SHIFT_PX = 0.5
 
@@ -156,7 +155,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
     components = {c.get("id"): _similarity(c.find("transform"), path, f"component {c.get('label', c.get('id'))}")
                   for c in chunk.findall("components/component")}
     sensors = _sensors(chunk, path)
-    folder = next((path.parent / d for d in PHOTO_FOLDERS if (path.parent / d).is_dir()), path.parent)
+    folder = photo_folder([path.parent]) or path.parent
     frames, unaligned, disabled, index = [], [], [], {}
     for cam in chunk.iterfind("cameras//camera"):
         label = cam.get("label", cam.get("id", "?"))
@@ -179,7 +178,7 @@ def read_metashape_frames(path: str | Path) -> list[Frame]:
         R, C = c2w[:3, :3] / scale, c2w[:3, 3]
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R.T, -R.T @ C
-        photo = labelled_photo(folder, label, path, index)
+        photo = labelled_photo(folder, label, path, f"camera {label}", index)
         name = photo.relative_to(folder).as_posix()
         frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intrinsics), part=None,
                             mask=find_mask(folder, name)))

@@ -9,9 +9,10 @@ and OpenCV's distortion coefficients.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -19,6 +20,8 @@ from ..common.errors import InputError
 from .images import IMAGE_EXTS, image_named
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+#: Where a layout's photos sit beside its camera file.
+PHOTO_FOLDERS = ("images", "Images")
 
 
 @dataclass
@@ -88,13 +91,13 @@ def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
     raise InputError(where, f"{what}: photo {name} not found in {folder}")
 
 
-def labelled_photo(folder: Path, label: str, where: Path, index: dict[str, list[Path]]) -> Path:
+def labelled_photo(folder: Path, label: str, where: Path, what: str, index: dict[str, list[Path]]) -> Path:
     """The photo of a camera label (a file name, with or without its extension, as Metashape and
     Meshroom give it): in ``folder``, else the one photo of that name in its subfolders (a drone's
     card keeps 100MEDIA/, 101MEDIA/, ...), looked up in ``index`` (name and stem -> photos; filled
-    on the first miss)."""
+    on the first miss); errors name ``where`` and ``what`` (the entry)."""
     try:
-        return find_photo(folder, label, where, f"camera {label}")
+        return find_photo(folder, label, where, what)
     except InputError:
         if not index:
             for p in sorted(folder.rglob("*")):
@@ -105,11 +108,32 @@ def labelled_photo(folder: Path, label: str, where: Path, index: dict[str, list[
         if len(found) == 1:
             return found[0]
         if found:
-            raise InputError(where, f"camera {label}: several photos of that name ("
+            raise InputError(where, f"{what}: several photos of that name ("
                                     f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): "
-                                    "rename them and the cameras' labels to tell them apart") from None
+                                    "rename them (and their entries in the camera file) to tell them apart") from None
         raise
 
+
+
+def photo_folder(places: Iterable[Path | None]) -> Path | None:
+    """The first ``images/`` (or ``Images/``) folder in ``places`` (None entries skipped), or None."""
+    return next((d / f for d in places if d is not None for f in PHOTO_FOLDERS if (d / f).is_dir()), None)
+
+
+def written_photo(written: str, folder: Path | None, where: Path, what: str,
+                  index: dict[str, list[Path]]) -> tuple[Path, str, Path]:
+    """(the photo, its name, the folder its mask is looked up in) of a photo that the file ``where``
+    names by a path written where the reconstruction ran (Meshroom, OpenMVG): by that path's file
+    name in ``folder`` (also in its subfolders: :func:`labelled_photo`) when there is one, else at
+    the path as written (a relative one from ``where``'s folder)."""
+    label = re.split(r"[\\/]", written)[-1]
+    if folder is not None:
+        photo = labelled_photo(folder, label, where, what, index)
+        return photo, photo.relative_to(folder).as_posix(), folder
+    photo = Path(written) if Path(written).is_absolute() else where.parent / written
+    if not label or not photo.is_file():
+        raise InputError(where, f"{what}: photo {written} not found (nor an images/ folder beside {where.name})")
+    return photo, photo.name, photo.parent
 
 def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -> Path:
     """``path`` when it is a layout's file, else the file ``find`` finds in the folder ``path``

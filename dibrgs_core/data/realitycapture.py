@@ -27,11 +27,10 @@ import numpy as np
 
 from ..common.errors import InputError
 from .images import IMAGE_EXTS, find_mask, image_named
-from .photo_frame import Frame
+from .photo_frame import PHOTO_FOLDERS, Frame
 
 #: The namespace of RealityCapture's properties (its version, 1.1 today, is not checked).
 XCR_NAMESPACE = "capturingreality.com/ns/xcr"
-PHOTO_FOLDERS = ("images", "Images")
 _MODELS = ("perspective", "brown3", "brown3t2", "brown4", "brown4t2")
 
 

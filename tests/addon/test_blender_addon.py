@@ -673,12 +673,13 @@ def _rotation_vector(R: np.ndarray) -> np.ndarray:
     return np.zeros(3) if s < 1e-15 else v / s * 2.0 * np.arctan2(s, w)
 
 
-@pytest.mark.parametrize("layout", ["bundler", "realitycapture", "opendronemap", "meshroom"])
+@pytest.mark.parametrize("layout", ["bundler", "realitycapture", "opendronemap", "meshroom", "openmvg"])
 def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, tmp_path, layout):
     """The generated scene as a Bundler file (OpenGL camera axes, list.txt), as RealityCapture's XMP
     sidecars (world-to-camera rotation, centre, 35 mm focal length), as an OpenDroneMap project
-    (axis-angle poses, a normalised camera) and as a Meshroom project (column-major world-to-camera
-    rotations, centres, a focal length in mm): every view object has the Cams file's camera."""
+    (axis-angle poses, a normalised camera), as a Meshroom project (column-major world-to-camera
+    rotations, centres, a focal length in mm) and as OpenMVG's sfm_data.json (row-major rotations,
+    cereal's polymorphic intrinsic): every view object has the Cams file's camera."""
     root = tmp_path / layout
     (root / "images").mkdir(parents=True)
     num = lambda a: " ".join(repr(float(v)) for v in np.ravel(a))  # noqa: E731
@@ -701,6 +702,14 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
             views.append({"viewId": vid, "poseId": vid, "intrinsicId": "0", "path": f"/shoot/{vid}.png"})
             poses.append({"poseId": vid, "pose": {"transform": {"rotation": [str(v) for v in R.T.ravel()],
                                                                 "center": [str(v) for v in -R.T @ w2c[:3, 3]]}}})
+        elif layout == "openmvg":
+            k = len(views)
+            view = {"local_path": "", "filename": f"{vid}.png", "width": 64, "height": 64, "id_view": k,
+                    "id_intrinsic": 0, "id_pose": k}
+            views.append({"key": k, "value": {"polymorphic_id": 0x40000000,
+                                              "ptr_wrapper": {"id": 0x80000001 + k, "data": view}}})
+            poses.append({"key": k, "value": {"rotation": w2c[:3, :3].tolist(),
+                                              "center": (-w2c[:3, :3].T @ w2c[:3, 3]).tolist()}})
         else:
             R, C = w2c[:3, :3], -w2c[:3, :3].T @ w2c[:3, 3]
             (root / "images" / f"{vid}.xmp").write_text(
@@ -724,6 +733,14 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
                 "pixelRatio": "1", "principalPoint": ["0", "0"], "distortionParams": ""}
         (node / "cameras.sfm").write_text(json.dumps({"version": ["1", "2", "11"], "views": views,
                                                       "intrinsics": [intr], "poses": poses}))
+    if layout == "openmvg":
+        lens = {"width": 64, "height": 64, "focal_length": K[0, 0], "principal_point": [32, 32]}
+        intr = {"key": 0, "value": {"polymorphic_id": 0x80000001, "polymorphic_name": "pinhole",
+                                    "ptr_wrapper": {"id": 0x80001000, "data": lens}}}
+        (root / "reconstruction_global").mkdir()
+        (root / "reconstruction_global" / "sfm_data.json").write_text(json.dumps({
+            "sfm_data_version": "0.3", "root_path": "/elsewhere", "views": views, "intrinsics": [intr],
+            "extrinsics": poses}))
     _imports_with_the_cams_files_cameras(root, scene64, fresh)
 
 

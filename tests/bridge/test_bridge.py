@@ -892,6 +892,23 @@ def test_describe_matches_the_library_on_meshroom_projects(tiny_scene, tmp_path,
     assert len(desc["views"]) == 19 and all(v["undistorted"] for v in desc["views"])
 
 
+def test_describe_matches_the_library_on_openmvg_output(tiny_scene, tmp_path, monkeypatch):
+    """An OpenMVG output folder (reconstruction_sequential/sfm_data.json, a pinhole_brown_t2 lens
+    named once for two intrinsics, three views without a pose, photos by root_path): the add-on's
+    reader gives the library's cameras and split."""
+    from photo_synth import levir_as_openmvg
+
+    from dibrgs_core.data.load import read_any_scene
+
+    monkeypatch.setenv("DIBRGS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "omvg"
+    levir_as_openmvg(tiny_scene, out, camera="pinhole_brown_t2", disto=(-0.15, 0.02, 0.0, 0.001, -0.002),
+                     photos=tmp_path / "photos", unposed=3)
+    desc, scene = describe.describe_scene(out), read_any_scene(out, load_depth=False)
+    _same_description(desc, scene)
+    assert len(desc["views"]) == 18 and all(v["undistorted"] for v in desc["views"])
+
+
 def test_describe_matches_the_library_on_realitycapture_sidecars(tiny_scene, tmp_path, monkeypatch):
     """Photos with RealityCapture XMP sidecars (a brown3t2 lens): the add-on's reader, which sizes
     the photos from their headers, gives the library's cameras and split."""

@@ -133,7 +133,7 @@ def test_sfm_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
               "3de": "view 000.png: undistortion model 3deradial4 is not supported",
               "params": "intrinsic 7: distortion brown takes 5 distortionParams, got 3",
               "version": "version must be three numbers", "broken": "unreadable SfMData file",
-              "photo": "camera 004.png: photo 004.png not found",
+              "photo": "view 004.png: photo 004.png not found",
               "unposed": "no reconstructed views (no view has a pose)",
               "several": "several Meshroom SfMData files (a.sfm, b.sfm)",
               "focal": "view 000.png: intrinsic 7: focal length must be positive",

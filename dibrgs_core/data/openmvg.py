@@ -1,0 +1,179 @@
+"""Scenes as OpenMVG leaves them: an ``sfm_data.json`` (cereal's JSON of OpenMVG's SfM_Data; the
+reconstruction's binary ``sfm_data.bin`` converted with ``openMVG_main_ConvertSfM_DataFormat``),
+parsed with the standard library into the frames :mod:`.frame_layouts` makes a scene of (the
+library's reader and the add-on's description share both).
+
+Accepted layouts: a folder holding ``sfm_data.json``, or an OpenMVG output folder whose
+``reconstruction*/sfm_data.json`` holds the poses (the newest of several, named in the log).
+Photos: ``images/`` (or ``Images/``) beside the file or the scene folder, by file name (also in
+subfolders where the name is unique), else ``root_path/local_path/filename`` as written.
+
+Conventions (OpenMVG's ``Pose3`` and camera classes and their cereal I/O, ``sfm_data_version`` 0.2
+and 0.3): an extrinsic's ``rotation`` is row-major and takes world to camera coordinates with
+OpenCV axes (+x right, +y down, looking along +z), ``center`` is the camera centre, so w2c =
+[R | -R C]. Intrinsics: ``focal_length`` in pixels (square pixels), ``principal_point`` in pixels
+in COLMAP's convention (OpenMVG's own COLMAP export writes it unchanged); ``pinhole``,
+``pinhole_radial_k1`` (``disto_k1``), ``pinhole_radial_k3`` (``disto_k3``: k1, k2, k3) and
+``pinhole_brown_t2`` (``disto_t2``: k1, k2, k3, t1, t2; t1 is OpenCV's p1) in normalised camera
+coordinates; fisheye and spherical cameras are refused when a posed view uses them. cereal names a
+polymorphic type once (``polymorphic_name`` with the id's high bit set) and refers to it by id
+after. Views without a pose are left out and counted in the log.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..common.errors import InputError
+from .images import find_mask
+from .photo_frame import Frame, photo_folder, written_photo
+
+log = logging.getLogger("dibrgs.io_openmvg")
+
+OPENMVG_FILE = "sfm_data.json"
+#: cereal's flag on a polymorphic id that comes with its type's name (the type's first instance).
+_NEW_TYPE = 0x80000000
+_DISTORTION = {"pinhole": (None, ()), "pinhole_radial_k1": ("disto_k1", ("k1",)),
+               "pinhole_radial_k3": ("disto_k3", ("k1", "k2", "k3")),
+               "pinhole_brown_t2": ("disto_t2", ("k1", "k2", "k3", "p1", "p2"))}
+
+
+def is_openmvg(data: object) -> bool:
+    """Whether parsed JSON is an OpenMVG SfM_Data file (an object with "sfm_data_version")."""
+    return isinstance(data, dict) and "sfm_data_version" in data
+
+
+def reconstructions(root: Path) -> list[Path]:
+    """The ``reconstruction*/sfm_data.json`` files of an OpenMVG output folder, newest first."""
+    return sorted(root.glob(f"reconstruction*/{OPENMVG_FILE}"), key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+def find_openmvg(root: str | Path) -> Path | None:
+    """The ``sfm_data.json`` of a scene folder, else the newest of its ``reconstruction*/``, else
+    None (InputError when the folder holds only OpenMVG's binary ``sfm_data.bin``)."""
+    root = Path(root)
+    if (root / OPENMVG_FILE).is_file():
+        return root / OPENMVG_FILE
+    found = reconstructions(root)
+    if found:
+        return found[0]
+    binary = sorted(root.glob("sfm_data.bin")) + sorted(root.glob("reconstruction*/sfm_data.bin"))
+    if binary:
+        raise InputError(binary[0], "OpenMVG's binary format: convert it with openMVG_main_ConvertSfM_DataFormat "
+                                    f"-i {binary[0].name} -o {OPENMVG_FILE} (beside it)")
+    return None
+
+
+def _numbers(v: object, n: int, where: Path, what: str) -> np.ndarray:
+    if not isinstance(v, list) or len(v) != n or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+        raise InputError(where, f"{what} must be {n} finite numbers, got {v!r}")
+    return np.array(v, np.float64)
+
+
+def _entries(data: dict, key: str, where: Path) -> list[tuple[int, dict]]:
+    """(key, value) of a cereal map serialised as a list of {"key", "value"} objects."""
+    items = data.get(key, [])
+    if not isinstance(items, list) or not all(isinstance(i, dict) and "key" in i and isinstance(i.get("value"), dict)
+                                              for i in items):
+        raise InputError(where, f"{key}: expected a list of {{\"key\", \"value\"}} objects")
+    return [(int(i["key"]), i["value"]) for i in items]
+
+
+def _pointer_data(value: dict, where: Path, what: str) -> dict:
+    data = (value.get("ptr_wrapper") or {}).get("data")
+    if not isinstance(data, dict):
+        raise InputError(where, f"{what}: no ptr_wrapper data")
+    return data
+
+
+def _intrinsics(data: dict, where: Path) -> dict[int, tuple[tuple[int, int], dict[str, float] | str]]:
+    """Each intrinsic's ((width, height), intrinsics in pixels with OpenCV's distortion), or the
+    reason it cannot be read (raised when a posed view uses it)."""
+    names: dict[int, str] = {}
+    out = {}
+    for key, value in _entries(data, "intrinsics", where):
+        pid = int(value.get("polymorphic_id", 0))
+        if "polymorphic_name" in value:
+            names[pid & ~_NEW_TYPE] = str(value["polymorphic_name"])
+        kind = names.get(pid & ~_NEW_TYPE)
+        d = _pointer_data(value, where, f"intrinsic {key}")
+        try:
+            size = (int(d["width"]), int(d["height"]))
+        except (KeyError, TypeError, ValueError):
+            raise InputError(where, f"intrinsic {key}: needs width and height") from None
+        if kind not in _DISTORTION:
+            out[key] = size, (f"camera model {kind} is not supported (supported: {', '.join(_DISTORTION)}); "
+                              "undistort fisheye and spherical photos first")
+            continue
+        f = float(_numbers([d.get("focal_length")], 1, where, f"intrinsic {key}: focal_length")[0])
+        pp = _numbers(d.get("principal_point"), 2, where, f"intrinsic {key}: principal_point")
+        if not f > 0.0:
+            out[key] = size, f"intrinsic {key}: focal length must be positive, got {f}"
+            continue
+        field, keys = _DISTORTION[kind]
+        k = _numbers(d.get(field), len(keys), where, f"intrinsic {key}: {field}") if field else []
+        out[key] = size, {"fl_x": f, "fl_y": f, "cx": float(pp[0]), "cy": float(pp[1]),
+                          **dict(zip(keys, map(float, k)))}
+    return out
+
+
+def read_openmvg_frames(path: str | Path) -> list[Frame]:
+    """The frames of an OpenMVG ``sfm_data.json``, or of the one in a scene folder or OpenMVG output
+    folder (InputError naming the file when malformed, or a view's photo when it is missing)."""
+    path = Path(path)
+    root = path if path.is_dir() else None
+    if root is not None:
+        found = find_openmvg(root)
+        if found is None:
+            raise InputError(root, f"no OpenMVG {OPENMVG_FILE} (or reconstruction*/{OPENMVG_FILE})")
+        path = found
+        several = reconstructions(root)
+        if path.parent != root and len(several) > 1:
+            log.info("%s: %d reconstructions, reading the newest (%s)", root, len(several),
+                     path.relative_to(root).as_posix())
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(path, f"unreadable SfM_Data file ({e})") from None
+    if not is_openmvg(data):
+        raise InputError(path, "expected an OpenMVG SfM_Data object with \"sfm_data_version\"")
+    intrinsics = _intrinsics(data, path)
+    poses = {}
+    for key, value in _entries(data, "extrinsics", path):
+        R = _numbers([x for row in value.get("rotation", []) for x in row] if isinstance(value.get("rotation"), list)
+                     else None, 9, path, f"extrinsic {key}: rotation").reshape(3, 3)
+        C = _numbers(value.get("center"), 3, path, f"extrinsic {key}: center")
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0.0:
+            raise InputError(path, f"extrinsic {key}: rotation is not a rotation matrix")
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ C
+        poses[key] = w2c
+    folder = photo_folder([root, path.parent, path.parent.parent])
+    frames, unposed, index = [], [], {}
+    for key, value in _entries(data, "views", path):
+        v = _pointer_data(value, path, f"view {key}")
+        filename = str(v.get("filename", ""))
+        pose = poses.get(v.get("id_pose"))
+        if pose is None:
+            unposed.append(filename or str(key))
+            continue
+        size, intr = intrinsics.get(v.get("id_intrinsic"),
+                                    (None, f"intrinsic {v.get('id_intrinsic')} is not in the file"))
+        if isinstance(intr, str):
+            raise InputError(path, f"view {filename}: {intr}")
+        written = str(Path(str(data.get("root_path", ""))) / str(v.get("local_path", "")) / filename)
+        photo, name, masks = written_photo(written, folder, path, f"view {filename}", index)
+        frames.append(Frame(name=name, photo=photo, w2c=pose, size=size, intrinsics=dict(intr), part=None,
+                            mask=find_mask(masks, name)))
+    if unposed:
+        log.info("%s: %d views without a pose (not reconstructed) left out: %s%s", path, len(unposed),
+                 ", ".join(unposed[:5]), " ..." if len(unposed) > 5 else "")
+    if not frames:
+        raise InputError(path, "no reconstructed views (no view has a pose): read the reconstruction's "
+                               f"{OPENMVG_FILE}, not the one SfMInit_ImageListing writes")
+    return sorted(frames, key=lambda f: f.name)
