@@ -78,10 +78,10 @@ def _numbers(v: object, n: int, where: Path, what: str) -> np.ndarray:
 def _entries(data: dict, key: str, where: Path) -> list[tuple[int, dict]]:
     """(key, value) of a cereal map serialised as a list of {"key", "value"} objects."""
     items = data.get(key, [])
-    if not isinstance(items, list) or not all(isinstance(i, dict) and "key" in i and isinstance(i.get("value"), dict)
-                                              for i in items):
-        raise InputError(where, f"{key}: expected a list of {{\"key\", \"value\"}} objects")
-    return [(int(i["key"]), i["value"]) for i in items]
+    if not isinstance(items, list) or not all(isinstance(i, dict) and isinstance(i.get("key"), int)
+                                              and isinstance(i.get("value"), dict) for i in items):
+        raise InputError(where, f"{key}: expected a list of {{\"key\", \"value\"}} objects with integer keys")
+    return [(i["key"], i["value"]) for i in items]
 
 
 def _pointer_data(value: dict, where: Path, what: str) -> dict:
@@ -97,7 +97,9 @@ def _intrinsics(data: dict, where: Path) -> dict[int, tuple[tuple[int, int], dic
     names: dict[int, str] = {}
     out = {}
     for key, value in _entries(data, "intrinsics", where):
-        pid = int(value.get("polymorphic_id", 0))
+        pid = value.get("polymorphic_id")
+        if not isinstance(pid, int):
+            raise InputError(where, f"intrinsic {key}: polymorphic_id must be an integer, got {pid!r}")
         if "polymorphic_name" in value:
             names[pid & ~_NEW_TYPE] = str(value["polymorphic_name"])
         kind = names.get(pid & ~_NEW_TYPE)
@@ -145,15 +147,19 @@ def read_openmvg_frames(path: str | Path) -> list[Frame]:
     intrinsics = _intrinsics(data, path)
     poses = {}
     for key, value in _entries(data, "extrinsics", path):
-        R = _numbers([x for row in value.get("rotation", []) for x in row] if isinstance(value.get("rotation"), list)
-                     else None, 9, path, f"extrinsic {key}: rotation").reshape(3, 3)
+        rows = value.get("rotation")
+        rows_ok = isinstance(rows, list) and all(isinstance(r, list) for r in rows)
+        flat = [x for r in rows for x in r] if rows_ok else None
+        R = _numbers(flat, 9, path, f"extrinsic {key}: rotation (three rows of three)").reshape(3, 3)
         C = _numbers(value.get("center"), 3, path, f"extrinsic {key}: center")
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0.0:
             raise InputError(path, f"extrinsic {key}: rotation is not a rotation matrix")
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R, -R @ C
         poses[key] = w2c
-    folder = photo_folder([root, path.parent, path.parent.parent])
+    # images/ of the scene folder, of the file's folder or of the output folder above reconstruction*/
+    folder = photo_folder([root, path.parent] + ([path.parent.parent] if path.parent.name.startswith("reconstruction")
+                                                 else []))
     frames, unposed, index = [], [], {}
     for key, value in _entries(data, "views", path):
         v = _pointer_data(value, path, f"view {key}")

@@ -1,6 +1,6 @@
 """One photo of a frame layout with its camera, as the readers of one camera a photo give it
-(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.meshroom`, :mod:`.bundler`,
-:mod:`.realitycapture`; :mod:`.frame_layouts` makes views of them).
+(:mod:`.transforms`, :mod:`.metashape`, :mod:`.opensfm`, :mod:`.meshroom`, :mod:`.openmvg`,
+:mod:`.bundler`, :mod:`.realitycapture`; :mod:`.frame_layouts` makes views of them).
 
 Conventions: ``w2c`` is world-to-camera with OpenCV axes (+x right, +y down, looking along +z);
 intrinsics are in pixels with the principal point in COLMAP's convention (the image spans [0, w])
@@ -92,8 +92,8 @@ def find_photo(folder: Path, name: str, where: Path, what: str) -> Path:
 
 
 def labelled_photo(folder: Path, label: str, where: Path, what: str, index: dict[str, list[Path]]) -> Path:
-    """The photo of a camera label (a file name, with or without its extension, as Metashape and
-    Meshroom give it): in ``folder``, else the one photo of that name in its subfolders (a drone's
+    """The photo of a camera label (a file name, with or without its extension, as Metashape,
+    Meshroom and OpenMVG give it): in ``folder``, else the one photo of that name in its subfolders (a drone's
     card keeps 100MEDIA/, 101MEDIA/, ...), looked up in ``index`` (name and stem -> photos; filled
     on the first miss); errors name ``where`` and ``what`` (the entry)."""
     try:
@@ -109,10 +109,9 @@ def labelled_photo(folder: Path, label: str, where: Path, what: str, index: dict
             return found[0]
         if found:
             raise InputError(where, f"{what}: several photos of that name ("
-                                    f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): "
-                                    "rename them (and their entries in the camera file) to tell them apart") from None
+                                    f"{', '.join(p.relative_to(folder).as_posix() for p in found[:4])}): rename "
+                                    "them (and their entries in the camera file) to tell them apart") from None
         raise
-
 
 
 def photo_folder(places: Iterable[Path | None]) -> Path | None:
@@ -134,6 +133,7 @@ def written_photo(written: str, folder: Path | None, where: Path, what: str,
     if not label or not photo.is_file():
         raise InputError(where, f"{what}: photo {written} not found (nor an images/ folder beside {where.name})")
     return photo, photo.name, photo.parent
+
 
 def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -> Path:
     """``path`` when it is a layout's file, else the file ``find`` finds in the folder ``path``

@@ -96,6 +96,7 @@ def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
         (sfm.parent / "sfm_data.bin").write_bytes(b"\0" * 64)
     elif case == "rotation":
         data["extrinsics"][2]["value"]["rotation"][0][0] = 2.0
+        data["extrinsics"][3]["value"]["rotation"] = [1.0] * 9  # flat: named too, after extrinsic 2
     elif case == "disto":
         data["intrinsics"][0]["value"]["ptr_wrapper"]["data"]["disto_k3"] = [0.0, 0.0]
     elif case == "photo":
