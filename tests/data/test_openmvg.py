@@ -78,7 +78,8 @@ def test_unposed_views_moved_photos_and_the_newest_reconstruction(tiny_scene, tm
     assert len(read_any_cameras(older.parent)) == 5
 
 
-@pytest.mark.parametrize("case", ["fisheye", "binary", "rotation", "disto", "photo", "broken", "focal", "views"])
+@pytest.mark.parametrize("case", ["fisheye", "binary", "rotation", "flat", "disto", "photo", "broken", "focal",
+                                  "views"])
 def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     out = tmp_path / "omvg"
     sfm = levir_as_openmvg(tiny_scene, out, camera="fisheye" if case == "fisheye" else "pinhole_radial_k3",
@@ -87,6 +88,7 @@ def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     expect = {"fisheye": "view 000.png: camera model fisheye is not supported",
               "binary": "OpenMVG's binary format: convert it with openMVG_main_ConvertSfM_DataFormat",
               "rotation": "extrinsic 2: rotation is not a rotation matrix",
+              "flat": "extrinsic 3: rotation (three rows of three) must be 9 finite numbers",
               "disto": "intrinsic 0: disto_k3 must be 3 finite numbers",
               "photo": "view 004.png: photo 004.png not found", "broken": "unreadable SfM_Data file",
               "focal": "view 000.png: intrinsic 0: focal length must be positive",
@@ -96,7 +98,8 @@ def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
         (sfm.parent / "sfm_data.bin").write_bytes(b"\0" * 64)
     elif case == "rotation":
         data["extrinsics"][2]["value"]["rotation"][0][0] = 2.0
-        data["extrinsics"][3]["value"]["rotation"] = [1.0] * 9  # flat: named too, after extrinsic 2
+    elif case == "flat":
+        data["extrinsics"][3]["value"]["rotation"] = [1.0] * 9
     elif case == "disto":
         data["intrinsics"][0]["value"]["ptr_wrapper"]["data"]["disto_k3"] = [0.0, 0.0]
     elif case == "photo":
@@ -105,7 +108,7 @@ def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
         data["intrinsics"][0]["value"]["ptr_wrapper"]["data"]["focal_length"] = -1.0
     elif case == "views":
         data["views"] = {"0": "x"}
-    if case in ("rotation", "disto", "focal", "views"):
+    if case in ("rotation", "flat", "disto", "focal", "views"):
         sfm.write_text(json.dumps(data))
     if case == "broken":
         sfm.write_text(sfm.read_text()[:200])
