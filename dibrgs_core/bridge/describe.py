@@ -50,7 +50,7 @@ from ..data.colmap import find_colmap_model, image_folder, split_folder
 from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
-from ..data.load import NOT_A_SCENE, not_a_folder
+from ..data.load import not_a_folder, not_a_scene
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
 from .colmap_model import ColmapCamera, read_model
@@ -73,7 +73,7 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         views, images, layout = _frames(root)
         track = []
     else:
-        raise InputError(root, NOT_A_SCENE)
+        raise not_a_scene(root)
     try:
         train, test, source = make_split(split_folder(root), list(views), None, layout=layout)
     except ValueError as e:

@@ -36,7 +36,7 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
 
     if find_frame_layout(root) is not None:
         return read_frames_scene(root, train_ids=train_ids, test_ids=test_ids).recentred()
-    raise InputError(root, NOT_A_SCENE)
+    raise not_a_scene(root)
 
 
 def not_a_folder(root: Path) -> str:
@@ -47,7 +47,15 @@ def not_a_folder(root: Path) -> str:
     return "not a folder (a scene is the folder holding the camera file and the photos)"
 
 
-#: What a scene folder holds (the library's and the add-on's readers say it alike).
+def not_a_scene(root: Path) -> InputError:
+    """The error for a folder that no reader takes (the library's and the add-on's readers say it
+    alike): what a scene folder holds, or how to convert OpenMVG's binary file when it holds one."""
+    from .openmvg import binary_sfm_data
+
+    return binary_sfm_data(root) or InputError(root, NOT_A_SCENE)
+
+
+#: What a scene folder holds.
 NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model (cameras/images/points3D "
                ".bin or .txt in sparse/N, sparse/ or the folder), a transforms.json (instant-ngp, nerfstudio), a "
                "Metashape cameras XML (cameras.xml, photos in images/), an OpenDroneMap / OpenSfM "

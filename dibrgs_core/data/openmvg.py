@@ -53,19 +53,22 @@ def reconstructions(root: Path) -> list[Path]:
 
 
 def find_openmvg(root: str | Path) -> Path | None:
-    """The ``sfm_data.json`` of a scene folder, else the newest of its ``reconstruction*/``, else
-    None (InputError when the folder holds only OpenMVG's binary ``sfm_data.bin``)."""
+    """The ``sfm_data.json`` of a scene folder, else the newest of its ``reconstruction*/``, else None."""
     root = Path(root)
     if (root / OPENMVG_FILE).is_file():
         return root / OPENMVG_FILE
     found = reconstructions(root)
-    if found:
-        return found[0]
+    return found[0] if found else None
+
+
+def binary_sfm_data(root: Path) -> InputError | None:
+    """The error for a folder that holds OpenMVG's binary ``sfm_data.bin`` (its reconstruction's
+    default) and no JSON: how to convert it; else None."""
     binary = sorted(root.glob("sfm_data.bin")) + sorted(root.glob("reconstruction*/sfm_data.bin"))
-    if binary:
-        raise InputError(binary[0], "OpenMVG's binary format: convert it with openMVG_main_ConvertSfM_DataFormat "
-                                    f"-i {binary[0].name} -o {OPENMVG_FILE} (beside it)")
-    return None
+    if not binary:
+        return None
+    return InputError(binary[0], "OpenMVG's binary format: convert it with openMVG_main_ConvertSfM_DataFormat "
+                                 f"-i {binary[0].name} -o {OPENMVG_FILE} (beside it)")
 
 
 def _numbers(v: object, n: int, where: Path, what: str) -> np.ndarray:

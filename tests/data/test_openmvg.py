@@ -115,3 +115,8 @@ def test_sfm_data_files_we_cannot_read_are_named(tiny_scene, tmp_path, case):
     with pytest.raises(InputError) as e:
         read_any_scene(out)
     assert expect in str(e.value)
+    if case == "binary":  # the add-on's reader says it alike
+        from dibrgs_core.bridge.describe import describe_scene
+
+        with pytest.raises(InputError, match="convert it with openMVG_main_ConvertSfM_DataFormat -i sfm_data.bin"):
+            describe_scene(out)
