@@ -43,6 +43,7 @@ def summarize(scene) -> dict:
     up, conf = estimate_up(cams)
     out: dict = {
         "root": str(scene.root),
+        "layout": scene.layout,
         "views": len(scene.views),
         # the photos' size; with photos of several sizes the most common, and ``sizes`` lists them all
         "resolution": list(next(iter(sizes))),

@@ -220,7 +220,7 @@ def read_colmap_scene(root: str | Path, train_ids: Iterable[str] | None = None,
     except ValueError as e:
         raise InputError(root, str(e)) from None
     log.info("read COLMAP model %s: %d views, train %s (split: %s)", model_dir, len(views), train, source)
-    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source)
+    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source, layout="colmap")
 
 
 def _orientation(path: Path, width: int, height: int) -> bool:

@@ -155,9 +155,10 @@ def read_frames_scene(root: str | Path, train_ids: Iterable[str] | None = None,
         train, test, source = make_split(root, list(views), train_ids, test_ids, layout=layout_split(frames, ids))
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    log.info("read %s layout %s: %d views (%d undistorted), train %s (split: %s)", find_frame_layout(root), root,
-             len(views), undistorted, train, source)
-    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source)
+    layout = find_frame_layout(root)
+    log.info("read %s layout %s: %d views (%d undistorted), train %s (split: %s)", layout, root, len(views),
+             undistorted, train, source)
+    return Scene(root=root, views=views, track=[], train=train, test=test, split_source=source, layout=layout)
 
 
 def read_frames_cameras(path: str | Path) -> list[Camera]:

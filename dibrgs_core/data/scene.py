@@ -134,6 +134,8 @@ class Scene:
         track: render-path cameras (may be empty).
         train, test: view ids of the split.
         split_source: where the split came from (``--train``/``--test``, ``split.json``, the default).
+        layout: which reader read it: ``levir``, ``colmap`` or a frame layout's name
+            (:data:`~.frame_layouts.FrameLayout`), so a user sees which of a folder's files was used.
         origin: (3,) float64, the point of the files' world frame the cameras (and everything
             computed from them) are expressed from: a position ``X`` here is ``X + origin`` in the
             scene's files. Zeros unless the scene lies far from its coordinate origin
@@ -146,6 +148,7 @@ class Scene:
     train: list[str] = field(default_factory=list)
     test: list[str] = field(default_factory=list)
     split_source: str = "default"
+    layout: str = "levir"
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def train_views(self) -> list[View]:

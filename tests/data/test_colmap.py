@@ -35,7 +35,7 @@ def test_colmap_round_trip(tmp_path, binary):
     assert (model / ("cameras.bin" if binary else "cameras.txt")).is_file()
     views, _ = make_views()
     s = read_colmap_scene(root)
-    assert list(s.views) == sorted(views)
+    assert list(s.views) == sorted(views) and s.layout == "colmap"
     for k, v in views.items():
         c = s.views[k].camera
         assert np.abs(c.K - v.camera.K).max() < 1e-9

@@ -255,7 +255,7 @@ def test_corrupt_depth(scene_dir):
 def test_info_command(scene_dir, capsys):
     assert dibrgs(["info", str(scene_dir)]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["views"] == 21 and out["resolution"] == [W, H]
+    assert out["views"] == 21 and out["resolution"] == [W, H] and out["layout"] == "levir"
     assert out["train"] == ["001", "008", "015"] and len(out["test"]) == 17
     assert out["track_cameras"] == 6
     assert np.allclose(out["up"], [0, 0, 1], atol=0.01) and out["up_confidence"] > 0.5

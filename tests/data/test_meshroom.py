@@ -28,7 +28,7 @@ def test_a_meshroom_project_reads_the_cameras_of_the_same_views(tiny_scene, tmp_
     out = tmp_path / "project"
     sfm = levir_as_meshroom(tiny_scene, out, version=version, photos=tmp_path / "shoot" / "DCIM")
     with caplog.at_level("INFO", logger="dibrgs"):
-        reads_as_levir(out, tiny_scene, [sfm])
+        assert reads_as_levir(out, tiny_scene, [sfm]).layout == "meshroom"
     assert "read meshroom layout" in caplog.text
 
 

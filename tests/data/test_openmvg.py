@@ -26,7 +26,7 @@ def test_an_openmvg_output_folder_reads_the_cameras_of_the_same_views(tiny_scene
     out = tmp_path / "omvg"
     sfm = levir_as_openmvg(tiny_scene, out, photos=tmp_path / "shoot")
     with caplog.at_level("INFO", logger="dibrgs"):
-        reads_as_levir(out, tiny_scene, [sfm])
+        assert reads_as_levir(out, tiny_scene, [sfm]).layout == "openmvg"
     assert "read openmvg layout" in caplog.text
     with pytest.raises(InputError, match="no reconstructed views"):  # the image listing: no poses
         read_any_cameras(out / "matches" / "sfm_data.json")

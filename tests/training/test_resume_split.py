@@ -74,6 +74,7 @@ def test_library_split_is_recorded(scene24, finished_run, tmp_path):
     assert tr.run().status == "done"
     values = json.loads((work / "report.json").read_text())["values"]["scene"]
     assert values["train"] == ["001", "008"] and values["split_source"] == "--train + --test"
+    assert values["layout"] == "levir"  # which reader read the folder
     cfg.iterations = 3
     from dibrgs_core.common.errors import InputError
 
