@@ -242,7 +242,7 @@ def read_scene(root: str | Path, train_ids: Iterable[str] | None = None, load_de
         train, test, source = make_split(root, list(views), train_ids, test_ids)
     except ValueError as e:
         raise InputError(root, str(e)) from None
-    scene = Scene(root=root, views=views, track=track, train=train, test=test, split_source=source)
+    scene = Scene(root=root, views=views, track=track, train=train, test=test, split_source=source, layout="levir")
     sizes = scene.sizes()
     (w, h), others = next(iter(sizes)), len(sizes) - 1
     log.info("read %s: %d views %dx%d%s, train %s, %d test (split: %s), %d track cameras%s", root, len(views),
