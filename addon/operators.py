@@ -205,8 +205,9 @@ class DIBRGS_OT_import_scene(bpy.types.Operator):
             props.work_dir = str(Path(tempfile.gettempdir()) / "dibrgs" / root.name)
         props.decisions.clear()
         n = {s: sum(v["split"] == s for v in desc["views"]) for s in ("train", "test", "other")}
-        props.message = (f"Imported {len(objs)} views from {root.name}: {n['train']} training, "
-                         f"{n['test']} held-out, {n['other']} other; pseudo-view path: {plan.kind}")
+        props.message = (f"Imported {len(objs)} views from {root.name} ({desc['layout_name']}): "
+                         f"{n['train']} training, {n['test']} held-out, {n['other']} other; "
+                         f"pseudo-view path: {plan.kind}")
         left_out = jobs.pseudo_views_left_out(props.preset, n["train"])
         if left_out:  # the path still shows the trajectory; an edited one would not be used either
             props.message += f" (training leaves pseudo views out: {left_out})"

@@ -16,13 +16,15 @@ LEVIR, COLMAP (text and binary), transforms, Metashape, OpenSfM, Meshroom, OpenM
 and RealityCapture scenes.
 The description is::
 
-    {"root": str, "views": [{"name", "split": "train"|"test"|"other",
+    {"root": str, "layout": the reader (Scene.layout), "layout_name": its name in words,
+     "views": [{"name", "split": "train"|"test"|"other",
                              "camera": camera_to_dict(...), "image": path,
                              "orientation": EXIF orientation 1-8 that turns the file's
                                             stored pixels into the view's image,
                                             "undistorted": whether the camera is the
                                             undistorted pinhole of a distorted one}],
-     "train": [names], "test": [names], "track": [camera dicts], "origin": [x, y, z],
+     "train": [names], "test": [names], "split_source": where the split came from,
+     "track": [camera dicts], "origin": [x, y, z],
      "clip": [start, end]}
 
 ``clip`` is the Blender clip range for cameras without a depth range
@@ -50,7 +52,7 @@ from ..data.colmap import find_colmap_model, image_folder, split_folder
 from ..data.frame_layouts import find_frame_layout, frames_and_ids, layout_split, stored_or_upright
 from ..data.images import turned_to_fit, upright_size
 from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
-from ..data.load import not_a_folder, not_a_scene
+from ..data.load import LAYOUT_NAMES, not_a_folder, not_a_scene
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
 from .colmap_model import ColmapCamera, read_model
@@ -67,9 +69,11 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
     layout = None
     if (root / "Cams").is_dir():
         views, images, track = _levir(root)
+        kind = "levir"
     elif find_colmap_model(root) is not None:
         views, images, track = _colmap(root)
-    elif find_frame_layout(root) is not None:
+        kind = "colmap"
+    elif (kind := find_frame_layout(root)) is not None:
         views, images, layout = _frames(root)
         track = []
     else:
@@ -85,7 +89,8 @@ def describe_scene(root: str | Path) -> dict[str, Any]:
         path, orientation, undistorted = images[name]
         out.append({"name": name, "split": split, "camera": camera_to_dict(cam), "image": str(path.resolve()),
                     "orientation": orientation, "undistorted": undistorted})
-    return {"root": str(root.resolve()), "views": out, "train": train, "test": test, "split_source": source,
+    return {"root": str(root.resolve()), "layout": kind, "layout_name": LAYOUT_NAMES[kind], "views": out,
+            "train": train, "test": test, "split_source": source,
             "track": [camera_to_dict(c) for c in track], "origin": [float(v) for v in origin],
             "clip": [float(v) for v in clip_range(list(views.values()))]}
 

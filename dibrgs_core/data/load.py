@@ -39,6 +39,13 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
     raise not_a_scene(root)
 
 
+#: What each reader (``Scene.layout``) is called where a person reads it (the add-on's messages).
+LAYOUT_NAMES = {"levir": "LEVIR-NVS folder", "colmap": "COLMAP model", "transforms": "transforms.json",
+                "metashape": "Metashape camera export", "opensfm": "OpenDroneMap / OpenSfM reconstruction",
+                "meshroom": "Meshroom project", "openmvg": "OpenMVG reconstruction",
+                "realitycapture": "RealityCapture sidecars", "bundler": "Bundler file"}
+
+
 def not_a_folder(root: Path) -> str:
     """What is wrong with a scene path that is no folder (the library's and the add-on's readers
     say it alike)."""

@@ -599,9 +599,11 @@ def test_the_split_is_chosen_by_moving_view_cameras(scene64, fresh, monkeypatch)
     assert sb.scene_description()["train"] == ["001", "008", "015"] and ops._run(bpy.context).split is None
 
 
-def _imports_with_the_cams_files_cameras(root, scene64, fresh) -> None:
-    """Import ``root`` (the generated scene in another layout): every view object has the Cams file's camera."""
+def _imports_with_the_cams_files_cameras(root, scene64, fresh, layout_name: str) -> None:
+    """Import ``root`` (the generated scene in another layout): the message names the layout and
+    every view object has the Cams file's camera."""
     assert bpy.ops.dibrgs.import_scene(directory=str(root)) == {"FINISHED"}
+    assert f"views from {root.name} ({layout_name}): " in fresh.dibrgs.message
     sb = _mod("scene_build")
     objs = _view_objects()
     assert sorted(objs) == sorted(p.stem for p in (scene64 / "Cams").glob("*.txt"))
@@ -626,7 +628,7 @@ def test_a_transforms_json_scene_imports_with_its_cameras(scene64, fresh, tmp_pa
         frames.append({"file_path": f"images/{cams.stem}.png", "transform_matrix": c2w.tolist()})
     (root / "transforms.json").write_text(json.dumps({"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2],
                                                       "cy": K[1, 2], "w": 64, "h": 64, "frames": frames}))
-    _imports_with_the_cams_files_cameras(root, scene64, fresh)
+    _imports_with_the_cams_files_cameras(root, scene64, fresh, "transforms.json")
 
 
 def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
@@ -651,7 +653,7 @@ def test_a_metashape_export_imports_with_its_cameras(scene64, fresh, tmp_path):
         f"<cx>{K[0, 2] - 32!r}</cx><cy>{K[1, 2] - 32!r}</cy><b1>{K[0, 0] - K[1, 1]!r}</b1></calibration></sensor>"
         f"</sensors><cameras>{''.join(cameras)}</cameras><transform><rotation>{rot}</rotation>"
         "<translation>30 -12 5</translation><scale>2</scale></transform></chunk></document>")
-    _imports_with_the_cams_files_cameras(root, scene64, fresh)
+    _imports_with_the_cams_files_cameras(root, scene64, fresh, "Metashape camera export")
 
 
 def _rotation_vector(R: np.ndarray) -> np.ndarray:
@@ -741,7 +743,9 @@ def test_other_photogrammetry_exports_import_with_their_cameras(scene64, fresh, 
         (root / "reconstruction_global" / "sfm_data.json").write_text(json.dumps({
             "sfm_data_version": "0.3", "root_path": "/elsewhere", "views": views, "intrinsics": [intr],
             "extrinsics": poses}))
-    _imports_with_the_cams_files_cameras(root, scene64, fresh)
+    names = {"bundler": "Bundler file", "realitycapture": "RealityCapture sidecars", "meshroom": "Meshroom project",
+             "opendronemap": "OpenDroneMap / OpenSfM reconstruction", "openmvg": "OpenMVG reconstruction"}
+    _imports_with_the_cams_files_cameras(root, scene64, fresh, names[layout])
 
 
 def test_photos_of_different_sizes_each_keep_their_camera(scene64, fresh, tmp_path):

@@ -660,6 +660,7 @@ def test_describe_follows_exif_orientation_as_the_library(tmp_path, monkeypatch)
 
 def _same_description(desc: dict, scene, atol: float = 1e-12) -> None:
     assert desc["train"] == list(scene.train) and desc["test"] == list(scene.test)
+    assert desc["layout"] == scene.layout  # the same reader picked
     np.testing.assert_array_equal(desc["origin"], scene.origin)
     assert [v["name"] for v in desc["views"]] == list(scene.views)
     assert len(desc["track"]) == len(scene.track)
