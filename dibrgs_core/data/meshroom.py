@@ -170,9 +170,10 @@ def _intrinsics(intr: dict, version: tuple[int, int, int],
             np.array([number("pxFocalLength")] * 2)
         fx, fy = float(f[0]), float(f[1])
     else:
-        fmm, ratio, per_mm = number("focalLength", 1.0), number("pixelRatio", 1.0), w / number("sensorWidth", 36.0)
-        if not (ratio > 0.0 and per_mm > 0.0):
-            return (w, h), f"intrinsic {iid}: pixelRatio and sensorWidth must be positive, got {ratio}, {w / per_mm}"
+        fmm, ratio, sensor = number("focalLength", 1.0), number("pixelRatio", 1.0), number("sensorWidth", 36.0)
+        if not (ratio > 0.0 and sensor > 0.0):  # -1: a sensor Meshroom did not know
+            return (w, h), f"intrinsic {iid}: pixelRatio and sensorWidth must be positive, got {ratio}, {sensor}"
+        per_mm = w / sensor
         if version < (1, 2, 5):  # pixelRatio held fx / fy
             fx, fy = fmm * per_mm, fmm * per_mm / ratio
         elif version < (1, 2, 11):
@@ -270,7 +271,8 @@ def _view_pose(view: dict, poses: dict[str, dict], rigs: dict[str, dict], where:
     pose = poses.get(str(view.get("poseId")))
     if pose is None:
         return None
-    w2c = _w2c((pose.get("pose") or {}).get("transform"), where, f"pose {view.get('poseId')}")
+    body = pose.get("pose")
+    w2c = _w2c(body.get("transform") if isinstance(body, dict) else None, where, f"pose {view.get('poseId')}")
     if "rigId" not in view or _flag(view.get("isPoseIndependant", "true")):
         return w2c
     rig = rigs.get(str(view["rigId"]))

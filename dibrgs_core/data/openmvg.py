@@ -88,7 +88,8 @@ def _entries(data: dict, key: str, where: Path) -> list[tuple[int, dict]]:
 
 
 def _pointer_data(value: dict, where: Path, what: str) -> dict:
-    data = (value.get("ptr_wrapper") or {}).get("data")
+    wrapper = value.get("ptr_wrapper")
+    data = wrapper.get("data") if isinstance(wrapper, dict) else None
     if not isinstance(data, dict):
         raise InputError(where, f"{what}: no ptr_wrapper data")
     return data
@@ -109,8 +110,11 @@ def _intrinsics(data: dict, where: Path) -> dict[int, tuple[tuple[int, int], dic
         d = _pointer_data(value, where, f"intrinsic {key}")
         try:
             size = (int(d["width"]), int(d["height"]))
-        except (KeyError, TypeError, ValueError):
-            raise InputError(where, f"intrinsic {key}: needs width and height") from None
+        except (KeyError, TypeError, ValueError, OverflowError):
+            size = (0, 0)
+        if min(size) <= 0:
+            raise InputError(where, f"intrinsic {key}: width and height must be positive integers, got "
+                                    f"{d.get('width')!r}, {d.get('height')!r}")
         if kind not in _DISTORTION:
             out[key] = size, (f"camera model {kind} is not supported (supported: {', '.join(_DISTORTION)}); "
                               "undistort fisheye and spherical photos first")
@@ -167,6 +171,9 @@ def read_openmvg_frames(path: str | Path) -> list[Frame]:
     for key, value in _entries(data, "views", path):
         v = _pointer_data(value, path, f"view {key}")
         filename = str(v.get("filename", ""))
+        ids = v.get("id_pose"), v.get("id_intrinsic")
+        if not all(isinstance(i, int) for i in ids):
+            raise InputError(path, f"view {filename or key}: id_pose and id_intrinsic must be integers, got {ids}")
         pose = poses.get(v.get("id_pose"))
         if pose is None:
             unposed.append(filename or str(key))

@@ -90,7 +90,7 @@ def _intrinsics(cam: dict, cid: str, where: Path) -> tuple[tuple[int, int], dict
 def _largest(data: object, where: Path) -> dict:
     if not isinstance(data, list) or not data or not all(isinstance(r, dict) for r in data):
         raise InputError(where, "expected a list of reconstructions (objects with \"cameras\" and \"shots\")")
-    sizes = [len(r.get("shots") or {}) for r in data]
+    sizes = [len(r["shots"]) if isinstance(r.get("shots"), dict) else 0 for r in data]
     best = int(np.argmax(sizes))
     if len(data) > 1:
         log.info("%s: %d reconstructions (%s shots), reading the largest", where, len(data),
