@@ -155,7 +155,7 @@ class Trainer:
         h, w = self.train_frames[0].image.shape[:2]
         run = {"digest": digest, "train": list(scene.train), "test": list(scene.test),
                "split_source": scene.split_source, "resolution_scale": s}
-        self.report.values["scene"] = {"root": str(self.scene_root), "layout": scene.layout, **run, "resolution": [w, h]}
+        self.report.values["scene"] = dict(root=str(self.scene_root), layout=scene.layout, **run, resolution=[w, h])
         log.info("scene %s (digest %s): train %s, %d test views; split from %s", self.scene_root, digest,
                  ", ".join(scene.train), len(scene.test), scene.split_source)
         self.scene_origin = np.asarray(scene.origin, np.float64)
