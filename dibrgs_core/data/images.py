@@ -102,6 +102,8 @@ def _tiff(path: Path, pixels: bool):
             if "Y" not in axes or "X" not in axes:
                 raise ValueError(f"no image axes in {axes}")
             H, W = shape[axes.index("Y")], shape[axes.index("X")]
+            if H <= 0 or W <= 0:
+                raise ValueError(f"an image of {W}x{H} pixels")
             # the first extra sample marked as alpha, after the colour bands
             colour = 3 if int(page.photometric) == 2 else 1
             alpha = next((colour + k for k, e in enumerate(page.extrasamples or ()) if int(e) in (1, 2)), None)
@@ -124,8 +126,10 @@ def _tiff(path: Path, pixels: bool):
                                        "deflate-compressed") from None
     except FileNotFoundError:
         raise InputError(path, "image file not found") from None
-    except (OSError, ValueError, IndexError, tifffile.TiffFileError) as e:
-        raise InputError(path, f"unreadable or truncated image ({e})") from None
+    except InputError:
+        raise
+    except Exception as e:  # tifffile raises many types for corrupt files (a zero division among them)
+        raise InputError(path, f"unreadable or truncated image ({type(e).__name__}: {e})") from None
     # bands (samples, channels, pages) last, whatever order the file keeps them in
     a = np.moveaxis(a, [axes.index("Y"), axes.index("X")], [0, 1]).reshape(H, W, -1)
     return a, (W, H), orientation, alpha, nodata
@@ -202,7 +206,7 @@ def image_size(path: str | Path, orient: bool = True) -> tuple[int, int]:
         with Image.open(path) as im:
             w, h = im.size
             return upright_size(w, h, exif_orientation(im)) if orient else (w, h)
-    except (OSError, UnidentifiedImageError) as e:
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:  # as _pillow_image: a bad header
         raise InputError(path, f"unreadable image ({e})") from None
 
 
