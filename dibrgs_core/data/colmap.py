@@ -10,7 +10,7 @@ COLMAP's mapper writes one model a part of the flight it could join (``sparse/0`
 ...): of several, the one with the most images is read, and the log says so; a model's own folder
 (``SCENE/sparse/1``) reads that one, with ``SCENE``'s photos and ``split.json``.
 
-``points3D`` may be missing (a model of known cameras and poses only): its points are never used.
+``points3D`` may be missing (a model of known cameras and poses only): its points are never read.
 
 COLMAP poses are world-to-camera with OpenCV axes and pixel centres at +0.5,
 the project's own convention, so they are taken over unchanged. Pinhole
@@ -133,17 +133,17 @@ def _load(root: str | Path):
     if not any((model_dir / f"images{e}").is_file() for e in (".bin", ".txt")):
         raise InputError(model_dir / "images.bin", "COLMAP model file missing")
     try:
-        if any((model_dir / f"points3D{e}").is_file() for e in (".bin", ".txt")):
-            return pycolmap.Reconstruction(str(model_dir)), model_dir
         return _without_points(model_dir), model_dir
     except Exception as e:  # pycolmap raises plain exceptions for corrupt models
         raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
 
 
 def _without_points(model_dir: Path):
-    """A model of cameras and poses only (no points3D file: COLMAP's FAQ writes an empty one for
-    known poses, not every exporter does; the pipeline triangulates its own points), read by
-    pycolmap through a copy with an empty points file."""
+    """A model's cameras and poses, read by pycolmap beside an empty points file: the pipeline
+    triangulates its own points, a known-poses model may have none (COLMAP's FAQ writes an empty
+    file, not every exporter does), a large model's millions of points cost seconds and gigabytes
+    to read, and a damaged ``points3D.bin`` (a count of 2^40 points) keeps pycolmap reading
+    forever. The other files are linked (copied where links are not allowed)."""
     import tempfile
 
     pycolmap = import_pycolmap()
@@ -151,10 +151,13 @@ def _without_points(model_dir: Path):
     ext = ".bin" if (model_dir / "cameras.bin").is_file() else ".txt"
     with tempfile.TemporaryDirectory(prefix="dibrgs-colmap-") as tmp:
         for stem in ("cameras", "images", "rigs", "frames"):
-            if (model_dir / f"{stem}{ext}").is_file():
-                shutil.copyfile(model_dir / f"{stem}{ext}", Path(tmp) / f"{stem}{ext}")
+            src, dst = model_dir / f"{stem}{ext}", Path(tmp) / f"{stem}{ext}"
+            if src.is_file():
+                try:
+                    dst.symlink_to(src.resolve())
+                except OSError:
+                    shutil.copyfile(src, dst)
         (Path(tmp) / f"points3D{ext}").write_bytes(struct.pack("<Q", 0) if ext == ".bin" else b"")
-        log.info("%s: no points3D file, read without points (the SfM stage triangulates its own)", model_dir)
         return pycolmap.Reconstruction(tmp)
 
 

@@ -191,3 +191,22 @@ def test_a_model_of_cameras_and_poses_only(tmp_path, binary):
     (root / "sparse" / "0" / ("images.bin" if binary else "images.txt")).unlink()
     with pytest.raises(InputError, match="COLMAP model file missing"):
         read_colmap_scene(root)
+
+
+def test_a_damaged_points_file_is_not_read(tmp_path):
+    """The pipeline never uses a model's points: a points3D.bin whose count says 2^40 points (on
+    which pycolmap reads on without end) or that is garbage does not stop the cameras being read
+    (a real subprocess, so a reader that hangs fails the test instead of the suite)."""
+    import struct
+    import subprocess
+    import sys
+
+    root = colmap_dir(tmp_path / "c", binary=True)
+    points = root / "sparse" / "0" / "points3D.bin"
+    body = points.read_bytes()
+    for damaged in (struct.pack("<Q", 2**40) + body[8:], b"\xff" * 40):
+        points.write_bytes(damaged)
+        code = (f"from dibrgs_core.data.colmap import read_colmap_scene; "
+                f"print(len(read_colmap_scene({str(root)!r}).views))")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0 and r.stdout.strip() == str(len(make_views()[0])), r.stderr[-2000:]
