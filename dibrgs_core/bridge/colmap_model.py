@@ -189,7 +189,7 @@ def read_model(model_dir: str | Path) -> tuple[dict[int, ColmapCamera], list[Col
         return _cameras_txt(model_dir / "cameras.txt"), _images_txt(model_dir / "images.txt")
     except InputError:
         raise
-    except (OSError, ValueError, KeyError, IndexError, struct.error, UnicodeDecodeError) as e:
+    except (OSError, ValueError, KeyError, IndexError, OverflowError, struct.error, UnicodeDecodeError) as e:
         raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
 
 

@@ -116,8 +116,6 @@ def read_colmap_cameras(root: str | Path) -> list[Camera]:
 
 
 def _load(root: str | Path):
-    pycolmap = import_pycolmap()
-
     root = Path(root)
     if not root.exists():
         raise InputError(root, "COLMAP folder not found")
@@ -132,10 +130,68 @@ def _load(root: str | Path):
                     root / "sparse" / "N")
     if not any((model_dir / f"images{e}").is_file() for e in (".bin", ".txt")):
         raise InputError(model_dir / "images.bin", "COLMAP model file missing")
+    check_binary_counts(model_dir)
     try:
-        return _without_points(model_dir), model_dir
+        rec = _without_points(model_dir)
+        _ = [im.name for im in rec.images.values()]  # a damaged name is no UTF-8: fails here, not later
+        return rec, model_dir
     except Exception as e:  # pycolmap raises plain exceptions for corrupt models
         raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
+
+
+#: Bytes of one record of each binary file after its count, at the least (COLMAP's
+#: reconstruction_io_binary.cc): a frame's id, rig id and pose; an image's id, pose, camera id and
+#: the name's terminating zero; a rig's id and sensor count; a camera's id, model, size and one parameter.
+_MIN_RECORD = {"frames": 4 + 4 + 56 + 4, "images": 4 + 56 + 4 + 1 + 8, "rigs": 4 + 4, "cameras": 4 + 4 + 16 + 8}
+
+
+def check_binary_counts(model_dir: Path) -> None:
+    """InputError naming a binary model file whose counts announce more records than it holds:
+    pycolmap reads such a file past its end without stopping (a damaged frames.bin took minutes).
+    Walks the frames' data ids, the images' points and the rigs' sensors; reads no values."""
+    for stem, least in _MIN_RECORD.items():
+        path = model_dir / f"{stem}.bin"
+        if not path.is_file():
+            continue
+        data = path.read_bytes()
+        size, off = len(data), 8
+
+        def need(n: int, what: str) -> None:
+            if off + n > size:
+                raise InputError(path, f"damaged: {what} reach past the file's {size} bytes")
+
+        need(0, "the count")
+        (count,) = struct.unpack_from("<Q", data, 0) if size >= 8 else (None,)
+        if count is None or count * least > size - 8:
+            raise InputError(path, f"damaged: it announces {count} records in {size} bytes")
+        if stem == "cameras":
+            continue  # each camera's parameters are a fixed number for its model: pycolmap checks them
+        for _ in range(count):
+            if stem == "frames":
+                need(68, "a frame")
+                (k,) = struct.unpack_from("<I", data, off + 64)
+                off += 68
+                need(16 * k, f"a frame's {k} data ids")
+                off += 16 * k
+            elif stem == "images":
+                need(64, "an image")
+                end = data.find(b"\0", off + 64)
+                if end < 0:
+                    raise InputError(path, "damaged: an image name without its end")
+                off = end + 1
+                need(8, "an image's point count")
+                (k,) = struct.unpack_from("<Q", data, off)
+                off += 8
+                need(24 * k, f"an image's {k} points")
+                off += 24 * k
+            else:
+                need(8, "a rig")
+                (k,) = struct.unpack_from("<I", data, off + 4)
+                off += 8 + (8 if k else 0)
+                for _ in range(max(k - 1, 0)):
+                    need(9, "a rig's sensor")
+                    off += 9 + (56 if data[off + 8] else 0)
+                    need(0, "a rig's sensor pose")
 
 
 def _without_points(model_dir: Path):
