@@ -23,7 +23,7 @@ def camera_from_dict(d: dict, source: str = "<dict>") -> Camera:
         K = np.asarray(d["K"], dtype=np.float64)
         w2c = np.asarray(d["w2c"], dtype=np.float64)
         W, H = int(d["width"]), int(d["height"])
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise ValueError(f"{source}: camera entry needs name/width/height/K/w2c ({e})") from None
     if K.shape != (3, 3) or w2c.shape != (4, 4):
         raise ValueError(f"{source}: K must be 3x3 and w2c 4x4, got {K.shape} and {w2c.shape}")
@@ -32,5 +32,11 @@ def camera_from_dict(d: dict, source: str = "<dict>") -> Camera:
     if W < 1 or H < 1:
         raise ValueError(f"{source}: image size must be positive, got {W}x{H}")
     dr = d.get("depth_range")
-    return Camera(K=K, w2c=w2c, width=W, height=H, name=str(d.get("name", "")),
-                  depth_range=tuple(map(float, dr)) if dr is not None else None)
+    if dr is not None:
+        try:
+            dr = tuple(float(v) for v in dr)
+        except (TypeError, ValueError):
+            dr = ()
+        if len(dr) != 2:
+            raise ValueError(f"{source}: camera {d.get('name', '?')}: depth_range must be two numbers (near, far)")
+    return Camera(K=K, w2c=w2c, width=W, height=H, name=str(d.get("name", "")), depth_range=dr)

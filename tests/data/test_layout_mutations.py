@@ -1,7 +1,8 @@
-"""Every reader of a photogrammetry tool's camera file, given that file with one thing changed at
-random (a key or element removed, a value replaced by null, a string, a list, NaN, infinity, a huge
-number, broken markup), gives frames or an InputError naming the file: never another exception
-(fixed seeds; these mutations found a division by zero and five type errors in the readers)."""
+"""Every reader of a photogrammetry tool's camera file, and of the JSON camera lists `render
+--cameras` and `--pseudo-path` take, given that file with one thing changed at random (a key or
+element removed, a value replaced by null, a string, a list, NaN, infinity, a huge number, broken
+markup), gives cameras or an InputError naming the file: never another exception (fixed seeds;
+these mutations found a division by zero and seven type or overflow errors in the readers)."""
 from __future__ import annotations
 
 import copy
@@ -14,6 +15,7 @@ import pytest
 
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.frame_layouts import layout_frames
+from dibrgs_core.data.load import read_any_cameras
 
 pytest.importorskip("pycolmap")
 
@@ -72,12 +74,20 @@ def _files(layout: str, levir: Path, out: Path) -> list[Path]:
     if layout == "realitycapture":
         photo_synth.levir_as_realitycapture(levir, out)
         return sorted((out / "images").glob("*.xmp"))[:3]
+    if layout == "camera_list":
+        from dibrgs_core.camera.serialize import camera_to_dict
+        from dibrgs_core.data.load import read_any_scene
+
+        out.mkdir()
+        cams = [camera_to_dict(c) for c in read_any_scene(levir, load_depth=False).cameras[:4]]
+        (out / "cams.json").write_text(json.dumps({"cameras": [{**c, "depth_range": [1.0, 500.0]} for c in cams]}))
+        return [out / "cams.json"]
     photo_synth.levir_as_bundler(levir, out)
     return sorted(p for p in out.rglob("*") if p.suffix in (".out", ".txt") and p.is_file())
 
 
 @pytest.mark.parametrize("layout", ["meshroom", "openmvg", "opensfm", "transforms", "metashape", "realitycapture",
-                                    "bundler"])
+                                    "bundler", "camera_list"])
 def test_a_changed_camera_file_reads_or_is_named(tiny_scene, tmp_path, layout):
     out = tmp_path / layout
     files = _files(layout, tiny_scene, out)
@@ -91,7 +101,7 @@ def test_a_changed_camera_file_reads_or_is_named(tiny_scene, tmp_path, layout):
         else:
             f.write_text(_text_mutation(texts[f], rng))
         try:
-            layout_frames(out)
+            read_any_cameras(f) if layout == "camera_list" else layout_frames(out)
             outcomes["read"] += 1
         except InputError as e:
             assert str(e).strip() and "\n" not in str(e).strip(), e  # one line
