@@ -158,12 +158,12 @@ def check_binary_counts(model_dir: Path) -> None:
 
         def need(n: int, what: str) -> None:
             if off + n > size:
-                raise InputError(path, f"damaged: {what} reach past the file's {size} bytes")
+                raise InputError(path, f"unreadable COLMAP model file (damaged: {what} reach past its {size} bytes)")
 
         need(0, "the count")
         (count,) = struct.unpack_from("<Q", data, 0) if size >= 8 else (None,)
         if count is None or count * least > size - 8:
-            raise InputError(path, f"damaged: it announces {count} records in {size} bytes")
+            raise InputError(path, f"unreadable COLMAP model file (damaged: {count} records announced in {size} bytes)")
         if stem == "cameras":
             continue  # each camera's parameters are a fixed number for its model: pycolmap checks them
         for _ in range(count):
@@ -177,7 +177,7 @@ def check_binary_counts(model_dir: Path) -> None:
                 need(64, "an image")
                 end = data.find(b"\0", off + 64)
                 if end < 0:
-                    raise InputError(path, "damaged: an image name without its end")
+                    raise InputError(path, "unreadable COLMAP model file (damaged: an image name without its end)")
                 off = end + 1
                 need(8, "an image's point count")
                 (k,) = struct.unpack_from("<Q", data, off)

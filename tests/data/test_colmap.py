@@ -243,6 +243,7 @@ print("ok")
 """
 
 
+@pytest.mark.slow
 def test_a_damaged_binary_model_is_named_in_one_line(tmp_path):
     """cameras, images, rigs and frames files of a binary model with random bytes changed or cut short,
     through the library's reader (pycolmap) and the add-on's: each read gives the scene or one

@@ -16,6 +16,8 @@ from dibrgs_core.common.errors import InputError
 from dibrgs_core.data import images as im
 
 tifffile = pytest.importorskip("tifffile")
+# robustness sweeps: the full suite runs them, the quick tier does not
+pytestmark = pytest.mark.slow
 MUTATIONS = 150
 
 

@@ -21,6 +21,8 @@ pytest.importorskip("pycolmap")
 
 import photo_synth  # noqa: E402
 
+# robustness sweeps: the full suite runs them, the quick tier does not
+pytestmark = pytest.mark.slow
 MUTATIONS = 120
 _VALUES = [None, "", "x", -1, 0, 1.5, True, [], {}, [1], "nan", float("inf"), 10**30, [None, None, None]]
 _TOKENS = ["nan", "inf", "", "x", "0", "-1", "1e309", "<", "\"", "1 2", "\n"]
