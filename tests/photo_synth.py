@@ -146,6 +146,26 @@ def reads_as_levir(out: Path, levir: Path, camera_files: list[Path]):
             np.testing.assert_array_equal(c.w2c, scene.views[c.name].camera.w2c)
     return scene
 
+
+def assert_projects_as_brown(frame, k: tuple, f: tuple, c: tuple) -> None:
+    """The COLMAP camera ``frame`` gives (at its own size) projects points as the Brown model of
+    OpenMVG and AliceVision with ``k`` = (k1, k2, k3, t1, t2), focal lengths ``f`` and principal
+    point ``c`` (pixels): x' = x d_r + t2 (r^2 + 2 x^2) + 2 t1 x y, y' = y d_r + t1 (r^2 + 2 y^2) +
+    2 t2 x y, so t1 is OpenCV's p1 (computed here, not by the reader)."""
+    import pycolmap
+
+    model, params = frame.camera_model(*frame.size)
+    xy = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 2))
+    got = pycolmap.Camera(model=model, width=frame.size[0], height=frame.size[1], params=params).img_from_cam(
+        np.column_stack([xy, np.ones(len(xy))]))
+    k1, k2, k3, t1, t2 = k
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    dr = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    xd = x * dr + t2 * (r2 + 2 * x * x) + 2 * t1 * x * y
+    yd = y * dr + t1 * (r2 + 2 * y * y) + 2 * t2 * x * y
+    np.testing.assert_allclose(got, np.column_stack([f[0] * xd + c[0], f[1] * yd + c[1]]), atol=1e-9)
+
 def _xml_numbers(v) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(v))
 

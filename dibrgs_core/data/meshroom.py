@@ -26,7 +26,6 @@ Views without a pose (not reconstructed) are left out and counted in the log.
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import re
@@ -35,8 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import InputError
-from .images import find_mask
-from .photo_frame import Frame, photo_folder, written_photo
+from .photo_frame import Frame, layout_json, photo_folder, posed_frame, reconstructed
 
 log = logging.getLogger("dibrgs.io_meshroom")
 
@@ -215,21 +213,8 @@ def _by_id(items: object, key: str, where: Path) -> dict[str, dict]:
 def read_meshroom_frames(path: str | Path) -> list[Frame]:
     """The frames of an AliceVision SfMData JSON file, or of the one in a scene folder or Meshroom
     project (InputError naming the file when malformed, or a view's photo when it is missing)."""
-    path = Path(path)
-    root = path if path.is_dir() else None
-    if root is not None:
-        found = find_meshroom(root)
-        if found is None:
-            raise InputError(root, f"no Meshroom SfMData file ({MESHROOM_FILE}, or {CACHE_GLOB})")
-        path = found
-        cached = cache_results(root)
-        if path == (cached[0] if cached else None) and len(cached) > 1:
-            log.info("%s: %d StructureFromMotion results, reading the newest (%s)", root, len(cached),
-                     path.relative_to(root).as_posix())
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(path, f"unreadable SfMData file ({e})") from None
+    path, root, data = layout_json(Path(path), find_meshroom, f"no Meshroom SfMData file ({MESHROOM_FILE}, or "
+                                   f"{CACHE_GLOB})", "SfMData", cache_results, "StructureFromMotion results")
     if not is_sfm_data(data):
         raise InputError(path, "expected an AliceVision SfMData object with \"version\" and \"views\"")
     version = _version(data, path)
@@ -248,21 +233,9 @@ def read_meshroom_frames(path: str | Path) -> list[Frame]:
             unposed.append(label)
             continue
         iid = str(view.get("intrinsicId"))
-        if iid not in intrinsics:
-            raise InputError(path, f"view {label}: intrinsic {iid} is not in the file")
-        size, intr = intrinsics[iid]
-        if isinstance(intr, str):
-            raise InputError(path, f"view {label}: {intr}")
-        photo, name, masks = written_photo(written, folder, path, f"view {label}", index)
-        frames.append(Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intr), part=None,
-                            mask=find_mask(masks, name)))
-    if unposed:
-        log.info("%s: %d views without a pose (not reconstructed) left out: %s%s", path, len(unposed),
-                 ", ".join(unposed[:5]), " ..." if len(unposed) > 5 else "")
-    if not frames:
-        raise InputError(path, "no reconstructed views (no view has a pose): read the StructureFromMotion "
-                               f"node's {MESHROOM_FILE}")
-    return sorted(frames, key=lambda f: f.name)
+        lens = intrinsics.get(iid, ((0, 0), f"intrinsic {iid} is not in the file"))
+        frames.append(posed_frame(written, folder, path, f"view {label}", index, w2c, lens))
+    return reconstructed(frames, unposed, path, f"read the StructureFromMotion node's {MESHROOM_FILE}")
 
 
 def _view_pose(view: dict, poses: dict[str, dict], rigs: dict[str, dict], where: Path) -> np.ndarray | None:

@@ -21,18 +21,13 @@ after. Views without a pose are left out and counted in the log.
 """
 from __future__ import annotations
 
-import json
-import logging
 import math
 from pathlib import Path
 
 import numpy as np
 
 from ..common.errors import InputError
-from .images import find_mask
-from .photo_frame import Frame, photo_folder, written_photo
-
-log = logging.getLogger("dibrgs.io_openmvg")
+from .photo_frame import Frame, layout_json, photo_folder, posed_frame, reconstructed
 
 OPENMVG_FILE = "sfm_data.json"
 #: cereal's flag on a polymorphic id that comes with its type's name (the type's first instance).
@@ -134,21 +129,8 @@ def _intrinsics(data: dict, where: Path) -> dict[int, tuple[tuple[int, int], dic
 def read_openmvg_frames(path: str | Path) -> list[Frame]:
     """The frames of an OpenMVG ``sfm_data.json``, or of the one in a scene folder or OpenMVG output
     folder (InputError naming the file when malformed, or a view's photo when it is missing)."""
-    path = Path(path)
-    root = path if path.is_dir() else None
-    if root is not None:
-        found = find_openmvg(root)
-        if found is None:
-            raise InputError(root, f"no OpenMVG {OPENMVG_FILE} (or reconstruction*/{OPENMVG_FILE})")
-        path = found
-        several = reconstructions(root)
-        if path.parent != root and len(several) > 1:
-            log.info("%s: %d reconstructions, reading the newest (%s)", root, len(several),
-                     path.relative_to(root).as_posix())
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(path, f"unreadable SfM_Data file ({e})") from None
+    path, root, data = layout_json(Path(path), find_openmvg, f"no OpenMVG {OPENMVG_FILE} (or "
+                                   f"reconstruction*/{OPENMVG_FILE})", "SfM_Data", reconstructions, "reconstructions")
     if not is_openmvg(data):
         raise InputError(path, "expected an OpenMVG SfM_Data object with \"sfm_data_version\"")
     intrinsics = _intrinsics(data, path)
@@ -178,18 +160,9 @@ def read_openmvg_frames(path: str | Path) -> list[Frame]:
         if pose is None:
             unposed.append(filename or str(key))
             continue
-        size, intr = intrinsics.get(v.get("id_intrinsic"),
-                                    (None, f"intrinsic {v.get('id_intrinsic')} is not in the file"))
-        if isinstance(intr, str):
-            raise InputError(path, f"view {filename}: {intr}")
+        iid = v.get("id_intrinsic")
+        lens = intrinsics.get(iid, ((0, 0), f"intrinsic {iid} is not in the file"))
         written = str(Path(str(data.get("root_path", ""))) / str(v.get("local_path", "")) / filename)
-        photo, name, masks = written_photo(written, folder, path, f"view {filename}", index)
-        frames.append(Frame(name=name, photo=photo, w2c=pose, size=size, intrinsics=dict(intr), part=None,
-                            mask=find_mask(masks, name)))
-    if unposed:
-        log.info("%s: %d views without a pose (not reconstructed) left out: %s%s", path, len(unposed),
-                 ", ".join(unposed[:5]), " ..." if len(unposed) > 5 else "")
-    if not frames:
-        raise InputError(path, "no reconstructed views (no view has a pose): read the reconstruction's "
-                               f"{OPENMVG_FILE}, not the one SfMInit_ImageListing writes")
-    return sorted(frames, key=lambda f: f.name)
+        frames.append(posed_frame(written, folder, path, f"view {filename}", index, pose, lens))
+    return reconstructed(frames, unposed, path, f"read the reconstruction's {OPENMVG_FILE}, not the one "
+                                                "SfMInit_ImageListing writes")

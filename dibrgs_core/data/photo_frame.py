@@ -8,6 +8,8 @@ and OpenCV's distortion coefficients.
 """
 from __future__ import annotations
 
+import json
+import logging
 import math
 import re
 from dataclasses import dataclass
@@ -17,7 +19,9 @@ from typing import Callable, Iterable
 import numpy as np
 
 from ..common.errors import InputError
-from .images import IMAGE_EXTS, image_named
+from .images import IMAGE_EXTS, find_mask, image_named
+
+log = logging.getLogger("dibrgs.io_frames")
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 #: Where a layout's photos sit beside its camera file.
@@ -135,6 +139,30 @@ def written_photo(written: str, folder: Path | None, where: Path, what: str,
     return photo, photo.name, photo.parent
 
 
+def posed_frame(written: str, folder: Path | None, where: Path, what: str, index: dict[str, list[Path]],
+                w2c: np.ndarray, lens: tuple[tuple[int, int], dict[str, float] | str]) -> Frame:
+    """The frame of a posed view whose photo the file ``where`` names by a written path
+    (:func:`written_photo`), with its camera's ``lens`` ((width, height), intrinsics), or
+    InputError naming ``what`` when the lens is the reason it cannot be read (a string)."""
+    size, intrinsics = lens
+    if isinstance(intrinsics, str):
+        raise InputError(where, f"{what}: {intrinsics}")
+    photo, name, masks = written_photo(written, folder, where, what, index)
+    return Frame(name=name, photo=photo, w2c=w2c, size=size, intrinsics=dict(intrinsics), part=None,
+                 mask=find_mask(masks, name))
+
+
+def reconstructed(frames: list[Frame], unposed: list[str], where: Path, hint: str) -> list[Frame]:
+    """``frames`` sorted by name, the views without a pose (``unposed``) counted in the log;
+    InputError with ``hint`` (which file to read instead) when no view has a pose."""
+    if unposed:
+        log.info("%s: %d views without a pose (not reconstructed) left out: %s%s", where, len(unposed),
+                 ", ".join(unposed[:5]), " ..." if len(unposed) > 5 else "")
+    if not frames:
+        raise InputError(where, f"no reconstructed views (no view has a pose): {hint}")
+    return sorted(frames, key=lambda f: f.name)
+
+
 def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -> Path:
     """``path`` when it is a layout's file, else the file ``find`` finds in the folder ``path``
     (InputError naming the folder with ``missing`` when there is none)."""
@@ -144,3 +172,20 @@ def layout_file(path: Path, find: Callable[[Path], Path | None], missing: str) -
     if found is None:
         raise InputError(path, missing)
     return found
+
+
+def layout_json(path: Path, find: Callable[[Path], Path | None], missing: str, what: str,
+                results: Callable[[Path], list[Path]], runs: str) -> tuple[Path, Path | None, object]:
+    """(the layout's JSON file, the scene folder when ``path`` is one else None, the parsed JSON):
+    :func:`layout_file`, and when the file found is the newest of several ``results(folder)``
+    (a tool's ``runs``, newest first) the log says so; InputError naming the file when it is no
+    readable JSON (``what``: the format's name)."""
+    root = path if path.is_dir() else None
+    path = layout_file(path, find, missing)
+    several = results(root) if root is not None else []
+    if path in several and len(several) > 1:
+        log.info("%s: %d %s, reading the newest (%s)", root, len(several), runs, path.relative_to(root).as_posix())
+    try:
+        return path, root, json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(path, f"unreadable {what} file ({e})") from None
