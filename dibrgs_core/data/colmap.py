@@ -32,6 +32,7 @@ View ids are the image file stems (a rig's like-named photos in folders of their
 from __future__ import annotations
 
 import logging
+import mmap
 import shutil
 import struct
 from functools import partial
@@ -153,45 +154,52 @@ def check_binary_counts(model_dir: Path) -> None:
         path = model_dir / f"{stem}.bin"
         if not path.is_file():
             continue
-        data = path.read_bytes()
-        size, off = len(data), 8
+        size = path.stat().st_size
+        if size < 8:
+            raise InputError(path, f"unreadable COLMAP model file (damaged: {size} bytes, no count)")
+        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            _walk_binary(path, stem, least, data, size)
 
-        def need(n: int, what: str) -> None:
-            if off + n > size:
-                raise InputError(path, f"unreadable COLMAP model file (damaged: {what} reach past its {size} bytes)")
 
-        need(0, "the count")
-        (count,) = struct.unpack_from("<Q", data, 0) if size >= 8 else (None,)
-        if count is None or count * least > size - 8:
-            raise InputError(path, f"unreadable COLMAP model file (damaged: {count} records announced in {size} bytes)")
-        if stem == "cameras":
-            continue  # each camera's parameters are a fixed number for its model: pycolmap checks them
-        for _ in range(count):
-            if stem == "frames":
-                need(68, "a frame")
-                (k,) = struct.unpack_from("<I", data, off + 64)
-                off += 68
-                need(16 * k, f"a frame's {k} data ids")
-                off += 16 * k
-            elif stem == "images":
-                need(64, "an image")
-                end = data.find(b"\0", off + 64)
-                if end < 0:
-                    raise InputError(path, "unreadable COLMAP model file (damaged: an image name without its end)")
-                off = end + 1
-                need(8, "an image's point count")
-                (k,) = struct.unpack_from("<Q", data, off)
-                off += 8
-                need(24 * k, f"an image's {k} points")
-                off += 24 * k
-            else:
-                need(8, "a rig")
-                (k,) = struct.unpack_from("<I", data, off + 4)
-                off += 8 + (8 if k else 0)
-                for _ in range(max(k - 1, 0)):
-                    need(9, "a rig's sensor")
-                    off += 9 + (56 if data[off + 8] else 0)
-                    need(0, "a rig's sensor pose")
+def _walk_binary(path: Path, stem: str, least: int, data, size: int) -> None:
+    """:func:`check_binary_counts` of one file's bytes ``data`` (a memory map: images.bin can be large)."""
+    off = 8
+
+    def need(n: int, what: str) -> None:
+        if off + n > size:
+            raise InputError(path, f"unreadable COLMAP model file (damaged: {what} reach past its {size} bytes)")
+
+    (count,) = struct.unpack_from("<Q", data, 0)
+    if count * least > size - 8:
+        raise InputError(path, f"unreadable COLMAP model file (damaged: {count} records announced in {size} bytes)")
+    if stem == "cameras":
+        return  # each camera's parameters are a fixed number for its model: pycolmap checks them
+    for _ in range(count):
+        if stem == "frames":
+            need(68, "a frame")
+            (k,) = struct.unpack_from("<I", data, off + 64)
+            off += 68
+            need(16 * k, f"a frame's {k} data ids")
+            off += 16 * k
+        elif stem == "images":
+            need(64, "an image")
+            end = data.find(b"\0", off + 64)
+            if end < 0:
+                raise InputError(path, "unreadable COLMAP model file (damaged: an image name without its end)")
+            off = end + 1
+            need(8, "an image's point count")
+            (k,) = struct.unpack_from("<Q", data, off)
+            off += 8
+            need(24 * k, f"an image's {k} points")
+            off += 24 * k
+        else:
+            need(8, "a rig")
+            (k,) = struct.unpack_from("<I", data, off + 4)
+            off += 8 + (8 if k else 0)
+            for _ in range(max(k - 1, 0)):
+                need(9, "a rig's sensor")
+                off += 9 + (56 if data[off + 8] else 0)
+                need(0, "a rig's sensor pose")
 
 
 def _without_points(model_dir: Path):
