@@ -20,8 +20,8 @@ def read_any_scene(root: str | Path, train_ids: Iterable[str] | None = None, loa
     """Read a LEVIR-NVS folder (``Cams/``), a COLMAP model (``sparse/0``, ``sparse`` or the folder
     itself) or a frame layout (a transforms.json, a Metashape cameras XML, an OpenSfM
     reconstruction, a Meshroom SfMData file, an OpenMVG sfm_data.json, a Bundler file or
-    RealityCapture sidecars:
-    :mod:`.frame_layouts`), in a frame of its own when it lies far from its coordinate origin (``Scene.origin``,
+    RealityCapture sidecars: :mod:`.frame_layouts`), in a frame of its own when it lies far from its
+    coordinate origin (``Scene.origin``,
     :meth:`~dibrgs_core.data.scene.Scene.recentred`)."""
     root = Path(root)
     if not root.is_dir():
@@ -68,8 +68,7 @@ NOT_A_SCENE = ("not a scene: expected LEVIR-NVS Images/ + Cams/, a COLMAP model 
                "Metashape cameras XML (cameras.xml, photos in images/), an OpenDroneMap / OpenSfM "
                "reconstruction (opensfm/reconstruction.json or reconstruction.json, photos in images/), a "
                "Meshroom cameras.sfm (or a project's MeshroomCache), an OpenMVG sfm_data.json, a Bundler bundle.out "
-               "with its list.txt, or "
-               "RealityCapture XMP sidecars beside the photos")
+               "with its list.txt, or RealityCapture XMP sidecars beside the photos")
 
 
 def load_scene(root: str | Path, train_ids: Iterable[str] | None = None,
