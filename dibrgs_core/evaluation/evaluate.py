@@ -121,11 +121,11 @@ def run_scale(work: str | Path, tr: Trained, scene: Any) -> float:
     from ..training.config import resolve_resolution
 
     try:
-        s = (json.loads((Path(work) / "config.json").read_text()).get("run") or {}).get("resolution_scale")
-    except (OSError, ValueError, AttributeError):
+        s = float((json.loads((Path(work) / "config.json").read_text()).get("run") or {})["resolution_scale"])
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):  # not recorded, or damaged
         s = None
-    if s is not None:
-        return float(s)
+    if s is not None and s > 0:
+        return s
     sizes = [(v.camera.width, v.camera.height) for v in scene.train_views() + scene.test_views()]
     return resolve_resolution(tr.cfg, sizes)[0]
 
@@ -238,6 +238,8 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
 
         try:
             vals = json.loads(rep_path.read_text()).get("values", {})
+            if not isinstance(vals, dict):
+                raise ValueError(f"values is a {type(vals).__name__}, not an object")
         except (OSError, ValueError, AttributeError) as e:
             log.warning("%s unreadable (%s); training figures left out of the metrics", rep_path, e)
             vals = {}

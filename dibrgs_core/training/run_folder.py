@@ -72,7 +72,7 @@ def stored_identity(work: Path) -> Identity | None:
         return None
     if not isinstance(d, dict):
         return None
-    run = d.get("run") or {}
+    run = d.get("run") if isinstance(d.get("run"), dict) else {}
     return Identity(d.get("scene"), run.get("digest"), run.get("train"), run.get("test"))
 
 

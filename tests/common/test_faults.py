@@ -568,6 +568,20 @@ def test_unreadable_model_file(finished_run, tmp_path, what):
     assert not (tmp_path / "g.ply").exists() and not (work / "metrics.json").exists()
 
 
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,damaged", [("report.json", {"values": []}), ("config.json", {"run": [1, 2]}),
+                                          ("config.json", {"run": {"resolution_scale": "x"}})],
+                         ids=["report-values-a-list", "config-run-a-list", "config-scale-a-word"])
+def test_eval_of_a_run_with_damaged_records(scene24, finished_run, tmp_path, name, damaged):
+    """A run folder's report.json or config.json damaged (values of another type): ``eval`` still
+    scores the model (what it cannot read left out or found again) instead of a traceback."""
+    work = copy_run(finished_run, tmp_path / "w")
+    (work / name).write_text(json.dumps(damaged))
+    rc, err = dibrgs("eval", work, "--scene", scene24, "--threads", "1")
+    assert rc == 0, err
+    assert json.loads((work / "metrics.json").read_text())["psnr"] > 0
+
 def test_eval_after_the_scene_moved(scene24, other_scene24, finished_run, tmp_path):
     """A run folder outlives its scene's place (another disk, a colleague's machine): ``eval`` says
     to give the new folder, ``--scene`` evaluates there, and another scene is refused by content."""
