@@ -13,7 +13,7 @@ import json
 import logging
 from functools import partial
 from pathlib import Path
-from typing import Iterable, Literal
+from typing import Callable, Iterable, Literal
 
 import numpy as np
 
@@ -39,32 +39,36 @@ log = logging.getLogger("dibrgs.io_frames")
 FrameLayout = Literal["transforms", "metashape", "opensfm", "meshroom", "openmvg", "bundler", "realitycapture"]
 
 
+def _read_transforms(path: Path) -> list[Frame]:
+    return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
+
+
+#: Each frame layout's finder (a scene folder -> its file(s), or nothing) and reader (the folder or
+#: one of its files -> frames), in the order a folder holding several is read (Bundler, whose lens
+#: has no principal point, last).
+_LAYOUTS: tuple[tuple[FrameLayout, Callable[[Path], object], Callable[[Path], list[Frame]]], ...] = (
+    ("transforms", find_transforms, _read_transforms),
+    ("metashape", find_metashape, read_metashape_frames),
+    ("opensfm", find_opensfm, read_opensfm_frames),
+    ("meshroom", find_meshroom, read_meshroom_frames),
+    ("openmvg", find_openmvg, read_openmvg_frames),
+    ("realitycapture", find_realitycapture, read_realitycapture_frames),
+    ("bundler", find_bundler, read_bundler_frames),
+)
+
+
 def find_frame_layout(root: str | Path) -> FrameLayout | None:
-    """Which frame layout the scene folder ``root`` holds, or None; of several, the first in this
-    order (Bundler, whose lens has no principal point, last)."""
-    if find_transforms(root):
-        return "transforms"
-    if find_metashape(root) is not None:
-        return "metashape"
-    if find_opensfm(root) is not None:
-        return "opensfm"
-    if find_meshroom(root) is not None:
-        return "meshroom"
-    if find_openmvg(root) is not None:
-        return "openmvg"
-    if find_realitycapture(root) is not None:
-        return "realitycapture"
-    if find_bundler(root) is not None:
-        return "bundler"
-    return None
+    """Which frame layout the scene folder ``root`` holds, or None; of several, the first in
+    :data:`_LAYOUTS`' order."""
+    return next((name for name, find, _ in _LAYOUTS if find(Path(root))), None)
 
 
 def file_layout(path: str | Path) -> FrameLayout | None:
     """The frame layout whose file ``path`` is (a Metashape XML, a RealityCapture XMP, a Bundler
     ``.out``, a Meshroom ``.sfm``, a transforms JSON: an object with "frames", an OpenSfM
     reconstruction: a list of objects with "shots", an AliceVision SfMData JSON, an OpenMVG
-    SfM_Data JSON), or None (a JSON
-    camera list, or a file no reader takes: its reader says what is wrong with it)."""
+    SfM_Data JSON), or None (a JSON camera list, or a file no reader takes: its reader says what is
+    wrong with it)."""
     path = Path(path)
     layout = {".xml": "metashape", ".xmp": "realitycapture", ".out": "bundler",
               ".sfm": "meshroom"}.get(path.suffix.lower())
@@ -93,12 +97,8 @@ def layout_frames(path: str | Path) -> list[Frame]:
     file or a RealityCapture XMP); InputError naming the file when malformed."""
     path = Path(path)
     layout = (file_layout(path) or "transforms") if path.is_file() else find_frame_layout(path)
-    if layout == "transforms":
-        return read_transforms_file(path) if path.is_file() else read_transforms_frames(path)
-    read = {"opensfm": read_opensfm_frames, "meshroom": read_meshroom_frames, "openmvg": read_openmvg_frames,
-            "bundler": read_bundler_frames,
-            "realitycapture": read_realitycapture_frames}.get(layout)
-    return (read or read_metashape_frames)(path)
+    read = {name: read for name, _, read in _LAYOUTS}.get(layout, read_metashape_frames)
+    return read(path)
 
 
 def stored_or_upright(frame: Frame, stored: tuple[int, int], upright: tuple[int, int]) -> tuple[tuple[int, int], bool]:
