@@ -64,6 +64,7 @@ def test_initialise_imports_points_height_map_and_decisions(tiny_scene, fresh):
         assert sb.HEIGHT_NAME not in bpy.data.objects
 
 
+@pytest.mark.slow
 def test_initialise_uses_the_split_of_the_moved_view_cameras(tiny_scene, fresh):
     """A view camera moved into Train views trains (the real `dibrgs init` subprocess gets --train /
     --test); one moved out of the split collections is left out."""
@@ -97,6 +98,7 @@ def test_failing_training_is_reported_with_its_log(tiny_scene, fresh, tmp_path):
     assert _mod("operators").running_job() is None
 
 
+@pytest.mark.slow
 def test_batch_mode_rejects_bad_arguments(tmp_path):
     run = [sys.executable, str(REPO / "scripts" / "run.py")]
     for args in ([], ["--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],

@@ -145,6 +145,7 @@ def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_
     assert a0 < b1 and b0 < a1  # the first two ran at the same time
 
 
+@pytest.mark.slow
 def test_scenes_render_from_several_job_threads(tmp_path):
     """Local jobs are threads and bpy crashes when driven from two threads of one process, so
     scenes render in child processes: two threads asking for two scenes both get complete ones."""

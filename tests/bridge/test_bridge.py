@@ -492,6 +492,7 @@ def test_check_report_folds_the_lines():
     assert r.text() == "not ready: PIL"
 
 
+@pytest.mark.slow
 def test_check_names_what_is_missing_and_the_fix(tmp_path):
     """The real `dibrgs check` in a Python where pycolmap cannot be imported."""
     block = tmp_path / "block"

@@ -677,6 +677,7 @@ def test_outputs_are_readable_by_others_under_the_usual_umask(scene24, finished_
         assert (p.stat().st_mode & 0o777) == 0o644, p
 
 
+@pytest.mark.slow
 def test_corrupt_depth_anything_weights(scene24, tmp_path):
     pytest.importorskip("transformers")
     model = tmp_path / "da"

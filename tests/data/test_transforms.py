@@ -144,6 +144,7 @@ def test_bad_transforms_files_are_one_clear_error(tmp_path):
             read_any_scene(root)
 
 
+@pytest.mark.slow
 def test_the_real_flight_through_scripts_colmap_to_transforms(tmp_path):
     """brighton_north written by scripts/colmap_to_transforms.py reads back with its COLMAP cameras
     and split; with nerfstudio's axes, the same cameras in a world turned about the origin."""

@@ -43,6 +43,7 @@ def test_scores_a_run_by_visibility_and_draws_its_figures(scene24, finished_run,
     assert bad.returncode == 2 and "none.txt" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_generated_scene_is_scored_with_its_true_depth(scene24, finished_run, tmp_path):
     """Without reference points a scene's depth maps decide what a training photo sees: the same
     figures as scripts/error_by_visibility.py on the same run; no depth either is one clear line."""

@@ -32,7 +32,8 @@ def _mae(scene, pts):
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("offset", [pytest.param((0.0, 0.0, 0.0), marks=pytest.mark.slow), (2.5e5, 4.1e6, 120.0)])
+@pytest.mark.slow
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (2.5e5, 4.1e6, 120.0)])
 def test_initialise_mvs_end_to_end(tmp_path, offset):
     """Whole geometry stage at normal and georeferenced (~1e5..4e6) coordinates: finite cloud within 5% of true depth."""
     scene, _ = make_synthetic_scene(96, offset=offset, up=(0.1, 0.3, 1.0))
@@ -72,6 +73,7 @@ def test_large_photos_are_worked_on_at_the_working_size(tmp_path):
 
 
 @pytest.mark.stability
+@pytest.mark.slow
 def test_gt_prior_oracle_and_no_sfm_points(tmp_path):
     """Blank images: SfM finds nothing, MVS nothing; the gt prior still gives a cloud, with reasons logged."""
     scene, _ = make_synthetic_scene(48)
@@ -91,6 +93,7 @@ def test_gt_prior_oracle_and_no_sfm_points(tmp_path):
 
 
 @pytest.mark.stability
+@pytest.mark.slow
 def test_gt_with_nan_and_zero_depths(tmp_path):
     """Depth prior with NaN and zero pixels: they are dropped, the cloud stays finite."""
     scene, _ = make_synthetic_scene(48)
@@ -211,6 +214,7 @@ def test_pixels_without_data_are_neither_measured_nor_completed(grid_scene, tmp_
 
 
 @pytest.mark.stability
+@pytest.mark.slow
 def test_geometry_does_not_depend_on_units(grid_scene, tmp_path):
     """The same mapping strip in units x0.001, x1 and x1000 (the real flight is 5.3 units high, generated
     scenes 210 m): the same relative figures (coverage, relative error, point counts)."""
@@ -247,6 +251,7 @@ def _footprint_figures(scene, res):
 
 
 @pytest.mark.stability
+@pytest.mark.slow
 def test_a_telephoto_view_of_the_scene_gets_the_same_geometry(tmp_path):
     """The same orbit seen from 100 x further through a 100 x narrower lens (a satellite's view: nearly
     orthographic, the same ground in the same pixels): the scale follows the ground a view covers,

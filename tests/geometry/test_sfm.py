@@ -36,6 +36,7 @@ def test_triangulation_matches_true_depth(offset):
 
 
 @pytest.mark.stability
+@pytest.mark.slow
 def test_textureless_views_give_empty_cloud():
     """Textureless views: SfM returns an empty cloud instead of failing."""
     scene, _ = make_synthetic_scene(64)

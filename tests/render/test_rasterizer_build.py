@@ -50,6 +50,7 @@ def test_missing_compiler_is_an_error_that_says_how_to_fix(tmp_path):
     assert "apt install g++" in err and "DIBRGS_RASTERIZER=reference" in err
 
 
+@pytest.mark.slow
 def test_reference_backend_needs_no_compiler(tmp_path):
     """DIBRGS_RASTERIZER=reference or set_backend("reference") renders without trying a build."""
     env = {"CXX": str(tmp_path / "no-such-compiler"), "DIBRGS_EXT_DIR": str(tmp_path / "ext")}
@@ -177,7 +178,7 @@ def _hot_ranges() -> list[tuple[int, int]]:
 @pytest.mark.skipif(shutil.which("g++") is None or shutil.which("objdump") is None, reason="needs g++ and objdump")
 @pytest.mark.parametrize("march,reg,lanes,defines", [
     ("skylake-avx512", "zmm", 16, []), ("haswell", "ymm", 8, []),
-    ("skylake-avx512", "ymm", 8, ["-DDIBRGS_VBYTES=32"]),
+    pytest.param("skylake-avx512", "ymm", 8, ["-DDIBRGS_VBYTES=32"], marks=pytest.mark.slow),
     pytest.param("x86-64", "xmm", 4, [], marks=pytest.mark.slow)])
 def test_kernels_compile_for_each_vector_width(tmp_path, march, reg, lanes, defines):
     """The kernels compile for AVX-512 (zmm, 16 float lanes), AVX2 (ymm, 8) and plain SSE2

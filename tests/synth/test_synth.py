@@ -121,6 +121,7 @@ def test_acquisition_geometry(scene):
     assert abs(c.c2w[:3, 0] @ up) < 1e-9
 
 
+@pytest.mark.slow
 def test_every_kind_renders_and_seed_is_deterministic(tmp_path):
     from dibrgs_core.synth.layout import KINDS
     from dibrgs_core.synth.writer import make_scene

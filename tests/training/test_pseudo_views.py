@@ -500,6 +500,7 @@ def test_a_user_path_is_read_in_the_world_frame_of_the_scenes_files(tmp_path):
         assert float(f.mask.mean()) > 0.5  # the views warp the scene, not empty space 4e6 away
 
 
+@pytest.mark.slow
 def test_eval_pseudo_views_script_scores_a_given_cloud_and_times_sampled_views(tiny_scene, tmp_path):
     """--points scores a PLY (here the generated city's exact depth, back-projected), --pseudo builds
     sampled views as training does (trajectory, kept/tried, shares, CPU s), --png draws them; a missing

@@ -177,6 +177,7 @@ def test_curve_time_is_not_training_time(synth, init_cache, tmp_path):
     assert np.isfinite(res.seconds) and res.seconds > 0
 
 
+@pytest.mark.slow
 def test_a_split_that_holds_nothing_out_trains_without_a_curve(synth, init_cache, tmp_path):
     """``--train all``: every view trains, no curve point is evaluated (none of NaN), the report
     says why, the model is saved and ``dibrgs eval`` says in one line there is nothing to score."""
