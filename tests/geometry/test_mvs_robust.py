@@ -8,7 +8,7 @@ from geom_synth import make_grid_scene, make_synthetic_scene
 
 from dibrgs_core.geometry.config import MvsConfig
 from dibrgs_core.geometry.depth_filters import speckle_mask
-from dibrgs_core.geometry.mvs import _box, mvs_depths
+from dibrgs_core.geometry.mvs import mvs_depths
 from dibrgs_core.geometry.sweep_range import converging_target, scene_ground
 
 torch.set_num_threads(2)
@@ -18,22 +18,6 @@ torch.set_num_threads(2)
 def grid3():
     """96x96 nadir strip whose least-squares look-at point lies 259 units below the ground."""
     return make_grid_scene(96, seed=3)[0]
-
-
-@pytest.mark.parametrize("w", [1, 3, 7])
-@pytest.mark.parametrize("shape", [(8, 1, 40, 33), (1, 1, 5, 3), (2, 1, 7, 7)])
-def test_box_filter_is_the_mean_over_the_window_inside_the_image(shape, w):
-    """The NCC's window means: avg_pool2d's count_include_pad=False means to rounding, on images
-    larger and smaller than the window, with a NaN (a pixel without data) spreading over exactly
-    the windows that hold it."""
-    gen = torch.Generator().manual_seed(w)
-    x = torch.rand(shape, generator=gen) * 100 + 1e4  # an offset: cancellation shows as error
-    x[0, 0, shape[2] // 2, 0] = float("nan")
-    ref = torch.nn.functional.avg_pool2d(x.double(), w, stride=1, padding=w // 2, count_include_pad=False)
-    got = _box(x, w)
-    assert got.dtype == x.dtype and got.shape == x.shape
-    assert torch.equal(torch.isnan(got), torch.isnan(ref))
-    assert float((got.double() - ref).nan_to_num().abs().max()) < 1e-6 * 1e4
 
 
 def _sfm_like(scene, n: int = 100, seed: int = 0) -> np.ndarray:
