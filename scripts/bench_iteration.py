@@ -43,10 +43,12 @@ from typing import Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dibrgs_core.common.allocator import allocator_policy, keep_freed_memory  # noqa: E402
+from dibrgs_core.common.blas import blas_policy, single_thread_blas  # noqa: E402
 from dibrgs_core.common.openmp import set_wait_policy, wait_policy  # noqa: E402
 
 set_wait_policy()  # as the dibrgs command does, before torch loads libgomp
 keep_freed_memory()
+single_thread_blas()
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -278,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
     from dibrgs_core.render import fast
 
     out = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": cpu(), "loadavg_start": os.getloadavg(),
-           "threads": args.threads, "openmp_wait": wait_policy(), "allocator": allocator_policy(),
+           "threads": args.threads, "openmp_wait": wait_policy(), "blas": blas_policy(), "allocator": allocator_policy(),
            "preset": args.preset, "warmup": args.warmup,
            "repeats": args.repeats,
            "fast_rasterizer": fast.available(required=False), "results": []}

@@ -99,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
 
     pycolmap.logging.minloglevel = 2
     torch.set_num_threads(2)
+    from dibrgs_core.common.blas import single_thread_blas
+
+    single_thread_blas()  # as the dibrgs command does
     from dibrgs_core.geometry.depth_prior import PriorMaps, compute_prior
     from dibrgs_core.geometry.fusion import backproject_views
     from dibrgs_core.geometry.config import InitConfig

@@ -208,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)
+    from dibrgs_core.common.blas import single_thread_blas
+
+    single_thread_blas()  # as the dibrgs command does
     from dibrgs_core.common.errors import InputError
     from dibrgs_core.data.ply import read_ply
 

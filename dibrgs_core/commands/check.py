@@ -49,6 +49,7 @@ DEPENDENCIES = (
     Dependency("skimage", "scikit-image", "SSIM"),
     Dependency("diptest", "diptest", "the dip test of the geometry stage"),
     Dependency("tqdm", "tqdm", "progress bars"),
+    Dependency("threadpoolctl", "threadpoolctl", "numpy's BLAS on one thread"),
     Dependency("matplotlib", "matplotlib", "curve plots"),
     Dependency("ninja", "ninja", "building the C++ rasterizer"),
     Dependency("transformers", "transformers", "Depth Anything V2 with local weights (optional)", required=False),

@@ -3,6 +3,7 @@
 * ``--threads``: torch CPU threads, by default every core this process may run on
   (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's count); how
   the threads wait between operators is chosen at start (:mod:`dibrgs_core.common.openmp`);
+  numpy's and scipy's BLAS run on one thread (:mod:`dibrgs_core.common.blas`);
 * ``--rasterizer``: the compiled C++ rasterizer (``auto``, the default) or the torch reference
   path (``reference``: no compiler needed, about 100x slower);
 * ``--train`` / ``--test``: the split (comma-separated view names or LEVIR ids), overriding
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from ..common.allocator import allocator_policy
+from ..common.blas import single_thread_blas
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
 from ..common.openmp import wait_policy
 
@@ -59,10 +61,12 @@ def apply_compute(args: argparse.Namespace) -> int:
 
     n = args.threads or available_cores()
     torch.set_num_threads(n)
+    blas = single_thread_blas()
     if n > 1:
-        log.info("%d torch threads; OpenMP workers wait: %s; memory: %s", n, wait_policy(), allocator_policy())
+        log.info("%d torch threads; OpenMP workers wait: %s; numpy's BLAS: %s; memory: %s", n, wait_policy(), blas,
+                 allocator_policy())
     else:
-        log.info("1 torch thread; memory: %s", allocator_policy())
+        log.info("1 torch thread; numpy's BLAS: %s; memory: %s", blas, allocator_policy())
     if getattr(args, "rasterizer", None) is not None:
         set_backend(args.rasterizer)
     return n

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from ..common.allocator import allocator_policy
+from ..common.blas import blas_policy
 from ..common.errors import InputError
 from ..common.fileio import write_json
 from ..common.limits import MAX_RESOLUTION_SCALE, MIN_RESOLUTION
@@ -304,7 +305,7 @@ class Trainer:
         self.report.values["schedule"] = {"iterations": T, "pseudo": list(pseudo) if pseudo else None,
                                           "growth": [strategy.start, strategy.until, strategy.every]}
         self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
-                                         "allocator": allocator_policy()}
+                                         "blas": blas_policy(), "allocator": allocator_policy()}
         self.report.save(self.work / "report.json")
         curve = self.report.decide("train", "curve", *curve_decision(len(self.test_frames), cfg.curve_every_s,
                                                                      cfg.curve_max_views))
