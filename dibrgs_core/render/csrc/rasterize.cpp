@@ -30,6 +30,7 @@
 #include "project.h"
 #include "rows.h"
 #include "ssim.h"
+#include "zbuffer.h"
 
 using dibrgs::TILE;
 
@@ -1242,6 +1243,21 @@ int64_t all_finite(std::vector<torch::Tensor> ts) {
   return ok.load() ? 1 : 0;
 }
 
+// Depth (H, W) float64 of planar quads (3, 4, Q) float64 in a frame that X -> M X + b takes to
+// camera axes; 0 where none covers a pixel centre (geometry/surface.py rasterise_depth).
+torch::Tensor zbuffer_quads(torch::Tensor quads, torch::Tensor M, torch::Tensor b, torch::Tensor K, int64_t H,
+                            int64_t W) {
+  TORCH_CHECK(quads.dim() == 3 && quads.size(0) == 3 && quads.size(1) == 4 && M.numel() == 9 && b.numel() == 3 &&
+                  K.numel() == 9 && H >= 0 && W >= 0,
+              "zbuffer_quads: shapes must be quads (3, 4, Q), M (3, 3), b (3), K (3, 3)");
+  auto q = quads.to(torch::kFloat64).contiguous(), m = M.to(torch::kFloat64).contiguous();
+  auto bb = b.to(torch::kFloat64).contiguous(), k = K.to(torch::kFloat64).contiguous();
+  auto out = torch::empty({H, W}, torch::kFloat64);
+  dibrgs::zbuffer::rasterise(q.data_ptr<double>(), q.size(2), m.data_ptr<double>(), bb.data_ptr<double>(),
+                             k.data_ptr<double>(), H, W, out.data_ptr<double>());
+  return out;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
@@ -1267,4 +1283,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("anchor_visibility", &anchor_visibility, "frustum culling of anchors");
   m.def("take_rows_forward", &take_rows_forward, "rows of a tensor");
   m.def("take_rows_backward", &take_rows_backward, "gradient of take_rows_forward");
+  m.def("zbuffer_quads", &zbuffer_quads, "depth map of planar quads (a height field's mesh)");
 }
