@@ -178,15 +178,17 @@ def disagreement(samples: Sequence[SourceSamples], shape: tuple[int, int], min_c
     for a in range(len(samples)):
         count += samples[a].visible
         for b in range(a + 1, len(samples)):
-            both = samples[a].visible & samples[b].visible
-            if not both.any():
+            seen = samples[a].visible & samples[b].visible
+            both = np.flatnonzero(seen)
+            if not len(both):
                 continue
-            ca, cb = samples[a].colour[both], samples[b].colour[both]
+            ca, cb = samples[a].colour, samples[b].colour
             gain = np.ones(3, np.float32)
-            if len(ca) >= min_common:
-                step = max(1, len(ca) // 4096)  # a few thousand ratios pin the median down
-                gain = np.clip(np.median((cb[::step] + 0.02) / (ca[::step] + 0.02), 0), 0.5, 2.0).astype(np.float32)
-            spread[both] = np.maximum(spread[both], np.abs(ca * gain - cb).mean(-1))
+            if len(both) >= min_common:
+                some = both[::max(1, len(both) // 4096)]  # a few thousand ratios pin the median down
+                gain = np.clip(np.median((cb[some] + 0.02) / (ca[some] + 0.02), 0), 0.5, 2.0).astype(np.float32)
+            # Over every pixel, kept where both see it: cheaper than gathering those pixels first.
+            np.maximum(spread, np.abs(ca * gain - cb).mean(-1), out=spread, where=seen)
     return count.reshape(shape), spread.reshape(shape)
 
 
