@@ -298,10 +298,8 @@ class Trainer:
         start_it = 0
         if ckpt is not None:
             start_it = self._restore(ckpt)
-        pseudo = None
-        if self.pseudo_frames:
-            pseudo = (cfg.it(cfg.pseudo.start), cfg.it(cfg.pseudo.until),
-                      max(cfg.pseudo.min_every, cfg.it(cfg.pseudo.every)))
+        pseudo_every = max(cfg.pseudo.min_every, cfg.it(cfg.pseudo.every))
+        pseudo = (cfg.it(cfg.pseudo.start), cfg.it(cfg.pseudo.until), pseudo_every) if self.pseudo_frames else None
         self.report.values["schedule"] = {"iterations": T, "pseudo": list(pseudo) if pseudo else None,
                                           "growth": [strategy.start, strategy.until, strategy.every]}
         self.report.values["compute"] = {"threads": torch.get_num_threads(), "openmp_wait": wait_policy(),
