@@ -34,12 +34,17 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections import deque
+from contextlib import closing
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from itertools import islice
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
+import torch
 from scipy import ndimage
 
 from ..camera.pinhole import Camera
@@ -289,40 +294,65 @@ def build_pseudo_views(train_views: Sequence, points: np.ndarray, n: int, seed: 
     bar = tqdm(total=total, desc="pseudo views", unit="view", leave=False)
     if on_progress is not None:
         on_progress(0, total)
-    for cam in cams:
-        if filtered and len(out) >= n:
-            break
-        tried += 1
-        pv = _build_one(cam, pts, spacing, hfield, sources, check, consistency_tol, max_gap_px,
-                        min_cloud_cover if filtered else 0.0)
-        if pv is None:
-            dropped_cloud += 1
-            continue
-        if pv.valid.mean() < min_warped:
-            if filtered:
-                dropped_warped += 1
+    # Views are independent: built ahead on the torch threads' count of Python threads (numpy,
+    # scipy and torch release the GIL for most of a view), consumed in order as if one by one.
+    common = (pts, spacing, hfield, sources, check, consistency_tol, max_gap_px, min_cloud_cover if filtered else 0.0)
+    with closing(_in_order(_build_one, ((cam, *common) for cam in cams), torch.get_num_threads())) as results:
+        while not (filtered and len(out) >= n):
+            item = next(results, None)
+            if item is None:
+                break
+            (cam, *_), pv = item
+            tried += 1
+            if pv is None:
+                dropped_cloud += 1
                 continue
-            thin.append(cam.name or f"pose {tried - 1}")
-        pv.camera.name = f"pseudo_{len(out):03d}" if filtered else cam.name
-        fname = f"view_{len(out):03d}.npz"
-        _save_view(cache_dir / fname, pv)
-        files.append(fname)
-        out.append(pv)
-        bar.update(1)
-        if on_progress is not None:
-            on_progress(len(out), total)
-        fractions = {"warped": float(pv.valid.mean()), "padded": float(pv.padded.mean()),
-                     "rejected": 0.0 if pv.rejected is None else float(pv.rejected.mean())}
-        per_view.append({"name": pv.camera.name, "file": fname, **fractions})
-        # Per view at debug level: on the console these lines would bury the progress bar; the
-        # manifest keeps them and the caller logs the means.
-        log.debug("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
-                  *(100 * f for f in fractions.values()))
+            if pv.valid.mean() < min_warped:
+                if filtered:
+                    dropped_warped += 1
+                    continue
+                thin.append(cam.name or f"pose {tried - 1}")
+            pv.camera.name = f"pseudo_{len(out):03d}" if filtered else cam.name
+            fname = f"view_{len(out):03d}.npz"
+            _save_view(cache_dir / fname, pv)
+            files.append(fname)
+            out.append(pv)
+            bar.update(1)
+            if on_progress is not None:
+                on_progress(len(out), total)
+            fractions = {"warped": float(pv.valid.mean()), "padded": float(pv.padded.mean()),
+                         "rejected": 0.0 if pv.rejected is None else float(pv.rejected.mean())}
+            per_view.append({"name": pv.camera.name, "file": fname, **fractions})
+            # Per view at debug level: on the console these lines would bury the progress bar; the
+            # manifest keeps them and the caller logs the means.
+            log.debug("pseudo view %s: %.1f%% warped, %.1f%% padded, %.1f%% rejected", pv.camera.name,
+                      *(100 * f for f in fractions.values()))
     bar.close()
     stats = {"tried": tried, "dropped_cloud": dropped_cloud, "dropped_warped": dropped_warped, "thin": thin}
     write_json(cache_dir / "manifest.json", {"hash": key, "files": files, "count": len(files), "stats": stats,
                                              "views": per_view})
     return PseudoBuild(out, traj, tried, dropped_cloud, dropped_warped, thin, time.process_time() - t0)
+
+
+def _in_order(fn: Callable[..., Any], jobs: Iterable[tuple], workers: int) -> Iterator[tuple[tuple, Any]]:
+    """``(job, fn(*job))`` for each of ``jobs`` in order, up to ``workers`` of them computed ahead
+    on threads (one: each when asked for). Closing the generator cancels the jobs not started."""
+    if workers <= 1:
+        for job in jobs:
+            yield job, fn(*job)
+        return
+    pool = ThreadPoolExecutor(max_workers=workers)
+    todo = iter(jobs)
+    pending = deque((job, pool.submit(fn, *job)) for job in islice(todo, workers))
+    try:
+        while pending:
+            job, future = pending.popleft()
+            result = future.result()
+            for nxt in islice(todo, 1):
+                pending.append((nxt, pool.submit(fn, *nxt)))
+            yield job, result
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _build_one(cam: Camera, pts: np.ndarray, spacing: float, hfield, sources: list[tuple], check: bool,
