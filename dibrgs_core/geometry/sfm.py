@@ -87,6 +87,35 @@ def neighbour_pairs(cams: Sequence[Camera], k: int) -> list[tuple[int, int]] | N
 MASK_MARGIN_PX = 4
 
 
+def _number_in_order(pycolmap, db_path: Path) -> None:
+    """Give the database's images and frames the ids of their names' order. COLMAP numbers them
+    as their features are written, so photos extracted on several threads are numbered in the
+    order they finish, and matching and triangulation follow the ids: the same points would come
+    out in another order and rounding from one run or machine to the next."""
+    db = pycolmap.Database.open(db_path)
+    try:
+        images = sorted(db.read_all_images(), key=lambda im: im.name)
+        if [im.image_id for im in images] == sorted(im.image_id for im in images):
+            return
+        frames = {f.frame_id: f for f in db.read_all_frames()}
+        features = {im.image_id: (db.read_keypoints(im.image_id), db.read_descriptors(im.image_id)) for im in images}
+        for clear in (db.clear_keypoints, db.clear_descriptors, db.clear_images, db.clear_frames):
+            clear()
+        for k, im in enumerate(images, start=1):
+            keypoints, descriptors = features[im.image_id]
+            frame = frames[im.frame_id]
+            frame.frame_id = k
+            frame.clear_data_ids()
+            frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, im.camera_id), k))
+            db.write_frame(frame, use_frame_id=True)
+            im.image_id, im.frame_id = k, k
+            db.write_image(im, use_image_id=True)
+            db.write_keypoints(k, keypoints)
+            db.write_descriptors(k, descriptors)
+    finally:
+        db.close()
+
+
 @colmap_logging()
 def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarray], origin: np.ndarray | None = None,
                             config: SfmConfig | None = None, work_dir: Path | None = None,
@@ -108,6 +137,7 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
     matches").
     """
     pycolmap = import_pycolmap()
+    import torch
     from PIL import Image
 
     cfg = config or SfmConfig()
@@ -127,27 +157,41 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
         img_dir = root / "images"
         img_dir.mkdir(parents=True)
         db_path = root / "database.db"
-        names = []
-        eo = pycolmap.FeatureExtractionOptions()
-        eo.num_threads = 1  # one thread throughout: see SfmConfig
-        eo.sift.max_num_features = cfg.max_num_features
-        for i, (cam, img) in enumerate(zip(cams, images)):
-            name = f"{i:04d}.png"
-            names.append(name)
+        names = [f"{i:04d}.png" for i in range(len(cams))]
+        masked = valid is not None and any(m is not None for m in valid)
+        for i, (name, img) in enumerate(zip(names, images)):
             Image.fromarray(to_uint8(img)).save(img_dir / name)
-            # One PINHOLE camera per image with the known intrinsics.
-            ro = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
-                                             camera_params=f"{cam.fx!r},{cam.fy!r},{cam.cx!r},{cam.cy!r}")
-            if valid is not None and valid[i] is not None:
+            if masked:
                 from scipy.ndimage import binary_erosion
 
                 # no features on no data, nor at its edge (a corner of a fill is no point of the scene)
-                keep = binary_erosion(valid[i], iterations=MASK_MARGIN_PX)
+                m = valid[i]
+                keep = np.ones(img.shape[:2], bool) if m is None else binary_erosion(m, iterations=MASK_MARGIN_PX)
                 (root / "masks").mkdir(exist_ok=True)
                 Image.fromarray(keep.astype(np.uint8) * 255).save(root / "masks" / f"{name}.png")
-                ro.mask_path = str(root / "masks")
-            pycolmap.extract_features(db_path, img_dir, image_names=[name], camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+        # One PINHOLE camera per image: created with the first camera's intrinsics, then given
+        # each its own. SIFT of one image is the same on any thread: the photos are shared out
+        # over torch's thread count (the matching and triangulation stay on one, see SfmConfig).
+        eo = pycolmap.FeatureExtractionOptions()
+        eo.num_threads = max(1, min(len(cams), torch.get_num_threads()))
+        eo.sift.max_num_features = cfg.max_num_features
+        c0 = cams[0]
+        ro = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
+                                         camera_params=f"{c0.fx!r},{c0.fy!r},{c0.cx!r},{c0.cy!r}")
+        if masked:
+            ro.mask_path = str(root / "masks")
+        pycolmap.extract_features(db_path, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                                  reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+        _number_in_order(pycolmap, db_path)
+        by_name = dict(zip(names, cams))
+        db = pycolmap.Database.open(db_path)
+        try:
+            for im in db.read_all_images():
+                cam, c = db.read_camera(im.camera_id), by_name[im.name]
+                cam.params = [c.fx, c.fy, c.cx, c.cy]
+                db.update_camera(cam)
+        finally:
+            db.close()
         mo = pycolmap.FeatureMatchingOptions()
         mo.num_threads = 1
         vo = pycolmap.TwoViewGeometryOptions()
@@ -177,7 +221,6 @@ def triangulate_known_poses(cameras: Sequence[Camera], images: Sequence[np.ndarr
             n_pairs = db.num_verified_image_pairs()
         finally:
             db.close()
-        by_name = dict(zip(names, cams))
         for im in db_images:
             rec.add_image(im)
         for im in db_images:

@@ -136,3 +136,93 @@ def test_a_strip_matched_with_neighbours_triangulates_as_every_pair():
     every = triangulate_known_poses(cams, imgs, config=SfmConfig(max_neighbours=0))
     assert len(near) >= 0.8 * len(every) and len(every) >= 50, (len(near), len(every))
     assert np.median(_depth_errors(scene, near.points)) < 0.005
+
+
+def test_photos_extracted_on_several_threads_triangulate_as_on_one():
+    """SIFT shares the photos out over torch's thread count; COLMAP numbers them as they finish, and
+    they are renumbered in name order, so the points are those of one thread to the bit."""
+    import torch
+    from geom_synth import make_grid_scene
+
+    base, _ = make_grid_scene(96, seed=3)
+    vs = base.train_views()
+    before = torch.get_num_threads()
+    clouds = {}
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            clouds[n] = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs])
+    finally:
+        torch.set_num_threads(before)
+    assert len(clouds[1]) >= 50
+    for n in (2, 3):
+        assert np.array_equal(clouds[n].points, clouds[1].points) and np.array_equal(clouds[n].colors, clouds[1].colors)
+
+
+def test_a_database_numbered_out_of_order_is_renumbered_by_name(tmp_path):
+    """Features extracted in reverse name order (ids 3, 2, 1 for a, b, c) come out with ids 1, 2, 3,
+    each image with its own keypoints, descriptors, camera and frame."""
+    import pycolmap
+    from PIL import Image
+
+    from dibrgs_core.data.images import to_uint8
+    from dibrgs_core.geometry.sfm import _number_in_order
+    from geom_synth import make_grid_scene
+
+    base, _ = make_grid_scene(96, seed=3)
+    (tmp_path / "img").mkdir()
+    names = ["a.png", "b.png", "c.png"]
+    for name, v in zip(names, base.train_views()):
+        Image.fromarray(to_uint8(v.image)).save(tmp_path / "img" / name)
+    db_path = tmp_path / "db.db"
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.num_threads = 1
+    for name in reversed(names):
+        pycolmap.extract_features(db_path, tmp_path / "img", image_names=[name], camera_mode=pycolmap.CameraMode.SINGLE,
+                                  extraction_options=eo, device=pycolmap.Device.cpu)
+
+    def state():
+        db = pycolmap.Database.open(db_path)
+        try:
+            frames = {f.frame_id: f for f in db.read_all_frames()}
+            return {im.name: (im.image_id, im.camera_id, db.read_keypoints(im.image_id).copy(),
+                              np.asarray(db.read_descriptors(im.image_id).data).copy(),
+                              [(d.sensor_id.id, d.id) for d in frames[im.frame_id].data_ids])
+                    for im in db.read_all_images()}
+        finally:
+            db.close()
+
+    before = state()
+    assert [before[n][0] for n in names] == [3, 2, 1]
+    _number_in_order(pycolmap, db_path)
+    after = state()
+    assert [after[n][0] for n in names] == [1, 2, 3]
+    for n in names:
+        image_id, camera_id, kp, desc, data_ids = after[n]
+        assert camera_id == before[n][1] and data_ids == [(camera_id, image_id)]
+        assert np.array_equal(kp, before[n][2]) and np.array_equal(desc, before[n][3]) and len(kp) > 0
+
+
+def test_no_features_where_a_photo_holds_no_data(tmp_path):
+    """A photo whose left half holds no data gets keypoints only in its right half, 4 px in from the
+    edge of the data (the masks go with every photo of the one extraction; the others' are whole)."""
+    import pycolmap
+    from geom_synth import make_grid_scene
+
+    from dibrgs_core.geometry.sfm import MASK_MARGIN_PX
+
+    base, _ = make_grid_scene(96, seed=3)
+    vs = base.train_views()
+    W = vs[0].camera.width
+    valid = np.ones(vs[0].image.shape[:2], bool)
+    valid[:, : W // 2] = False
+    cloud = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs], work_dir=tmp_path / "sfm",
+                                    valid=[valid, None, None])
+    assert len(cloud) > 0
+    db = pycolmap.Database.open(tmp_path / "sfm" / "database.db")
+    try:
+        xs = {im.name: db.read_keypoints(im.image_id)[:, 0] for im in db.read_all_images()}
+    finally:
+        db.close()
+    assert len(xs["0000.png"]) > 0 and xs["0000.png"].min() >= W // 2 + MASK_MARGIN_PX - 1
+    assert min(xs["0001.png"].min(), xs["0002.png"].min()) < W // 2  # the others are not masked
