@@ -35,11 +35,11 @@ import json
 import logging
 import time
 from collections import deque
-from contextlib import closing
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from itertools import islice
+from contextlib import closing
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any, Sequence
 
