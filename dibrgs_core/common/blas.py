@@ -33,7 +33,12 @@ def single_thread_blas(environ: Mapping[str, str] = os.environ) -> str:
         return _choice
     import numpy  # noqa: F401  (threadpoolctl changes only libraries already loaded)
     import scipy.linalg  # noqa: F401  (scipy's wheels bundle their own OpenBLAS)
-    from threadpoolctl import threadpool_info, threadpool_limits
+
+    try:
+        from threadpoolctl import threadpool_info, threadpool_limits
+    except ImportError:  # an environment set up before it was a dependency: slower, not wrong
+        _choice = "the BLAS libraries' defaults (threadpoolctl is not installed: pip install threadpoolctl)"
+        return _choice
 
     threadpool_limits(limits=1, user_api="blas")
     libs = sorted({f"{i['internal_api']} {i['num_threads']}" for i in threadpool_info() if i["user_api"] == "blas"})
