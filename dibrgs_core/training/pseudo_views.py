@@ -168,7 +168,8 @@ def _source_image(v: View) -> np.ndarray:
     """A training view's float32 (H, W, 3) RGB as a warp's source: NaN where it holds no data, which
     the warp treats as not visible (:meth:`~.pseudo_warp.Projector.sample`)."""
     image, valid = v.pixels()
-    return fill_no_data(np.asarray(image, np.float32)[..., :3], valid, np.nan)
+    # Contiguous: every warp hands it to torch, which would copy a strided one each time.
+    return np.ascontiguousarray(fill_no_data(np.asarray(image, np.float32)[..., :3], valid, np.nan))
 
 
 def _save_view(p: Path, pv: PseudoView) -> None:
