@@ -48,15 +48,19 @@ sys.path.insert(0, str(REPO))  # benchmark this checkout's package, not an insta
 from dibrgs_core.bench.machine import cpu  # noqa: E402
 
 
-def flops_per_lane(C: int) -> tuple[int, int]:
-    """Arithmetic per evaluated (Gaussian, pixel) lane of the compositing kernels with C channels.
+def flops_per_lane(C: int, simd: str) -> tuple[int, int]:
+    """Arithmetic per evaluated (Gaussian, pixel) lane of the compositing kernels with C channels
+    on the vector code path ``simd`` (the extension's ``simd()`` name).
 
-    Forward: first pass 20 (dx 1, power 2 FMA = 4, exp2: 3 + 6 FMA = 15), second
-    pass 3 + 2C (T (1 - alpha): 2, weight 1, C FMA). Backward: first pass 20, second
-    17 + 5C (T / (1 - alpha): 2, weight 1, per channel 1 + 2 FMA, dL/dalpha 1,
-    dL/dpower 1, moments 1 + 1 + 1 + 1 + 1 + 1 + 3 FMA), third pass 2C.
+    Forward: first pass 20 (dx 1, power 2 FMA = 4, exp2 15: round by adding and subtracting
+    1.5 2^23 and f = t - n = 3, 6 FMA; with AVX-512 14: f = t - n 1, 6 FMA, scalef 1, the
+    rounding by vrndscaleps not counted), second pass 2 + 2C (alpha T 1, T - alpha T 1, C FMA).
+    Backward: first pass as the forward's, second 17 + 5C (T / (1 - alpha): 2, weight 1, per
+    channel 1 + 2 FMA, dL/dalpha 1, dL/dpower 1, moments 1 + 1 + 1 + 1 + 1 + 1 + 3 FMA), third
+    pass 2C.
     """
-    return 23 + 2 * C, 37 + 7 * C
+    first = 19 if simd.startswith("avx512 ") else 20
+    return first + 2 + 2 * C, first + 17 + 7 * C
 
 
 FMA_PEAK_C = r"""
@@ -217,10 +221,12 @@ def kernel_worker(size: int, repeats: int) -> dict:
     m2, con, dep = proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(), proj.depths.detach()
     offsets, gids, masks = stage("bin", lambda: mod.bin_tiles(m2, con, opac, dep, proj.radii, size, size))
     C = feats.shape[1]
-    _, tfin, ncon, rec = stage("composite_fwd", lambda: mod.forward(m2, con, opac, feats, offsets, gids, masks, size,
-                                                                    size, [C]))
-    gout = torch.rand(size, size, C, generator=torch.Generator().manual_seed(1))
-    stage("composite_bwd", lambda: mod.backward(rec, offsets, gids, masks, [gout], [C], tfin, ncon, size, size))
+    groups = [C - 2, 1, 1]  # colour, depth, alpha: the planes rasterize() asks for
+    *_, tfin, ncon, rec = stage("composite_fwd", lambda: mod.forward(m2, con, opac, feats, offsets, gids, masks, size,
+                                                                     size, groups))
+    gen = torch.Generator().manual_seed(1)
+    gouts = [torch.rand(size, size, n, generator=gen) for n in groups]
+    stage("composite_bwd", lambda: mod.backward(rec, offsets, gids, masks, gouts, groups, tfin, ncon, size, size))
     g = [torch.randn_like(t) for t in (proj.means2d, proj.conics, proj.depths)]
 
     def proj_bwd():
@@ -229,7 +235,7 @@ def kernel_worker(size: int, repeats: int) -> dict:
 
     proj_bwd()
     times["project_fwd_bwd"] = min(_timed(proj_bwd, repeats)[1])
-    stats = mod.composite_stats(rec, offsets, gids, masks, gout, size, size).tolist()
+    stats = mod.composite_stats(rec, offsets, gids, masks, torch.cat(gouts, -1), size, size).tolist()
     res.update(times=times, channels=int(feats.shape[1]), entries=int(offsets[-1]))
     for row, name in zip(stats, ("fwd", "bwd")):
         res[name] = dict(zip(("vectors", "lanes", "contrib", "gaussians", "entries"), row))
@@ -252,7 +258,7 @@ def report_kernels(k: dict, peak: tuple[float, int] | None) -> None:
     print(f"\nC++ stages at {k['size']}x{k['size']}, 1 thread, min CPU time of the calls ({k['simd']}):")
     for name in ("project_fwd", "bin", "composite_fwd", "composite_bwd", "project_fwd_bwd"):
         print(f"  {name:<16} {t[name] * 1e3:8.1f} ms")
-    ffl, bfl = flops_per_lane(k["channels"])
+    ffl, bfl = flops_per_lane(k["channels"], k["simd"])
     lanes = int(re.search(r" x(\d+)$", k["simd"]).group(1))
     for name, fl, tt in (("fwd", ffl, t["composite_fwd"]), ("bwd", bfl, t["composite_bwd"])):
         s = k[name]

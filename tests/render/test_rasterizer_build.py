@@ -105,8 +105,9 @@ def test_cache_key_follows_flags_not_location(monkeypatch):
 def _copy_package(dst: Path) -> None:
     (dst / "dibrgs_core").mkdir(parents=True)
     shutil.copy(REPO / "dibrgs_core" / "__init__.py", dst / "dibrgs_core" / "__init__.py")
-    shutil.copytree(REPO / "dibrgs_core" / "render", dst / "dibrgs_core" / "render",
-                    ignore=shutil.ignore_patterns("__pycache__"))
+    for sub in ("render", "common"):  # render imports common (cpu flags)
+        shutil.copytree(REPO / "dibrgs_core" / sub, dst / "dibrgs_core" / sub,
+                        ignore=shutil.ignore_patterns("__pycache__"))
 
 
 @pytest.mark.slow

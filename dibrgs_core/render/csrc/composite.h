@@ -49,6 +49,14 @@ typedef float VF __attribute__((vector_size(VBYTES)));
 typedef int32_t VIF __attribute__((vector_size(VBYTES)));
 typedef double VD __attribute__((vector_size(VBYTES)));
 typedef int64_t VID __attribute__((vector_size(VBYTES)));
+// Lane masks (see cmp_lt below): mask registers with AVX-512 at its full width, else vectors.
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
+typedef __mmask16 MF;
+typedef __mmask8 MD;
+#else
+typedef VIF MF;
+typedef VID MD;
+#endif
 
 template <typename T>
 struct Vec;
@@ -56,12 +64,14 @@ template <>
 struct Vec<float> {
   typedef VF V;
   typedef VIF I;
+  typedef MF M;
   typedef int32_t IS;
 };
 template <>
 struct Vec<double> {
   typedef VD V;
   typedef VID I;
+  typedef MD M;
   typedef int64_t IS;
 };
 
@@ -216,12 +226,107 @@ inline VD vmax(VD a, VD b) {
 inline VF keep(VIF m, VF v) { return (VF)(m & (VIF)v); }
 inline VD keep(VID m, VD v) { return (VD)(m & (VID)v); }
 
-// out[i] = sum of the lanes of v[i], i < K (K <= 8): on AVX2 floats by a
-// transposing hadd tree, else lane by lane.
+// Lane masks of the kernels' per-vector loops: AVX-512's mask registers at its full width (a
+// compare writes one, masked instructions read one), 0 / -1 integer vectors elsewhere. Kept
+// behind these helpers so that GCC never turns a mask register into a vector and back (a
+// blend, a test and a masked move each time on AVX-512).
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
+inline MF cmp_lt(VF a, VF b) { return _mm512_cmp_ps_mask((__m512)a, (__m512)b, _CMP_LT_OQ); }
+inline MF cmp_le(VF a, VF b) { return _mm512_cmp_ps_mask((__m512)a, (__m512)b, _CMP_LE_OQ); }
+inline MF cmp_gt(VF a, VF b) { return _mm512_cmp_ps_mask((__m512)a, (__m512)b, _CMP_GT_OQ); }
+inline MF cmp_ge(VF a, VF b) { return _mm512_cmp_ps_mask((__m512)a, (__m512)b, _CMP_GE_OQ); }
+inline MF cmp_lt(VIF a, VIF b) { return _mm512_cmplt_epi32_mask((__m512i)a, (__m512i)b); }
+inline MD cmp_lt(VD a, VD b) { return _mm512_cmp_pd_mask((__m512d)a, (__m512d)b, _CMP_LT_OQ); }
+inline MD cmp_le(VD a, VD b) { return _mm512_cmp_pd_mask((__m512d)a, (__m512d)b, _CMP_LE_OQ); }
+inline MD cmp_gt(VD a, VD b) { return _mm512_cmp_pd_mask((__m512d)a, (__m512d)b, _CMP_GT_OQ); }
+inline MD cmp_ge(VD a, VD b) { return _mm512_cmp_pd_mask((__m512d)a, (__m512d)b, _CMP_GE_OQ); }
+inline MD cmp_lt(VID a, VID b) { return _mm512_cmplt_epi64_mask((__m512i)a, (__m512i)b); }
+inline MF mask_of(VIF m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m); }
+inline MD mask_of(VID m) { return _mm512_test_epi64_mask((__m512i)m, (__m512i)m); }
+inline uint32_t lanes(MF m) { return m; }
+inline uint32_t lanes(MD m) { return m; }
+inline MF mand(MF a, MF b) { return a & b; }
+inline MD mand(MD a, MD b) { return a & b; }
+inline MF mandnot(MF a, MF b) { return static_cast<MF>(~a & b); }  // ~a & b
+inline MD mandnot(MD a, MD b) { return static_cast<MD>(~a & b); }
+inline MF mor(MF a, MF b) { return a | b; }
+inline MD mor(MD a, MD b) { return a | b; }
+inline bool all_lanes(MF m) { return m == 0xFFFF; }
+inline bool all_lanes(MD m) { return m == 0xFF; }
+inline VF keep(MF m, VF v) { return (VF)_mm512_maskz_mov_ps(m, (__m512)v); }
+inline VD keep(MD m, VD v) { return (VD)_mm512_maskz_mov_pd(m, (__m512d)v); }
+// a / b where m is set, a elsewhere.
+inline VF div_where(MF m, VF a, VF b) { return (VF)_mm512_mask_div_ps((__m512)a, m, (__m512)a, (__m512)b); }
+inline VD div_where(MD m, VD a, VD b) { return (VD)_mm512_mask_div_pd((__m512d)a, m, (__m512d)a, (__m512d)b); }
+// *p = v where m is set (the other lanes of *p kept).
+inline void store_where(MF m, VF* p, VF v) { _mm512_mask_store_ps(p, m, (__m512)v); }
+inline void store_where(MD m, VD* p, VD v) { _mm512_mask_store_pd(p, m, (__m512d)v); }
+#else
+template <typename V>
+inline auto cmp_lt(V a, V b) { return a < b; }
+template <typename V>
+inline auto cmp_le(V a, V b) { return a <= b; }
+template <typename V>
+inline auto cmp_gt(V a, V b) { return a > b; }
+template <typename V>
+inline auto cmp_ge(V a, V b) { return a >= b; }
+template <typename M>
+inline M mask_of(M m) { return m; }
+template <typename M>
+inline M mand(M a, M b) { return a & b; }
+template <typename M>
+inline M mandnot(M a, M b) { return ~a & b; }
+template <typename M>
+inline M mor(M a, M b) { return a | b; }
+template <typename M>
+inline bool all_lanes(M m) { return !lanes(M(~m)); }
+template <typename M, typename V>
+inline V div_where(M m, V a, V b) { return m ? a / b : a; }
+template <typename M, typename V>
+inline void store_where(M m, V* p, V v) { *p = m ? v : *p; }
+#endif
+
+// out[i] = sum of the lanes of v[i], i < K: floats by a transposing tree of
+// shuffles and adds (16 vectors at a time with AVX-512, 8 with AVX), else lane
+// by lane.
 template <int K, typename V, typename T>
 inline void hsums(const V* v, T* out) {
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
+  if constexpr (std::is_same<V, VF>::value && K > 16) {
+    hsums<16>(v, out);
+    hsums<K - 16>(v + 16, out + 16);
+    return;
+  } else if constexpr (std::is_same<V, VF>::value) {
+    auto x = [&](int i) { return i < K ? (__m512)v[i] : _mm512_setzero_ps(); };
+    // a[i]: lanes 0-7 partial sums of v[2i], lanes 8-15 of v[2i + 1].
+    __m512 a[8];
+    for (int i = 0; i < 8; ++i)
+      a[i] = 2 * i < K ? _mm512_add_ps(_mm512_shuffle_f32x4(x(2 * i), x(2 * i + 1), _MM_SHUFFLE(1, 0, 1, 0)),
+                                       _mm512_shuffle_f32x4(x(2 * i), x(2 * i + 1), _MM_SHUFFLE(3, 2, 3, 2)))
+                       : _mm512_setzero_ps();
+    // b[j]: 128-bit lane q holds four partial sums of v[4j + q].
+    __m512 b[4];
+    for (int j = 0; j < 4; ++j)
+      b[j] = 4 * j < K ? _mm512_add_ps(_mm512_shuffle_f32x4(a[2 * j], a[2 * j + 1], _MM_SHUFFLE(2, 0, 2, 0)),
+                                       _mm512_shuffle_f32x4(a[2 * j], a[2 * j + 1], _MM_SHUFFLE(3, 1, 3, 1)))
+                       : _mm512_setzero_ps();
+    const __m512 s01 = _mm512_add_ps(_mm512_unpacklo_ps(b[0], b[1]), _mm512_unpackhi_ps(b[0], b[1]));
+    const __m512 s23 = _mm512_add_ps(_mm512_unpacklo_ps(b[2], b[3]), _mm512_unpackhi_ps(b[2], b[3]));
+    // r[4q + j] = sum of v[4j + q].
+    const __m512 r = _mm512_add_ps(_mm512_shuffle_ps(s01, s23, _MM_SHUFFLE(1, 0, 1, 0)),
+                                   _mm512_shuffle_ps(s01, s23, _MM_SHUFFLE(3, 2, 3, 2)));
+    alignas(64) float t[16];
+    _mm512_store_ps(t, r);
+    for (int i = 0; i < K; ++i) out[i] = t[4 * (i & 3) + (i >> 2)];
+    return;
+  }
+#endif
 #if DIBRGS_VBYTES == 32 && defined(__AVX__)
-  if constexpr (std::is_same<V, VF>::value) {
+  if constexpr (std::is_same<V, VF>::value && K > 8) {
+    hsums<8>(v, out);
+    hsums<K - 8>(v + 8, out + 8);
+    return;
+  } else if constexpr (std::is_same<V, VF>::value) {
     __m256 x[8];
     for (int i = 0; i < 8; ++i) x[i] = i < K ? (__m256)v[i] : _mm256_setzero_ps();
     const __m256 a0 = _mm256_hadd_ps(x[0], x[1]), a1 = _mm256_hadd_ps(x[2], x[3]);
@@ -256,26 +361,38 @@ struct Exp;
 template <>
 struct Exp<float> {
   static constexpr float kscale = 1.44269504088896341f;
-  // 2^t for t <= 0 (t clamped to [-125, 0] by the caller): t = n + f with n
-  // = round(t) (in the low mantissa bits of t + 1.5 2^23) and |f| <= 1/2; 2^f
-  // by a degree-6 minimax polynomial (relative error 1.1e-7 in float).
+  // 2^t for t >= tlow: t = n + f with n = round(t) and |f| <= 1/2; 2^f by a
+  // degree-6 minimax polynomial (relative error 1.1e-7 in float), times 2^n by
+  // AVX-512's scalef (any n: large ones give inf) or else by adding n to the
+  // exponent (n <= 0: any_high false, the caller clamps t to <= 0 first).
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
+  static constexpr bool any_high = true;
   static VF eval(VF t) {
-    const VF tn = t + 12582912.0f;
-    const VF f = t - (tn - 12582912.0f);
+    const VF n = (VF)_mm512_roundscale_ps((__m512)t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    return (VF)_mm512_scalef_ps((__m512)poly(t - n), (__m512)n);
+  }
+#else
+  static constexpr bool any_high = false;
+  static VF eval(VF t) {
+    const VF tn = t + 12582912.0f;  // n in the low mantissa bits of t + 1.5 2^23
+    return (VF)((VIF)poly(t - (tn - 12582912.0f)) + ((VIF)tn << 23));
+  }
+#endif
+  static VF poly(VF f) {
     VF p = splat<VF>(1.535336188e-4f);
     p = fmadd(p, f, splat<VF>(1.339887442e-3f));
     p = fmadd(p, f, splat<VF>(9.618437358e-3f));
     p = fmadd(p, f, splat<VF>(5.550332471e-2f));
     p = fmadd(p, f, splat<VF>(2.402264791e-1f));
     p = fmadd(p, f, splat<VF>(6.931472029e-1f));
-    p = fmadd(p, f, splat<VF>(1.0f));
-    return (VF)((VIF)p + ((VIF)tn << 23));
+    return fmadd(p, f, splat<VF>(1.0f));
   }
   static constexpr float tlow = -125.0f;  // 2^-125 is normal
 };
 template <>
 struct Exp<double> {
   static constexpr double kscale = 1.0;
+  static constexpr bool any_high = false;
   static VD eval(VD x) {
     for (int i = 0; i < VBYTES / 8; ++i) x[i] = std::exp(x[i]);
     return x;
@@ -303,9 +420,11 @@ struct Geo {
 // k ln(opacity) (o exp(power) = Exp(k power + LO)), raw conic, then C features.
 enum { G_MX, G_MY, G_O, G_A, G_B, G_C, G_LO, G_RA, G_RB, G_RC, G_F };
 
-// Records of Gaussians [i0, i1) (rec: N * (G_F + C)).
+// Records of Gaussians [i0, i1) (rec: N * (G_F + C)); lop = ln(max(opacity,
+// 1e-30)), computed by the caller over the whole array at once (vectorised).
 template <typename T>
-void make_records(const T* m2, const T* con, const T* op, const T* feat, int64_t i0, int64_t i1, int64_t C, T* rec) {
+void make_records(const T* m2, const T* con, const T* op, const T* lop, const T* feat, int64_t i0, int64_t i1,
+                  int64_t C, T* rec) {
   const int64_t R = G_F + C;
   const T k = Exp<T>::kscale;
   for (int64_t g = i0; g < i1; ++g) {
@@ -313,8 +432,7 @@ void make_records(const T* m2, const T* con, const T* op, const T* feat, int64_t
     const T ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2];
     r[G_MX] = m2[2 * g], r[G_MY] = m2[2 * g + 1], r[G_O] = op[g];
     r[G_A] = T(-0.5) * k * ca, r[G_B] = -k * cb, r[G_C] = T(-0.5) * k * cc;
-    // Listed Gaussians have o >= 1/255; others get a finite value (never read).
-    r[G_LO] = std::log(std::max(op[g], T(1e-30))) * k;
+    r[G_LO] = lop[g] * k;  // listed Gaussians have o >= 1/255; others get a finite value (never read)
     r[G_RA] = ca, r[G_RB] = cb, r[G_RC] = cc;
     for (int64_t ch = 0; ch < C; ++ch) r[G_F + ch] = feat[g * C + ch];
   }
@@ -443,14 +561,35 @@ inline void prefetch_record(const T* r, int64_t R) {
   __builtin_prefetch(r + R - 1);
 }
 
+// dst[0, n) = the first n lanes of v (all of them: one unaligned vector store).
+template <typename P, typename W>
+inline void store_lanes(P* dst, W v, int n) {
+  static_assert(sizeof(W) % sizeof(P) == 0, "lane type");
+  if (n * sizeof(P) == sizeof(W)) {
+    std::memcpy(dst, &v, sizeof(W));
+  } else {
+    for (int l = 0; l < n; ++l) dst[l] = v[l];
+  }
+}
+
+// Prefetches the cache lines of a[0, n) for writing.
+template <typename P>
+inline void prefetch_lines(P* a, int64_t n) {
+  const char* c = reinterpret_cast<const char*>(a);
+  const char* e = reinterpret_cast<const char*>(a + n);
+  for (const char* q = c - (reinterpret_cast<uintptr_t>(c) & 63); q < e; q += 64) __builtin_prefetch(q, 1);
+}
+
 // Per-thread scratch: the state of a tile's pixel vectors and one Gaussian's
 // first pass.
 template <typename T>
 struct Workspace {
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
+  typedef typename Vec<T>::M M;
   typedef Geo<T> G;
   std::vector<V> st;           // per vector of the tile: a record of state vectors
+  std::vector<M> done;         // per vector of the tile: lanes that take no more Gaussians (forward)
   // One Gaussian's pass over its vectors: values of the first pass
   // (independent per vector, so they overlap in the pipeline) for the second
   // (which carries the pixel state).
@@ -462,7 +601,7 @@ struct Workspace {
   V yc[TILE / G::L];  // pixel centre rows, L rows a vector
   V rdy[TILE / G::L], rb[TILE / G::L], rc[TILE / G::L];  // first_pass's per-row terms
 
-  Workspace() : pv(G::NV), pdy(G::NV), pgv(G::NV) {}
+  Workspace() : done(G::NV), pv(G::NV), pdy(G::NV), pgv(G::NV) {}
 
   // Pixel centres of the tile at (tx0, ty0).
   void columns(int tx0, int ty0, int64_t W) {
@@ -512,9 +651,9 @@ struct Workspace {
         const int s = ms * G::VPM + v, gv = r * G::NS + s;
         const V dx = mx - xs[s];
         const V t = fmadd(dx, fmadd(A, dx, bdy), cdy2);  // k power + LO
-        const V oG = Exp<T>::eval(vmax(vmin(t, lo), tlow));
-        I ok = (t <= lo) & (oG >= amin);  // power <= 0, alpha >= 1/255
-        if (BACKWARD) ok &= kv < (I)st[gv * FS + 1];
+        const V oG = Exp<T>::eval(vmax(Exp<T>::any_high ? t : vmin(t, lo), tlow));
+        auto ok = mand(cmp_le(t, lo), cmp_ge(oG, amin));  // power <= 0, alpha >= 1/255
+        if (BACKWARD) ok = mand(ok, cmp_lt(kv, (I)st[gv * FS + 1]));
         out[nv] = keep(ok, oG);
         if (BACKWARD) dys[nv] = dyr[r];
         gvs[nv] = gv;
@@ -535,21 +674,33 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
   typedef typename Vec<T>::IS IS;
+  typedef typename Vec<T>::M M;
   typedef Geo<T> G;
-  const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 3 + C;  // state: T, done, last, acc[C]
+  const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 2 + C;  // state: T, last, acc[C] (done: ws.done)
   const int ty0 = static_cast<int>((tile / sc.tx) * TILE), tx0 = static_cast<int>((tile % sc.tx) * TILE);
   const int nrows = static_cast<int>(std::min<int64_t>(TILE, sc.H - ty0));
   ws.columns(tx0, ty0, sc.W);
   ws.st.assign(G::NV * FS, V{});
   V* const st = ws.st.data();
+  M* const done = ws.done.data();
   uint64_t alive = 0;
   for (int r = 0; r < TILE; ++r)
     for (int s = 0; s < G::NS; ++s) {
-      V* p = st + (r * G::NS + s) * FS;
-      p[0] = splat<V>(T(1));
-      p[1] = (V)(r < nrows ? ~ws.inside[s] : ~I{});
+      st[(r * G::NS + s) * FS] = splat<V>(T(1));
+      done[r * G::NS + s] = r < nrows ? M(~mask_of(ws.inside[s])) : M(~M{});
       if (r < nrows && lanes(ws.inside[s])) alive |= uint64_t(1) << (r * G::MS + s / G::VPM);
     }
+  // The tile's output rows are written at its end: fetch them now (for writing), so
+  // that those stores find their lines in cache instead of missing one by one.
+  for (int r = 0; r < nrows; ++r) {
+    const int64_t pix = (ty0 + r) * sc.W + tx0, np = std::min<int64_t>(TILE, sc.W - tx0);
+    for (int b = 0; b < out.n; ++b) {
+      const int64_t nb = out.first[b + 1] - out.first[b];
+      prefetch_lines(out.buf[b] + pix * nb, np * nb);
+    }
+    prefetch_lines(tfin + pix, np);
+    prefetch_lines(ncon + pix, np);
+  }
   const int64_t s0 = sc.off[tile], n = sc.off[tile + 1] - s0;
   const int32_t* const ids = sc.ids + s0;
   const uint64_t* const mask = sc.mask + s0;
@@ -575,31 +726,31 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
       V* __restrict p = st + gv * FS;
       const V oG = pv[i];
       const V al = vmin(oG, amax);
-      const I done = (I)p[1];
-      const I cand = ~done & (oG > zero);
+      const M cand = mandnot(done[gv], cmp_gt(oG, zero));
       const V Tg = p[0];
-      const V testT = Tg - al * Tg;
-      const I stop = cand & (testT < tmin);
-      const I valid = cand & ~stop;
-      const V w = keep(valid, al * Tg);
-      p[0] = valid ? testT : Tg;
-      p[2] = valid ? kv : p[2];
+      const V aT = al * Tg;
+      const V testT = Tg - aT;
+      const M stop = mand(cand, cmp_lt(testT, tmin));
+      const M valid = mandnot(stop, cand);
+      const V w = keep(valid, aT);
+      store_where(valid, p, testT);
+      store_where(valid, p + 1, kv);
       if (STATS) {
         ++stt.vectors;
         stt.lanes += __builtin_popcount(lanes(ws.inside[(gv & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
-      V* acc = p + 3;
+      V* acc = p + 2;
       if constexpr (CT > 0) {
         for (int ch = 0; ch < CT; ++ch) acc[ch] = fmadd(w, fv[ch], acc[ch]);
       } else {
         for (int64_t ch = 0; ch < C; ++ch) acc[ch] = fmadd(w, splat<V>(g[G_F + ch]), acc[ch]);
       }
       if (__builtin_expect(lanes(stop) != 0, 0)) {
-        p[1] = (V)(done | stop);
+        done[gv] = mor(done[gv], stop);
         const int r = gv / G::NS, s = gv & (G::NS - 1), ms = s / G::VPM;
         bool all = true;
-        for (int v = 0; v < G::VPM; ++v) all = all && !lanes(~(I)st[(r * G::NS + ms * G::VPM + v) * FS + 1]);
+        for (int v = 0; v < G::VPM; ++v) all = all && all_lanes(done[r * G::NS + ms * G::VPM + v]);
         if (all) alive &= ~(uint64_t(1) << (r * G::MS + ms));
       }
     }
@@ -608,18 +759,25 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
   for (int r = 0; r < nrows; ++r)
     for (int s = 0; s < G::NS; ++s) {
       const V* p = st + (r * G::NS + s) * FS;
-      const I last = (I)p[2];
-      for (int l = 0; l < G::L; ++l) {
-        const int64_t x = tx0 + s * G::L + l;
-        if (x >= sc.W) break;
-        const int64_t pix = (ty0 + r) * sc.W + x;
-        for (int b = 0; b < out.n; ++b) {
-          const int64_t c0 = out.first[b], nb = out.first[b + 1] - c0;
-          T* o = out.buf[b] + pix * nb;
-          for (int64_t ch = 0; ch < nb; ++ch) o[ch] = p[3 + c0 + ch][l];
+      const int64_t x0 = tx0 + s * G::L, pix = (ty0 + r) * sc.W + x0;
+      const int nl = static_cast<int>(std::min<int64_t>(G::L, sc.W - x0));  // lanes inside the image
+      if (nl <= 0) break;
+      for (int b = 0; b < out.n; ++b) {
+        const int64_t c0 = out.first[b], nb = out.first[b + 1] - c0;
+        T* o = out.buf[b] + pix * nb;
+        if (nb == 1) {
+          store_lanes(o, p[2 + c0], nl);
+        } else {
+          for (int l = 0; l < nl; ++l)
+            for (int64_t ch = 0; ch < nb; ++ch) o[l * nb + ch] = p[2 + c0 + ch][l];
         }
-        tfin[pix] = p[0][l];
-        ncon[pix] = static_cast<int32_t>(last[l]);
+      }
+      store_lanes(tfin + pix, p[0], nl);
+      if constexpr (sizeof(IS) == sizeof(int32_t)) {
+        store_lanes(ncon + pix, (I)p[1], nl);
+      } else {
+        const I last = (I)p[1];
+        for (int l = 0; l < nl; ++l) ncon[pix + l] = static_cast<int32_t>(last[l]);
       }
     }
   if (STATS) stats->add(stt);
@@ -635,6 +793,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
   typedef typename Vec<T>::V V;
   typedef typename Vec<T>::I I;
   typedef typename Vec<T>::IS IS;
+  typedef typename Vec<T>::M M;
   typedef Geo<T> G;
   const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, NG = 6 + C, FS = 2 + 2 * C;  // state: T, last, S[C], D[C]
   const int64_t s0 = sc.off[tile], n = sc.off[tile + 1] - s0;
@@ -711,14 +870,14 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
       V* __restrict p = st + gv * FS;
       const V oG = pv[i];
       const V al = vmin(oG, amax);
-      const I valid = oG > zero;
+      const M valid = cmp_gt(oG, zero);
       if (STATS) {
         ++stt.vectors;
         stt.lanes += __builtin_popcount(lanes(ws.inside[(gv & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
       // T before this Gaussian, from the one after it.
-      const V Tg = valid ? p[0] / (one - al) : p[0];
+      const V Tg = div_where(valid, p[0], one - al);
       p[0] = Tg;
       const V va = keep(valid, al);
       pv[i] = va * Tg;  // this Gaussian's weight at each pixel
@@ -735,7 +894,7 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
         S[ch] = fmadd(va, diff, Sr);
       }
       // No gradient through the 0.99 clamp (as torch.clamp).
-      const V dla = keep(valid & (oG <= amax), dsum * Tg);
+      const V dla = keep(mand(valid, cmp_le(oG, amax)), dsum * Tg);
       const V dp = oG * dla;  // dL/dpower
       M0 += dp;
       const V dx = mx - xs[(gv & (G::NS - 1))];
@@ -749,10 +908,13 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
       Myy = fmadd(pdy_, dyv, Myy);
     }
     // [/hot]
-    // Third pass: feature gradients sum_pixels weight * dL/dout.
+    // Third pass: feature gradients sum_pixels weight * dL/dout; then the
+    // lanes' sums of the moments (h[0..5]) and of these (h[6..]) in one reduction.
+    T h[6 + (CT > 0 ? CT : 0)];
     if constexpr (CT > 0) {
+      V sums[6 + CT] = {M1, My, Mxx, Mxy, Myy, M0};
+      V* const gf = sums + 6;
       // [hot]
-      V gf[CT > 0 ? CT : 1];
       for (int ch = 0; ch < CT; ++ch) gf[ch] = zero;
       for (int i = 0; i < nv; ++i) {
         const V wgt = pv[i];
@@ -760,11 +922,8 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
         for (int ch = 0; ch < CT; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
       }
       // [/hot]
-      if constexpr (CT <= 8) {
-        hsums<CT>(gf, out + 6);
-      } else {
-        for (int ch = 0; ch < CT; ++ch) out[6 + ch] = hsum(gf[ch]);
-      }
+      hsums<6 + CT>(sums, h);
+      for (int ch = 0; ch < CT; ++ch) out[6 + ch] = h[6 + ch];
     } else {
       V* const gf = gfd.data();
       for (int64_t ch = 0; ch < C; ++ch) gf[ch] = zero;
@@ -774,12 +933,11 @@ void backward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Pla
         for (int64_t ch = 0; ch < C; ++ch) gf[ch] = fmadd(wgt, D[ch], gf[ch]);
       }
       for (int64_t ch = 0; ch < C; ++ch) out[6 + ch] = hsum(gf[ch]);
+      const V mom[6] = {M1, My, Mxx, Mxy, Myy, M0};
+      hsums<6>(mom, h);
     }
     // power = -(a dx^2 + c dy^2) / 2 - b dx dy with d = mean - pixel.
     const T a = g[G_RA], b = g[G_RB], c = g[G_RC];
-    const V mom[6] = {M1, My, Mxx, Mxy, Myy, M0};
-    T h[6];
-    hsums<6>(mom, h);
     out[0] = -(a * h[0] + b * h[1]);
     out[1] = -(c * h[1] + b * h[0]);
     out[2] = T(-0.5) * h[2];
