@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from geom_synth import make_synthetic_scene
+from threads import torch_threads
 
 from dibrgs_core.geometry.sfm import SparseCloud, triangulate_known_poses
 
@@ -141,19 +142,14 @@ def test_a_strip_matched_with_neighbours_triangulates_as_every_pair():
 def test_photos_extracted_on_several_threads_triangulate_as_on_one():
     """SIFT shares the photos out over torch's thread count; COLMAP numbers them as they finish, and
     they are renumbered in name order, so the points are those of one thread to the bit."""
-    import torch
     from geom_synth import make_grid_scene
 
     base, _ = make_grid_scene(96, seed=3)
     vs = base.train_views()
-    before = torch.get_num_threads()
     clouds = {}
-    try:
-        for n in (1, 2, 3):
-            torch.set_num_threads(n)
+    for n in (1, 2, 3):
+        with torch_threads(n):
             clouds[n] = triangulate_known_poses([v.camera for v in vs], [v.image for v in vs])
-    finally:
-        torch.set_num_threads(before)
     assert len(clouds[1]) >= 50
     for n in (2, 3):
         assert np.array_equal(clouds[n].points, clouds[1].points) and np.array_equal(clouds[n].colors, clouds[1].colors)

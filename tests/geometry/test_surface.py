@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from threads import torch_threads
 
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.geometry.surface import HeightField, applies
@@ -367,13 +368,9 @@ def quad_cases():
 def test_the_compiled_quad_zbuffer_agrees_with_the_numpy_one(threads):
     """rasterise_depth's two paths (C++ and numpy): the same coverage and depths to rounding, but
     for a pixel centre on a quad's edge, where rounding may pick the other quad (<= 0.05 %)."""
-    import torch
-
     from dibrgs_core.geometry.surface import rasterise_depth, rasterise_depth_reference
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads):
         for quads, M, b, K, H, W in quad_cases():
             fast = rasterise_depth(quads, M, b, K, H, W, backend="fast")
             ref = rasterise_depth_reference(quads, M, b, K, H, W)
@@ -382,5 +379,3 @@ def test_the_compiled_quad_zbuffer_agrees_with_the_numpy_one(threads):
             assert np.mean(~same) <= 5e-4, np.mean(~same)
             if quads.shape[2] > 1000:  # the meshes: mostly covered
                 assert (ref > 0).mean() > 0.5
-    finally:
-        torch.set_num_threads(before)

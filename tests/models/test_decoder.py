@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from threads import torch_threads
 from torch import nn
 
 from dibrgs_core.models.decoder import decode, decode_reference, head_activation
@@ -55,13 +56,9 @@ def test_fast_matches_torch(threads, fused, M):
     if M > 2:
         with torch.no_grad():
             anchor[2] = centre  # at the camera: the clamped distance
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads):
         args = (feat, ibr if fused else None, anchor, centre, heads, fusion if fused else None, weights)
         fast, ref = _run("fast", *args), _run("reference", *args)
-    finally:
-        torch.set_num_threads(before)
     for a, b in zip(fast[0], ref[0]):
         assert a.shape == b.shape == (M, a.shape[1])
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)

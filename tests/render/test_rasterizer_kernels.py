@@ -12,6 +12,7 @@ import torch
 
 from dibrgs_core.render import composite, project_gaussians, rasterize
 from rasterizer_oracle import brute_composite
+from threads import torch_threads
 
 W, H = 70, 53
 
@@ -186,11 +187,9 @@ def test_tile_lists_do_not_depend_on_threads_or_input_types():
     dep = torch.randint(1, 400, (n,), generator=g).float() * 0.25  # exact ties
     rad = torch.ceil(3.0 / torch.sqrt(torch.minimum(a, c))).to(torch.int32)
     m2[5, 0], op[6], rad[7] = float("nan"), 0.0, 0
-    threads = torch.get_num_threads()
-    try:
-        runs = {}
-        for nt in (1, 2, 3):
-            torch.set_num_threads(nt)
+    runs = {}
+    for nt in (1, 2, 3):
+        with torch_threads(nt):
             runs[nt] = mod.bin_tiles(m2, con, op, dep, rad, w, h)
             # int64 radii, and float32 values held in float64 tensors, read the same
             same = mod.bin_tiles(m2.double(), con.double(), op.double(), dep.double(), rad.long(), w, h)
@@ -198,8 +197,6 @@ def test_tile_lists_do_not_depend_on_threads_or_input_types():
             # a mix of dtypes is read as float64: the lists as float32's, the masks laid out for means2d's
             mixed = mod.bin_tiles(m2, con.double(), op, dep, rad, w, h)
             assert all(torch.equal(x, y) for x, y in zip(mixed, runs[nt]))
-    finally:
-        torch.set_num_threads(threads)
     for nt in (2, 3):
         assert all(torch.equal(x, y) for x, y in zip(runs[nt], runs[1]))
     offsets, gids, _ = runs[1]

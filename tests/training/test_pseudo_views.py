@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from threads import torch_threads
 
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.data.scene import View
@@ -253,20 +254,14 @@ def test_sampled_views_are_filtered_by_cloud_cover_and_warped_share(tmp_path):
 def test_views_built_ahead_on_threads_are_the_ones_built_one_by_one(tmp_path, threads):
     """Torch's thread count of views in flight: the same poses tried, kept and dropped, in the same
     order, with the same pixels, as one at a time; and no more tried than one at a time needs."""
-    import torch
-
     views = [View(camera=c, image=render(c)[0]) for c in (cam_at(0, 40), cam_at(120, 40), cam_at(240, 40))]
     pts = scene_points(step=0.06)
     some = pts[pts[:, 0] > 1.5]
-    before = torch.get_num_threads()
     built = {}
-    try:
-        for t in (1, threads):
-            torch.set_num_threads(t)
+    for t in (1, threads):
+        with torch_threads(t):
             built[t] = build_pseudo_views(views, some, n=4, seed=0, cache_dir=tmp_path / str(t), min_cloud_cover=0.25,
                                           min_warped=0.2, surface=True, consistency_tol=0.1)
-    finally:
-        torch.set_num_threads(before)
     a, b = built[1], built[threads]
     # Both filters drop poses, and n is reached before the 3 n candidates run out.
     assert a.dropped_cloud > 0 and a.dropped_warped > 0 and len(a.views) == 4 and a.tried < 12
