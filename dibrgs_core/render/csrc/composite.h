@@ -287,16 +287,13 @@ inline void store_where(M m, V* p, V v) { *p = m ? v : *p; }
 #endif
 
 // out[i] = sum of the lanes of v[i], i < K: floats by a transposing tree of
-// shuffles and adds (16 vectors at a time with AVX-512, 8 with AVX), else lane
-// by lane.
+// shuffles and adds (K <= 16 with AVX-512; 8 vectors at a time with AVX), else
+// lane by lane.
 template <int K, typename V, typename T>
 inline void hsums(const V* v, T* out) {
 #if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
-  if constexpr (std::is_same<V, VF>::value && K > 16) {
-    hsums<16>(v, out);
-    hsums<K - 16>(v + 16, out + 16);
-    return;
-  } else if constexpr (std::is_same<V, VF>::value) {
+  if constexpr (std::is_same<V, VF>::value) {
+    static_assert(K <= 16, "one tree of up to 16 vectors");
     auto x = [&](int i) { return i < K ? (__m512)v[i] : _mm512_setzero_ps(); };
     // a[i]: lanes 0-7 partial sums of v[2i], lanes 8-15 of v[2i + 1].
     __m512 a[8];
