@@ -558,14 +558,15 @@ inline void prefetch_record(const T* r, int64_t R) {
   __builtin_prefetch(r + R - 1);
 }
 
-// dst[0, n) = the first n lanes of v (all of them: one unaligned vector store).
+// dst[0, n) = the first n lanes of v, converted to P (all of them, of P's size: one unaligned
+// vector store).
 template <typename P, typename W>
 inline void store_lanes(P* dst, W v, int n) {
-  static_assert(sizeof(W) % sizeof(P) == 0, "lane type");
-  if (n * sizeof(P) == sizeof(W)) {
+  constexpr int L = static_cast<int>(sizeof(W) / sizeof(v[0]));
+  if (sizeof(v[0]) == sizeof(P) && n == L) {
     std::memcpy(dst, &v, sizeof(W));
   } else {
-    for (int l = 0; l < n; ++l) dst[l] = v[l];
+    for (int l = 0; l < n; ++l) dst[l] = static_cast<P>(v[l]);
   }
 }
 
@@ -770,12 +771,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
         }
       }
       store_lanes(tfin + pix, p[0], nl);
-      if constexpr (sizeof(IS) == sizeof(int32_t)) {
-        store_lanes(ncon + pix, (I)p[1], nl);
-      } else {
-        const I last = (I)p[1];
-        for (int l = 0; l < nl; ++l) ncon[pix + l] = static_cast<int32_t>(last[l]);
-      }
+      store_lanes(ncon + pix, (I)p[1], nl);  // int64 lanes (double) narrowed one by one
     }
   if (STATS) stats->add(stt);
 }
