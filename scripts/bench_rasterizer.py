@@ -20,7 +20,9 @@ projection, binning, compositing forward and backward (the extension's
 ``forward`` and ``backward``: records, tiles, gradient reduction), counts the
 (Gaussian, pixel) pairs the kernels evaluate, and compares the arithmetic they
 do with this core's FMA peak, measured by a small C program compiled here
-(``cc -O2 -march=native``, independent FMA chains). The FLOPs per evaluated
+(``cc -O2 -march=native``, independent FMA chains) before and after the stages;
+the higher reading is the peak, as a probe that fell in a slow spell of a shared
+host would flatter the kernels. The FLOPs per evaluated
 pair (one lane of a vector) are counted from ``csrc/composite.h``: add, sub,
 mul, div = 1, FMA = 2; compares, min/max, blends and bit operations are not
 counted.
@@ -253,8 +255,12 @@ def run_child(args: list[str], threads: int) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def report_kernels(k: dict, peak: tuple[float, int] | None) -> None:
+def report_kernels(k: dict, probes: list[tuple[float, int]]) -> None:
+    """Prints the kernel worker's stage times and FLOP rates against the FMA peak: the highest of
+    ``probes`` (the probe run before and after the worker; on a shared host either may fall in a
+    slow spell, which would flatter the kernels)."""
     t = k["times"]
+    peak = max(probes) if probes else None
     print(f"\nC++ stages at {k['size']}x{k['size']}, 1 thread, min CPU time of the calls ({k['simd']}):")
     for name in ("project_fwd", "bin", "composite_fwd", "composite_bwd", "project_fwd_bwd"):
         print(f"  {name:<16} {t[name] * 1e3:8.1f} ms")
@@ -270,7 +276,8 @@ def report_kernels(k: dict, peak: tuple[float, int] | None) -> None:
             line += f" = 1/{peak[0] / (ev * fl / tt / 1e9):.1f} of the FMA peak"
         print(line)
     if peak:
-        print(f"  FMA peak of one core: {peak[0]:.1f} GFLOP/s ({peak[1]} float lanes, 2 FLOP per FMA)")
+        print(f"  FMA peak of one core: {peak[0]:.1f} GFLOP/s ({peak[1]} float lanes, 2 FLOP per FMA; the higher of "
+              f"the probes before and after the stages: {' / '.join(f'{p[0]:.1f}' for p in probes)})")
 
 
 def main() -> int:
@@ -319,7 +326,9 @@ def main() -> int:
                       f"{ref['fwd_cpu_s'] / f['fwd_cpu_s']:.1f}x, forward+backward "
                       f"{ref['fwd_bwd_cpu_s'] / f['fwd_bwd_cpu_s']:.1f}x")
     if args.kernels and "fast" in args.backends:
-        report_kernels(run_child(["--kernel-worker", str(max(args.sizes)), str(max(args.repeats, 3))], 1), fma_peak())
+        before = fma_peak()
+        k = run_child(["--kernel-worker", str(max(args.sizes)), str(max(args.repeats, 3))], 1)
+        report_kernels(k, [p for p in (before, fma_peak()) if p is not None])
     load = os.getloadavg()
     print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     return 0
