@@ -26,6 +26,7 @@ from dibrgs_core.common.lock import LOCK_NAME
 from dibrgs_core.training.checkpoint import CHECKPOINT, MODEL
 
 from run_synth import QUICK, copy_run, dibrgs, dibrgs_subprocess
+from threads import torch_threads
 
 torch.set_num_threads(1)
 
@@ -309,8 +310,7 @@ def test_threads_default_to_the_available_cores():
     from dibrgs_core.cli import build_parser
     from dibrgs_core.commands.options import apply_compute, available_cores
 
-    n = torch.get_num_threads()
-    try:
+    with torch_threads(torch.get_num_threads()):  # the commands set the count; restored after
         for cmd in (["train", "S", "--out", "W"], ["init", "S", "--out", "W"], ["eval", "W"],
                     ["render", "W", "--cameras", "C", "--out", "O"], ["export", "W", "--ply", "P"], ["demo"]):
             args = build_parser().parse_args(cmd)
@@ -319,8 +319,6 @@ def test_threads_default_to_the_available_cores():
             assert torch.get_num_threads() == available_cores()
             args = build_parser().parse_args(cmd + ["--threads", "1"])
             assert apply_compute(args) == 1 and torch.get_num_threads() == 1
-    finally:
-        torch.set_num_threads(n)
 
 
 # =============================================================================================
