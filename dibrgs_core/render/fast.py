@@ -33,13 +33,16 @@ Environment
     ``DIBRGS_EXT_DIR`` cache root; ``CXX`` compiler; ``DIBRGS_EXT_FLAGS``
     replaces the default compile flags (``-O3 -march=native -fopenmp
     -fno-math-errno``, plus ``-DDIBRGS_VBYTES=32`` for 8-lane compositing
-    vectors where :mod:`..common.cpu` finds that faster) for compilers that reject them.
+    vectors where :mod:`..common.cpu` finds that faster, and on Intel's Skylake family
+    ``-Wa,-mbranches-within-32B-boundaries`` where the assembler takes it) for compilers that
+    reject them.
 """
 from __future__ import annotations
 
 import hashlib
 import importlib.machinery
 import importlib.util
+import functools
 import json
 import logging
 import os
@@ -58,7 +61,7 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
-from ..common.cpu import cpu_flags, half_width_avx512
+from ..common.cpu import cpu_flags, half_width_avx512, jcc_erratum
 from .projection import Projected
 
 log = logging.getLogger("dibrgs.render")
@@ -89,13 +92,40 @@ def _compiler() -> str:
     return os.environ.get("CXX", "c++")
 
 
+ALIGN_BRANCHES = "-Wa,-mbranches-within-32B-boundaries"
+
+
+@functools.lru_cache(maxsize=None)
+def _assembler_aligns_branches(cxx: str) -> bool:
+    """Whether ``cxx``'s assembler takes :data:`ALIGN_BRANCHES` (GNU as >= 2.34; False without a compiler)."""
+    with tempfile.TemporaryDirectory(prefix="dibrgs_probe_") as tmp:
+        src = Path(tmp) / "probe.cpp"
+        src.write_text("int f(int x) { return x > 0 ? x : -x; }\n")
+        try:
+            res = subprocess.run([cxx, ALIGN_BRANCHES, "-O2", "-c", str(src), "-o", str(Path(tmp) / "probe.o")],
+                                 capture_output=True, timeout=60, check=False)
+        except (OSError, subprocess.TimeoutExpired):
+            return False
+        return res.returncode == 0
+
+
 def default_flags() -> list[str]:
     """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept;
-    8-lane compositing vectors on AVX-512 CPUs that run it at half width (:mod:`..common.cpu`)."""
+    8-lane compositing vectors on AVX-512 CPUs that run it at half width, and on Intel's Skylake family
+    (the jump-alignment erratum) no jump across or at the end of a 32-byte block (:mod:`..common.cpu`)."""
     native = "-mcpu=native" if platform.machine().lower() in ("arm64", "aarch64") else "-march=native"
     # -fopenmp: at::parallel_for (an inline header template) runs serially without it.
     # No -ffast-math: the kernels rely on IEEE comparisons for culled lanes.
-    return ["-O3", native, "-fopenmp", "-fno-math-errno"] + (["-DDIBRGS_VBYTES=32"] if half_width_avx512() else [])
+    flags = ["-O3", native, "-fopenmp", "-fno-math-errno"]
+    if half_width_avx512():
+        flags.append("-DDIBRGS_VBYTES=32")
+    # Such a jump keeps its block out of the decoded-uop cache: the compositing forward ran 2.5 %
+    # slower without the padding on a Cascade Lake (docs/benchmarks.md). An assembler without the
+    # option builds without it (_compile); the cache key does not depend on that probe, so a copy
+    # of the package run where no compiler is found still finds the build.
+    if jcc_erratum():
+        flags.append(ALIGN_BRANCHES)
+    return flags
 
 
 def build_flags() -> list[str]:
@@ -207,6 +237,10 @@ def _compile(d: Path, flags: list[str], on_start: Callable[[str], None] | None) 
     from torch.utils.cpp_extension import load
 
     cxx = _compiler()
+    if ALIGN_BRANCHES in flags and shutil.which(cxx) is not None and not _assembler_aligns_branches(cxx):
+        log.info("the assembler of %s does not take %s (GNU as >= 2.34 does); building without it", cxx,
+                 ALIGN_BRANCHES)
+        flags = [f for f in flags if f != ALIGN_BRANCHES]
     _check_prerequisites(cxx, flags)
     msg = f"compiling the C++ rasterizer for this machine (first run, {BUILD_TIME}) in {d}"
     log.warning(msg)

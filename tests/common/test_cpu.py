@@ -1,14 +1,17 @@
 """What the C++ build reads from /proc/cpuinfo: the flags of its cache key and the compositing width."""
 from __future__ import annotations
 
+import shutil
+
 import pytest
 
 from dibrgs_core.common import cpu
 from dibrgs_core.render import fast
 
 
-def _info(vendor: str, family: str, flags: str) -> str:
-    one = f"processor\t: {{n}}\nvendor_id\t: {vendor}\ncpu family\t: {family}\nmodel\t\t: 17\nflags\t\t: {flags}\n"
+def _info(vendor: str, family: str, flags: str, model: int = 17) -> str:
+    one = (f"processor\t: {{n}}\nvendor_id\t: {vendor}\ncpu family\t: {family}\nmodel\t\t: {model}\n"
+           f"model name\t: x\nflags\t\t: {flags}\n")
     return "\n".join(one.format(n=n) for n in range(2))
 
 
@@ -37,3 +40,45 @@ def test_default_flags_ask_for_eight_lanes_on_half_width_cpus(monkeypatch, half)
     monkeypatch.setattr(fast, "half_width_avx512", lambda: half)
     flags = fast.default_flags()
     assert ("-DDIBRGS_VBYTES=32" in flags) is half and "-fopenmp" in flags
+
+
+AVX512 = "fpu sse2 avx avx2 fma avx512f avx512dq avx512vl"
+
+
+@pytest.mark.parametrize("text,affected", [
+    (_info("GenuineIntel", "6", AVX512, model=85), True),    # Skylake-SP / Cascade Lake
+    (_info("GenuineIntel", "6", "avx avx2 fma", model=158), True),  # Coffee Lake
+    (_info("GenuineIntel", "6", AVX512, model=106), False),  # Ice Lake-SP
+    (_info("GenuineIntel", "6", AVX512, model=143), False),  # Sapphire Rapids
+    (_info("AuthenticAMD", "23", "avx avx2 fma", model=85), False),
+    ("processor\t: 0\nFeatures\t: fp asimd sve\nCPU implementer\t: 0x41\n", False),
+    ("", False),
+])
+def test_jcc_erratum_only_on_the_skylake_family(text, affected):
+    assert cpu.jcc_erratum(text) is affected
+
+
+@pytest.mark.parametrize("affected", [True, False])
+def test_default_flags_align_branches_on_affected_cpus(monkeypatch, affected):
+    """The key's flags follow the CPU alone (not whether a compiler is found): a build made with a
+    compiler is found again without one."""
+    monkeypatch.setattr(fast, "jcc_erratum", lambda: affected)
+    monkeypatch.setenv("CXX", "/nonexistent/c++")
+    assert (fast.ALIGN_BRANCHES in fast.default_flags()) is affected
+    assert not fast._assembler_aligns_branches("/nonexistent/c++")
+
+
+@pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
+def test_gnu_assembler_takes_the_branch_alignment():
+    assert fast._assembler_aligns_branches("g++")
+
+
+@pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
+def test_an_assembler_without_branch_alignment_is_detected(tmp_path):
+    """An older toolchain (GNU as < 2.34) rejects the option: the probe says so, and _compile then
+    builds without it instead of failing."""
+    cc = tmp_path / "old-c++"
+    cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = "-Wa,-mbranches-within-32B-boundaries" ] && exit 1; done\n'
+                  'exec g++ "$@"\n')
+    cc.chmod(0o755)
+    assert not fast._assembler_aligns_branches(str(cc))

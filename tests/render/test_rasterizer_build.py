@@ -236,3 +236,46 @@ def test_extension_source_compiles_for_avx512():
            "-isystem", sysconfig.get_paths()["include"], str(CSRC / "rasterize.cpp")]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
     assert res.returncode == 0, res.stderr[-3000:]
+
+
+EXP = r"""#include <cstdio>
+#include "composite.h"
+using namespace dibrgs;
+int main() {
+  const int L = VBYTES / 4;
+  double worst = 0, below = 0;
+  long bad = 0;
+  for (long i = 0; i <= 1500000; i += L) {  // t from -150 to 0 in steps of 1e-4
+    VF t;
+    for (int l = 0; l < L; ++l) t[l] = -150.0f + 1e-4f * float(i + l);
+    const VF e = Exp<float>::eval(t, VF{});
+    for (int l = 0; l < L; ++l) {
+      const double x = t[l], v = e[l];
+      if (x > 0) continue;  // above hi: the AVX2 path clamps, AVX-512's need not
+      if (!(v == v) && x >= Exp<float>::tlow) ++bad;  // NaN where a value is due
+      if (x >= Exp<float>::tlow) worst = std::max(worst, std::fabs(v / std::exp2(x) - 1.0));
+      else if (v > below) below = v;
+    }
+  }
+  std::printf("%ld %.3g %.3g\n", bad, worst, below);
+  return 0;
+}
+"""
+
+
+@pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
+@pytest.mark.parametrize("march", ["native", pytest.param("haswell", marks=pytest.mark.slow)])
+def test_kernels_exponential_is_accurate(tmp_path, march):
+    """The kernels' 2^t (AVX-512: vreduceps and scalef; AVX2 and others: rounding by adding
+    1.5 2^23): relative error under 2e-7 from tlow (-125) to 0, and below 2^(tlow + 1) under tlow
+    (a culled lane), on this machine's code path and on the AVX2 one (where this CPU runs it)."""
+    if march == "haswell" and "avx2" not in fast.cpu_flags().split():
+        pytest.skip("this CPU has no AVX2")
+    src, exe = tmp_path / "exp.cpp", tmp_path / "exp"
+    src.write_text(EXP)
+    subprocess.run(["g++", "-O2", f"-march={march}", "-std=c++17", f"-I{CSRC}", str(src), "-o", str(exe)], check=True,
+                   capture_output=True, text=True, timeout=300)
+    bad, worst, below = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()
+    assert int(bad) == 0
+    assert float(worst) < 2e-7
+    assert float(below) < 2.0 ** -124

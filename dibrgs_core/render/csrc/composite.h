@@ -358,43 +358,53 @@ struct Exp;
 template <>
 struct Exp<float> {
   static constexpr float kscale = 1.44269504088896341f;
-  // 2^t for t >= tlow: t = n + f with n = round(t) and |f| <= 1/2; 2^f by a
-  // degree-6 minimax polynomial (relative error 1.1e-7 in float), times 2^n by
-  // AVX-512's scalef (any n: large ones give inf) or else by adding n to the
-  // exponent (n <= 0: any_high false, the caller clamps t to <= 0 first).
-#if DIBRGS_VBYTES == 64 && defined(__AVX512F__)
-  static constexpr bool any_high = true;
-  static VF eval(VF t) {
-    const VF n = (VF)_mm512_roundscale_ps((__m512)t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    return (VF)_mm512_scalef_ps((__m512)poly(t - n), (__m512)n);
+  static constexpr float tlow = -125.0f;  // 2^-125 is normal
+#if DIBRGS_VBYTES == 64 && defined(__AVX512F__) && defined(__AVX512DQ__)
+  // 2^t for t >= tlow (t <= hi not needed), else a value below 2^(tlow + 1), or NaN: t = n + f
+  // with n = floor(t) and 0 <= f < 1 by one vreduceps, 2^f by a degree-6 minimax polynomial on
+  // [0, 1) (relative error 6.2e-8 in float), times 2^n by scalef, which floors its exponent
+  // itself (any n: large ones give inf). The clamp to tlow (no denormal results) feeds scalef
+  // only, off the polynomial's dependency chain.
+  static VF eval(VF t, VF) {
+    const VF f = (VF)_mm512_reduce_ps((__m512)t, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+    VF p = splat<VF>(2.170223888e-4f);
+    p = fmadd(p, f, splat<VF>(1.243969309e-3f));
+    p = fmadd(p, f, splat<VF>(9.678840637e-3f));
+    p = fmadd(p, f, splat<VF>(5.548334122e-2f));
+    p = fmadd(p, f, splat<VF>(2.402298301e-1f));
+    p = fmadd(p, f, splat<VF>(6.931470037e-1f));
+    p = fmadd(p, f, splat<VF>(1.0f));
+    return (VF)_mm512_scalef_ps((__m512)p, (__m512)vmax(t, splat<VF>(tlow)));
   }
 #else
-  static constexpr bool any_high = false;
-  static VF eval(VF t) {
+  // 2^t for tlow <= t <= hi <= 0, else 2^clamp(t, tlow, hi): t = n + f with n = round(t) and
+  // |f| <= 1/2 (rounding by adding and subtracting 1.5 2^23), 2^f by a degree-6 minimax polynomial
+  // (relative error 1.1e-7 in float), times 2^n by adding n to the exponent.
+  static VF eval(VF t, VF hi) {
+    t = vmax(vmin(t, hi), splat<VF>(tlow));
     const VF tn = t + 12582912.0f;  // n in the low mantissa bits of t + 1.5 2^23
-    return (VF)((VIF)poly(t - (tn - 12582912.0f)) + ((VIF)tn << 23));
-  }
-#endif
-  static VF poly(VF f) {
+    const VF f = t - (tn - 12582912.0f);
     VF p = splat<VF>(1.535336188e-4f);
     p = fmadd(p, f, splat<VF>(1.339887442e-3f));
     p = fmadd(p, f, splat<VF>(9.618437358e-3f));
     p = fmadd(p, f, splat<VF>(5.550332471e-2f));
     p = fmadd(p, f, splat<VF>(2.402264791e-1f));
     p = fmadd(p, f, splat<VF>(6.931472029e-1f));
-    return fmadd(p, f, splat<VF>(1.0f));
+    p = fmadd(p, f, splat<VF>(1.0f));
+    return (VF)((VIF)p + ((VIF)tn << 23));
   }
-  static constexpr float tlow = -125.0f;  // 2^-125 is normal
+#endif
 };
 template <>
 struct Exp<double> {
   static constexpr double kscale = 1.0;
-  static constexpr bool any_high = false;
-  static VD eval(VD x) {
-    for (int i = 0; i < VBYTES / 8; ++i) x[i] = std::exp(x[i]);
-    return x;
-  }
   static constexpr double tlow = -745.0;
+  // exp(clamp(t, tlow, hi)).
+  static VD eval(VD t, VD hi) {
+    t = vmax(vmin(t, hi), splat<VD>(tlow));
+    for (int i = 0; i < VBYTES / 8; ++i) t[i] = std::exp(t[i]);
+    return t;
+  }
 };
 
 // Tile geometry for element type T: NS vectors of L lanes per row, grouped in
@@ -620,7 +630,7 @@ struct Workspace {
   int first_pass(const T* g, uint64_t m, const V* st, int64_t FS, I kv) {
     const T mx = g[G_MX], my = g[G_MY], LO = g[G_LO];
     const V A = splat<V>(g[G_A]), lo = splat<V>(LO);
-    const V tlow = splat<V>(Exp<T>::tlow), amin = splat<V>(T(ALPHA_MIN));
+    const V amin = splat<V>(T(ALPHA_MIN));
     // Per row: dy = my - y, B dy and Cq dy^2 + LO, all rows at once.
     {
       const V B = splat<V>(g[G_B]), Cq = splat<V>(g[G_C]);
@@ -649,7 +659,7 @@ struct Workspace {
         const int s = ms * G::VPM + v, gv = r * G::NS + s;
         const V dx = mx - xs[s];
         const V t = fmadd(dx, fmadd(A, dx, bdy), cdy2);  // k power + LO
-        const V oG = Exp<T>::eval(vmax(Exp<T>::any_high ? t : vmin(t, lo), tlow));
+        const V oG = Exp<T>::eval(t, lo);
         auto ok = mand(cmp_le(t, lo), cmp_ge(oG, amin));  // power <= 0, alpha >= 1/255
         if (BACKWARD) ok = mand(ok, cmp_lt(kv, (I)st[gv * FS + 1]));
         out[nv] = keep(ok, oG);
