@@ -55,8 +55,8 @@ def flops_per_lane(C: int, simd: str) -> tuple[int, int]:
     on the vector code path ``simd`` (the extension's ``simd()`` name).
 
     Forward: first pass 20 (dx 1, power 2 FMA = 4, exp2 15: round by adding and subtracting
-    1.5 2^23 and f = t - n = 3, 6 FMA; with AVX-512 14: f = t - n 1, 6 FMA, scalef 1, the
-    rounding by vrndscaleps not counted), second pass 2 + 2C (alpha T 1, T - alpha T 1, C FMA).
+    1.5 2^23 and f = t - n = 3, 6 FMA; with AVX-512 14: f = t - floor(t) by vreduceps 1, 6 FMA,
+    scalef 1), second pass 2 + 2C (alpha T 1, T - alpha T 1, C FMA).
     Backward: first pass as the forward's, second 17 + 5C (T / (1 - alpha): 2, weight 1, per
     channel 1 + 2 FMA, dL/dalpha 1, dL/dpower 1, moments 1 + 1 + 1 + 1 + 1 + 1 + 3 FMA), third
     pass 2C.
