@@ -580,6 +580,19 @@ inline void store_lanes(P* dst, W v, int n) {
   }
 }
 
+// A lane mask kept in a state vector's slot (memcpy: the slot's type is V's).
+template <typename M, typename V>
+inline M get_mask(const V* slot) {
+  static_assert(sizeof(M) <= sizeof(V), "mask wider than its slot");
+  M m;
+  std::memcpy(&m, slot, sizeof(M));
+  return m;
+}
+template <typename M, typename V>
+inline void set_mask(V* slot, M m) {
+  std::memcpy(slot, &m, sizeof(M));
+}
+
 // Prefetches the cache lines of a[0, n) for writing.
 template <typename P>
 inline void prefetch_lines(P* a, int64_t n) {
@@ -597,7 +610,6 @@ struct Workspace {
   typedef typename Vec<T>::M M;
   typedef Geo<T> G;
   std::vector<V> st;           // per vector of the tile: a record of state vectors
-  std::vector<M> done;         // per vector of the tile: lanes that take no more Gaussians (forward)
   // One Gaussian's pass over its vectors: values of the first pass
   // (independent per vector, so they overlap in the pipeline) for the second
   // (which carries the pixel state).
@@ -609,7 +621,7 @@ struct Workspace {
   V yc[TILE / G::L];  // pixel centre rows, L rows a vector
   V rdy[TILE / G::L], rb[TILE / G::L], rc[TILE / G::L];  // first_pass's per-row terms
 
-  Workspace() : done(G::NV), pv(G::NV), pdy(G::NV), pgv(G::NV) {}
+  Workspace() : pv(G::NV), pdy(G::NV), pgv(G::NV) {}
 
   // Pixel centres of the tile at (tx0, ty0).
   void columns(int tx0, int ty0, int64_t W) {
@@ -624,8 +636,10 @@ struct Workspace {
 
   // First pass of Gaussian g over the tile's vectors in segment mask m:
   // pv = o exp(power) where power <= 0 and o exp(power) >= 1/255 (and, in
-  // the backward, k < n_contrib), else 0; pgv = vector index, pdy (in the
-  // backward) = row offset my - y. Returns the vector count.
+  // the backward, k < n_contrib), else 0; pgv = vector index (backward) or
+  // the byte offset of its state record in st (forward: no index arithmetic
+  // in its second pass), pdy (in the backward) = row offset my - y. Returns
+  // the vector count.
   template <bool BACKWARD>
   int first_pass(const T* g, uint64_t m, const V* st, int64_t FS, I kv) {
     const T mx = g[G_MX], my = g[G_MY], LO = g[G_LO];
@@ -636,7 +650,7 @@ struct Workspace {
       const V B = splat<V>(g[G_B]), Cq = splat<V>(g[G_C]);
       for (int j = 0; j < TILE / G::L; ++j) {
         const V dy = my - yc[j];
-        rdy[j] = dy;
+        if (BACKWARD) rdy[j] = dy;
         rb[j] = B * dy;
         rc[j] = fmadd(Cq * dy, dy, lo);
       }
@@ -664,7 +678,7 @@ struct Workspace {
         if (BACKWARD) ok = mand(ok, cmp_lt(kv, (I)st[gv * FS + 1]));
         out[nv] = keep(ok, oG);
         if (BACKWARD) dys[nv] = dyr[r];
-        gvs[nv] = gv;
+        gvs[nv] = BACKWARD ? gv : gv * static_cast<int32_t>(FS * sizeof(V));
         ++nv;
       }
     } while (m);
@@ -684,18 +698,17 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
   typedef typename Vec<T>::IS IS;
   typedef typename Vec<T>::M M;
   typedef Geo<T> G;
-  const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 2 + C;  // state: T, last, acc[C] (done: ws.done)
+  const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 3 + C;  // state: T, last, acc[C], done (a mask)
   const int ty0 = static_cast<int>((tile / sc.tx) * TILE), tx0 = static_cast<int>((tile % sc.tx) * TILE);
   const int nrows = static_cast<int>(std::min<int64_t>(TILE, sc.H - ty0));
   ws.columns(tx0, ty0, sc.W);
   ws.st.assign(G::NV * FS, V{});
   V* const st = ws.st.data();
-  M* const done = ws.done.data();
   uint64_t alive = 0;
   for (int r = 0; r < TILE; ++r)
     for (int s = 0; s < G::NS; ++s) {
       st[(r * G::NS + s) * FS] = splat<V>(T(1));
-      done[r * G::NS + s] = r < nrows ? M(~mask_of(ws.inside[s])) : M(~M{});
+      set_mask(st + (r * G::NS + s) * FS + FS - 1, r < nrows ? M(~mask_of(ws.inside[s])) : M(~M{}));
       if (r < nrows && lanes(ws.inside[s])) alive |= uint64_t(1) << (r * G::MS + s / G::VPM);
     }
   // The tile's output rows are written at its end: fetch them now (for writing), so
@@ -729,12 +742,12 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
     if constexpr (CT > 0)
       for (int ch = 0; ch < CT; ++ch) fv[ch] = splat<V>(g[G_F + ch]);
     // [hot] second pass: transmittance and accumulated features
-    for (int i = 0; i < nv; ++i) {
-      const int gv = pgv[i];
-      V* __restrict p = st + gv * FS;
-      const V oG = pv[i];
+    const V* __restrict pvi = pv;
+    for (const int32_t *q = pgv, *qe = pgv + nv; q != qe; ++q, ++pvi) {
+      V* __restrict p = reinterpret_cast<V*>(reinterpret_cast<char*>(st) + *q);
+      const V oG = *pvi;
       const V al = vmin(oG, amax);
-      const M cand = mandnot(done[gv], cmp_gt(oG, zero));
+      const M cand = mandnot(get_mask<M>(p + FS - 1), cmp_gt(oG, zero));
       const V Tg = p[0];
       const V aT = al * Tg;
       const V testT = Tg - aT;
@@ -745,7 +758,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
       store_where(valid, p + 1, kv);
       if (STATS) {
         ++stt.vectors;
-        stt.lanes += __builtin_popcount(lanes(ws.inside[(gv & (G::NS - 1))]));
+        stt.lanes += __builtin_popcount(lanes(ws.inside[((*q / static_cast<int32_t>(FS * sizeof(V))) & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
       V* acc = p + 2;
@@ -755,10 +768,12 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
         for (int64_t ch = 0; ch < C; ++ch) acc[ch] = fmadd(w, splat<V>(g[G_F + ch]), acc[ch]);
       }
       if (__builtin_expect(lanes(stop) != 0, 0)) {
-        done[gv] = mor(done[gv], stop);
+        set_mask(p + FS - 1, mor(get_mask<M>(p + FS - 1), stop));
+        const int gv = *q / static_cast<int32_t>(FS * sizeof(V));
         const int r = gv / G::NS, s = gv & (G::NS - 1), ms = s / G::VPM;
         bool all = true;
-        for (int v = 0; v < G::VPM; ++v) all = all && all_lanes(done[r * G::NS + ms * G::VPM + v]);
+        for (int v = 0; v < G::VPM; ++v)
+          all = all && all_lanes(get_mask<M>(st + (r * G::NS + ms * G::VPM + v) * FS + FS - 1));
         if (all) alive &= ~(uint64_t(1) << (r * G::MS + ms));
       }
     }
