@@ -4,7 +4,9 @@ On a shared host the same build's times move by 1.5x between runs a minute apart
 few per cent a kernel change is worth. Here every version is built as its own extension module
 and all are loaded into one process; their calls alternate (A, B, A, B, ...), so each round's
 calls of every version see the same host, and the ratio of their round minima cancels the
-host's drift. The forward's outputs of every version are compared with the first's.
+host's drift. The forward's outputs of every version are compared with the first's. Stages: the
+compositing forward or backward (garden, as ``bench_rasterizer.py``), or the training loss
+(``loss``: L1 + D-SSIM forward and backward of a 3-channel image, ``render/ssim.py``).
 
 A version is a git revision of this repository (its ``dibrgs_core/render/csrc``) or a folder
 holding those sources; ``+FLAGS`` after it replaces the build's flags (default: this machine's,
@@ -22,7 +24,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -73,7 +74,7 @@ def build(version: str):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("versions", nargs="+", help="git revisions or source folders, each optionally +FLAGS")
-    ap.add_argument("--stage", choices=["forward", "backward"], default="forward")
+    ap.add_argument("--stage", choices=["forward", "backward", "loss"], default="forward")
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--calls", type=int, default=15, help="calls of each version a round")
     ap.add_argument("--rounds", type=int, default=5)
@@ -102,8 +103,18 @@ def main() -> int:
     g = torch.rand(size, size, C, generator=torch.Generator().manual_seed(1))
     gouts = [g[..., :C - 2].contiguous(), g[..., C - 2:C - 1].contiguous(), g[..., C - 1:].contiguous()]
 
+    gen = torch.Generator().manual_seed(2)
+    x, y = torch.rand(size, size, 3, generator=gen), torch.rand(size, size, 3, generator=gen)
+    k = torch.arange(11, dtype=torch.float32) - 5
+    win = torch.exp(-k * k / (2 * 1.5 ** 2))
+    win = (win / win.sum()).contiguous()
+    wl = ws = torch.full((size, size, 3), 1.0 / (size * size * 3))
+
     def call(m, o) -> None:
-        if args.stage == "forward":
+        if args.stage == "loss":
+            loss, a, b, c = m.photometric_forward(x, y, win, wl, ws, 0.2)
+            m.photometric_backward(torch.ones_like(loss), x, y, a, b, c, win, wl, ws, 0.2)
+        elif args.stage == "forward":
             m.forward(m2, con, opac, feats, offsets, gids, masks, size, size, groups)
         else:
             *_, tfin, ncon, rec = o
@@ -120,7 +131,7 @@ def main() -> int:
         for i, t in enumerate(times):
             mins[i].append(min(t))
         print(f"round {r}: " + "  ".join(f"{min(t) * 1e3:.2f}" for t in times) + " ms (minimum CPU time)", flush=True)
-    print(f"\n{args.stage}, garden {size}x{size}, {args.threads} thread(s), {args.rounds} rounds of {args.calls} "
+    print(f"\n{args.stage}, {'random images' if args.stage == 'loss' else 'garden'} {size}x{size}, {args.threads} thread(s), {args.rounds} rounds of {args.calls} "
           "alternating calls:")
     for v, mv in zip(args.versions, mins):
         ratios = sorted(a / b for a, b in zip(mv, mins[0]))

@@ -6,7 +6,7 @@ import shutil
 import pytest
 
 from dibrgs_core.common import cpu
-from dibrgs_core.render import fast
+from dibrgs_core.render import toolchain
 
 
 def _info(vendor: str, family: str, flags: str, model: int = 17) -> str:
@@ -37,8 +37,8 @@ def test_flags_sorted_from_the_first_processor():
 
 @pytest.mark.parametrize("half", [True, False])
 def test_default_flags_ask_for_eight_lanes_on_half_width_cpus(monkeypatch, half):
-    monkeypatch.setattr(fast, "half_width_avx512", lambda: half)
-    flags = fast.default_flags()
+    monkeypatch.setattr(toolchain, "half_width_avx512", lambda: half)
+    flags = toolchain.default_flags()
     assert ("-DDIBRGS_VBYTES=32" in flags) is half and "-fopenmp" in flags
 
 
@@ -62,23 +62,23 @@ def test_jcc_erratum_only_on_the_skylake_family(text, affected):
 def test_default_flags_align_branches_on_affected_cpus(monkeypatch, affected):
     """The key's flags follow the CPU alone (not whether a compiler is found): a build made with a
     compiler is found again without one."""
-    monkeypatch.setattr(fast, "jcc_erratum", lambda: affected)
+    monkeypatch.setattr(toolchain, "jcc_erratum", lambda: affected)
     monkeypatch.setenv("CXX", "/nonexistent/c++")
-    assert (fast.ALIGN_BRANCHES in fast.default_flags()) is affected
-    assert not fast._assembler_aligns_branches("/nonexistent/c++")
+    assert (toolchain.ALIGN_BRANCHES in toolchain.default_flags()) is affected
+    assert not toolchain.assembler_aligns_branches("/nonexistent/c++")
 
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
 def test_gnu_assembler_takes_the_branch_alignment():
-    assert fast._assembler_aligns_branches("g++")
+    assert toolchain.assembler_aligns_branches("g++")
 
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
 def test_an_assembler_without_branch_alignment_is_detected(tmp_path):
-    """An older toolchain (GNU as < 2.34) rejects the option: the probe says so, and _compile then
-    builds without it instead of failing."""
+    """An older toolchain (GNU as < 2.34) rejects the option: the probe says so, and fast._compile
+    then builds without it instead of failing."""
     cc = tmp_path / "old-c++"
     cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = "-Wa,-mbranches-within-32B-boundaries" ] && exit 1; done\n'
                   'exec g++ "$@"\n')
     cc.chmod(0o755)
-    assert not fast._assembler_aligns_branches(str(cc))
+    assert not toolchain.assembler_aligns_branches(str(cc))
