@@ -353,6 +353,14 @@ inline auto hsum(V v) {
 
 // The kernels evaluate exp on power scaled by kscale: float uses 2^t with
 // t = log2(e) power (folded into the conic), double calls std::exp.
+// c[0] + f (c[1] + f (c[2] + ...)) by Horner's scheme, one FMA a coefficient.
+template <int N>
+inline VF horner(VF f, const float (&c)[N]) {
+  VF p = splat<VF>(c[N - 1]);
+  for (int i = N - 2; i >= 0; --i) p = fmadd(p, f, splat<VF>(c[i]));
+  return p;
+}
+
 template <typename T>
 struct Exp;
 template <>
@@ -366,15 +374,10 @@ struct Exp<float> {
   // itself (any n: large ones give inf). The clamp to tlow (no denormal results) feeds scalef
   // only, off the polynomial's dependency chain.
   static VF eval(VF t, VF) {
+    static constexpr float c[7] = {1.0f, 6.931470037e-1f, 2.402298301e-1f, 5.548334122e-2f, 9.678840637e-3f,
+                                   1.243969309e-3f, 2.170223888e-4f};
     const VF f = (VF)_mm512_reduce_ps((__m512)t, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
-    VF p = splat<VF>(2.170223888e-4f);
-    p = fmadd(p, f, splat<VF>(1.243969309e-3f));
-    p = fmadd(p, f, splat<VF>(9.678840637e-3f));
-    p = fmadd(p, f, splat<VF>(5.548334122e-2f));
-    p = fmadd(p, f, splat<VF>(2.402298301e-1f));
-    p = fmadd(p, f, splat<VF>(6.931470037e-1f));
-    p = fmadd(p, f, splat<VF>(1.0f));
-    return (VF)_mm512_scalef_ps((__m512)p, (__m512)vmax(t, splat<VF>(tlow)));
+    return (VF)_mm512_scalef_ps((__m512)horner(f, c), (__m512)vmax(t, splat<VF>(tlow)));
   }
 #else
   // 2^t for tlow <= t <= hi <= 0, else 2^clamp(t, tlow, hi): t = n + f with n = round(t) and
@@ -382,16 +385,11 @@ struct Exp<float> {
   // (relative error 1.1e-7 in float), times 2^n by adding n to the exponent.
   static VF eval(VF t, VF hi) {
     t = vmax(vmin(t, hi), splat<VF>(tlow));
+    static constexpr float c[7] = {1.0f, 6.931472029e-1f, 2.402264791e-1f, 5.550332471e-2f, 9.618437358e-3f,
+                                   1.339887442e-3f, 1.535336188e-4f};
     const VF tn = t + 12582912.0f;  // n in the low mantissa bits of t + 1.5 2^23
     const VF f = t - (tn - 12582912.0f);
-    VF p = splat<VF>(1.535336188e-4f);
-    p = fmadd(p, f, splat<VF>(1.339887442e-3f));
-    p = fmadd(p, f, splat<VF>(9.618437358e-3f));
-    p = fmadd(p, f, splat<VF>(5.550332471e-2f));
-    p = fmadd(p, f, splat<VF>(2.402264791e-1f));
-    p = fmadd(p, f, splat<VF>(6.931472029e-1f));
-    p = fmadd(p, f, splat<VF>(1.0f));
-    return (VF)((VIF)p + ((VIF)tn << 23));
+    return (VF)((VIF)horner(f, c) + ((VIF)tn << 23));
   }
 #endif
 };
