@@ -63,7 +63,7 @@ def default_flags() -> list[str]:
         flags.append("-DDIBRGS_VBYTES=32")
     # Such a jump keeps its block out of the decoded-uop cache: the compositing forward ran 2.5 %
     # slower without the padding on a Cascade Lake (docs/benchmarks.md). An assembler without the
-    # option builds without it (_compile); the cache key does not depend on that probe, so a copy
+    # option builds without it (fast._compile); the cache key does not depend on that probe, so a copy
     # of the package run where no compiler is found still finds the build.
     if jcc_erratum():
         flags.append(ALIGN_BRANCHES)
