@@ -351,8 +351,6 @@ inline auto hsum(V v) {
   return s;
 }
 
-// The kernels evaluate exp on power scaled by kscale: float uses 2^t with
-// t = log2(e) power (folded into the conic), double calls std::exp.
 // c[0] + f (c[1] + f (c[2] + ...)) by Horner's scheme, one FMA a coefficient.
 template <int N>
 inline VF horner(VF f, const float (&c)[N]) {
@@ -361,6 +359,8 @@ inline VF horner(VF f, const float (&c)[N]) {
   return p;
 }
 
+// The kernels evaluate exp on power scaled by kscale: float uses 2^t with
+// t = log2(e) power (folded into the conic), double calls std::exp.
 template <typename T>
 struct Exp;
 template <>
@@ -370,7 +370,7 @@ struct Exp<float> {
 #if DIBRGS_VBYTES == 64 && defined(__AVX512F__) && defined(__AVX512DQ__)
   // 2^t for t >= tlow (t <= hi not needed), else a value below 2^(tlow + 1), or NaN: t = n + f
   // with n = floor(t) and 0 <= f < 1 by one vreduceps, 2^f by a degree-6 minimax polynomial on
-  // [0, 1) (relative error 6.2e-8 in float), times 2^n by scalef, which floors its exponent
+  // [0, 1) (relative error 7.6e-8 in float), times 2^n by scalef, which floors its exponent
   // itself (any n: large ones give inf). The clamp to tlow (no denormal results) feeds scalef
   // only, off the polynomial's dependency chain.
   static VF eval(VF t, VF) {
