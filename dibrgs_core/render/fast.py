@@ -46,7 +46,6 @@ import json
 import logging
 import os
 import platform
-import shutil
 import sys
 import sysconfig
 import threading
@@ -60,10 +59,8 @@ from torch import Tensor
 from ..common.cpu import cpu_flags
 from .projection import Projected
 from .toolchain import (
-    ALIGN_BRANCHES,
     REFERENCE_HINT,
     BuildError,
-    assembler_aligns_branches,
     build_flags,
     check_prerequisites,
     compiler,
@@ -133,11 +130,7 @@ def _compile(d: Path, flags: list[str], on_start: Callable[[str], None] | None) 
     from torch.utils.cpp_extension import load
 
     cxx = compiler()
-    if ALIGN_BRANCHES in flags and shutil.which(cxx) is not None and not assembler_aligns_branches(cxx):
-        log.info("the assembler of %s does not take %s (GNU as >= 2.34 does); building without it", cxx,
-                 ALIGN_BRANCHES)
-        flags = [f for f in flags if f != ALIGN_BRANCHES]
-    check_prerequisites(cxx, flags)
+    flags = check_prerequisites(cxx, flags)
     msg = f"compiling the C++ rasterizer for this machine (first run, {BUILD_TIME}) in {d}"
     log.warning(msg)
     if on_start is not None:

@@ -4,7 +4,7 @@ compiler, ninja or Python headers, or flags the compiler rejects), each saying h
 """
 from __future__ import annotations
 
-import functools
+import logging
 import os
 import platform
 import shlex
@@ -16,6 +16,8 @@ import tempfile
 from pathlib import Path
 
 from ..common.cpu import half_width_avx512, jcc_erratum
+
+log = logging.getLogger("dibrgs.render")
 
 REFERENCE_HINT = (
     "or render with the slower torch reference path (about 100x slower): set DIBRGS_RASTERIZER=reference "
@@ -35,20 +37,16 @@ def compiler() -> str:
 
 
 ALIGN_BRANCHES = "-Wa,-mbranches-within-32B-boundaries"
+#: Flags that only make the build faster: a compiler that rejects one builds without it.
+OPTIONAL_FLAGS = (ALIGN_BRANCHES,)
 
 
-@functools.cache
 def assembler_aligns_branches(cxx: str) -> bool:
     """Whether ``cxx``'s assembler takes :data:`ALIGN_BRANCHES` (GNU as >= 2.34; False without a compiler)."""
+    if shutil.which(cxx) is None:
+        return False
     with tempfile.TemporaryDirectory(prefix="dibrgs_probe_") as tmp:
-        src = Path(tmp) / "probe.cpp"
-        src.write_text("int f(int x) { return x > 0 ? x : -x; }\n")
-        try:
-            res = subprocess.run([cxx, ALIGN_BRANCHES, "-O2", "-c", str(src), "-o", str(Path(tmp) / "probe.o")],
-                                 capture_output=True, timeout=60, check=False)
-        except (OSError, subprocess.TimeoutExpired):
-            return False
-        return res.returncode == 0
+        return not rejected_flags(cxx, [ALIGN_BRANCHES], Path(tmp))
 
 
 def default_flags() -> list[str]:
@@ -63,8 +61,8 @@ def default_flags() -> list[str]:
         flags.append("-DDIBRGS_VBYTES=32")
     # Such a jump keeps its block out of the decoded-uop cache: the compositing forward ran 2.5 %
     # slower without the padding on a Cascade Lake (docs/benchmarks.md). An assembler without the
-    # option builds without it (fast._compile); the cache key does not depend on that probe, so a copy
-    # of the package run where no compiler is found still finds the build.
+    # option builds without it (check_prerequisites); the cache key does not depend on that probe, so
+    # a copy of the package run where no compiler is found still finds the build.
     if jcc_erratum():
         flags.append(ALIGN_BRANCHES)
     return flags
@@ -93,8 +91,9 @@ def rejected_flags(cxx: str, flags: list[str], workdir: Path) -> list[str]:
     return rejected
 
 
-def check_prerequisites(cxx: str, flags: list[str]) -> None:
-    """Raise BuildError naming what is missing before starting a build that would fail."""
+def check_prerequisites(cxx: str, flags: list[str]) -> list[str]:
+    """The flags to build with: ``flags`` less the :data:`OPTIONAL_FLAGS` that ``cxx`` rejects.
+    Raises BuildError naming what is missing before starting a build that would fail."""
     if shutil.which(cxx) is None:
         raise BuildError(
             f"cannot build the C++ rasterizer: no C++ compiler found (looked for {cxx!r}"
@@ -120,9 +119,14 @@ def check_prerequisites(cxx: str, flags: list[str]) -> None:
         )
     with tempfile.TemporaryDirectory(prefix="dibrgs_probe_") as tmp:
         rejected = rejected_flags(cxx, flags, Path(tmp))
+    dropped = [f for f in rejected if f in OPTIONAL_FLAGS]
+    if dropped:
+        log.info("%s does not take %s (an older assembler or compiler); building without", cxx, " ".join(dropped))
+    rejected = [f for f in rejected if f not in OPTIONAL_FLAGS]
     if rejected:
         raise BuildError(
             f"cannot build the C++ rasterizer: the compiler {cxx!r} rejects the flag(s) {' '.join(rejected)} "
             f"(of {' '.join(flags)}). Use GCC >= 9 or Clang with OpenMP (libomp), e.g. CXX=g++; or set "
             f"DIBRGS_EXT_FLAGS to flags it accepts (slower without -march=native and -fopenmp); {REFERENCE_HINT}."
         )
+    return [f for f in flags if f not in dropped]

@@ -75,10 +75,11 @@ def test_gnu_assembler_takes_the_branch_alignment():
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
 def test_an_assembler_without_branch_alignment_is_detected(tmp_path):
-    """An older toolchain (GNU as < 2.34) rejects the option: the probe says so, and fast._compile
-    then builds without it instead of failing."""
+    """An older toolchain (GNU as < 2.34) rejects the option: the probe says so, and the build's
+    checks leave it out instead of failing."""
     cc = tmp_path / "old-c++"
     cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = "-Wa,-mbranches-within-32B-boundaries" ] && exit 1; done\n'
                   'exec g++ "$@"\n')
     cc.chmod(0o755)
     assert not toolchain.assembler_aligns_branches(str(cc))
+    assert toolchain.check_prerequisites(str(cc), ["-O2", toolchain.ALIGN_BRANCHES]) == ["-O2"]
