@@ -697,6 +697,8 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
   typedef typename Vec<T>::M M;
   typedef Geo<T> G;
   const int64_t C = CT > 0 ? CT : sc.C, GS = G_F + C, FS = 3 + C;  // state: T, last, acc[C], done (a mask)
+  const int64_t DONE = FS - 1;  // the record's slot of its done mask
+  const int32_t RB = static_cast<int32_t>(FS * sizeof(V));  // bytes a record (first_pass's offsets)
   const int ty0 = static_cast<int>((tile / sc.tx) * TILE), tx0 = static_cast<int>((tile % sc.tx) * TILE);
   const int nrows = static_cast<int>(std::min<int64_t>(TILE, sc.H - ty0));
   ws.columns(tx0, ty0, sc.W);
@@ -706,7 +708,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
   for (int r = 0; r < TILE; ++r)
     for (int s = 0; s < G::NS; ++s) {
       st[(r * G::NS + s) * FS] = splat<V>(T(1));
-      set_mask(st + (r * G::NS + s) * FS + FS - 1, r < nrows ? M(~mask_of(ws.inside[s])) : M(~M{}));
+      set_mask(st + (r * G::NS + s) * FS + DONE, r < nrows ? M(~mask_of(ws.inside[s])) : M(~M{}));
       if (r < nrows && lanes(ws.inside[s])) alive |= uint64_t(1) << (r * G::MS + s / G::VPM);
     }
   // The tile's output rows are written at its end: fetch them now (for writing), so
@@ -745,7 +747,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
       V* __restrict p = reinterpret_cast<V*>(reinterpret_cast<char*>(st) + *q);
       const V oG = *pvi;
       const V al = vmin(oG, amax);
-      const M cand = mandnot(get_mask<M>(p + FS - 1), cmp_gt(oG, zero));
+      const M cand = mandnot(get_mask<M>(p + DONE), cmp_gt(oG, zero));
       const V Tg = p[0];
       const V aT = al * Tg;
       const V testT = Tg - aT;
@@ -756,7 +758,7 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
       store_where(valid, p + 1, kv);
       if (STATS) {
         ++stt.vectors;
-        stt.lanes += __builtin_popcount(lanes(ws.inside[((*q / static_cast<int32_t>(FS * sizeof(V))) & (G::NS - 1))]));
+        stt.lanes += __builtin_popcount(lanes(ws.inside[((*q / RB) & (G::NS - 1))]));
         stt.contrib += __builtin_popcount(lanes(valid));
       }
       V* acc = p + 2;
@@ -766,12 +768,12 @@ void forward_tile(const Scene<T>& sc, int64_t tile, Workspace<T>& ws, const Plan
         for (int64_t ch = 0; ch < C; ++ch) acc[ch] = fmadd(w, splat<V>(g[G_F + ch]), acc[ch]);
       }
       if (__builtin_expect(lanes(stop) != 0, 0)) {
-        set_mask(p + FS - 1, mor(get_mask<M>(p + FS - 1), stop));
-        const int gv = *q / static_cast<int32_t>(FS * sizeof(V));
+        set_mask(p + DONE, mor(get_mask<M>(p + DONE), stop));
+        const int gv = *q / RB;
         const int r = gv / G::NS, s = gv & (G::NS - 1), ms = s / G::VPM;
         bool all = true;
         for (int v = 0; v < G::VPM; ++v)
-          all = all && all_lanes(get_mask<M>(st + (r * G::NS + ms * G::VPM + v) * FS + FS - 1));
+          all = all && all_lanes(get_mask<M>(st + (r * G::NS + ms * G::VPM + v) * FS + DONE));
         if (all) alive &= ~(uint64_t(1) << (r * G::MS + ms));
       }
     }
