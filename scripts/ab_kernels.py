@@ -85,7 +85,7 @@ def main() -> int:
     args = ap.parse_args()
 
     import torch
-    from bench_rasterizer import garden
+    from bench_rasterizer import composite_inputs, garden
 
     from dibrgs_core.render import fast
 
@@ -94,11 +94,9 @@ def main() -> int:
     size = args.size
     means, quats, scales, opac, cols, vm, K = garden(size)
     proj = fast.project_fast(means, quats, scales, vm, K, size, size)
-    m2, con = proj.means2d.detach().contiguous(), proj.conics.detach().contiguous()
-    feats = torch.cat([cols, proj.depths[:, None].detach(), torch.ones(len(cols), 1)], 1).contiguous()
-    offsets, gids, masks = mods[0].bin_tiles(m2, con, opac, proj.depths.detach(), proj.radii, size, size)
+    m2, con, dep, feats, groups = composite_inputs(proj, cols)
+    offsets, gids, masks = mods[0].bin_tiles(m2, con, opac, dep, proj.radii, size, size)
     C = feats.shape[1]
-    groups = [C - 2, 1, 1]  # colour, depth, alpha: as rasterize() asks for them
     outs = [m.forward(m2, con, opac, feats, offsets, gids, masks, size, size, groups) for m in mods]
     for v, o in zip(args.versions, outs):
         d = max(float((a.double() - b.double()).abs().max()) for a, b in zip(o[:-1], outs[0][:-1]))

@@ -200,6 +200,18 @@ def worker(backend: str, size: int, threads: int, repeats: int) -> dict:
     return out
 
 
+def composite_inputs(proj, cols):
+    """The compositing kernels' inputs from a projection of the garden: screen-space means, conics and
+    depths (detached, contiguous), the features (colour, depth, alpha) and their channel groups, the
+    planes rasterize() asks for."""
+    import torch
+
+    feats = torch.cat([cols, proj.depths[:, None].detach(), torch.ones(len(cols), 1)], 1).contiguous()
+    C = feats.shape[1]
+    return (proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(), proj.depths.detach(), feats,
+            [C - 2, 1, 1])
+
+
 def kernel_worker(size: int, repeats: int) -> dict:
     """Stage CPU times (1 thread, minimum over repeats) and pair counts of the C++ path."""
     import torch
@@ -219,11 +231,8 @@ def kernel_worker(size: int, repeats: int) -> dict:
         return out
 
     proj = stage("project_fwd", lambda: fast.project_fast(*ps, vm, K, size, size))
-    feats = torch.cat([cols, proj.depths[:, None].detach(), torch.ones(len(cols), 1)], 1).contiguous()
-    m2, con, dep = proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(), proj.depths.detach()
+    m2, con, dep, feats, groups = composite_inputs(proj, cols)
     offsets, gids, masks = stage("bin", lambda: mod.bin_tiles(m2, con, opac, dep, proj.radii, size, size))
-    C = feats.shape[1]
-    groups = [C - 2, 1, 1]  # colour, depth, alpha: the planes rasterize() asks for
     *_, tfin, ncon, rec = stage("composite_fwd", lambda: mod.forward(m2, con, opac, feats, offsets, gids, masks, size,
                                                                      size, groups))
     gen = torch.Generator().manual_seed(1)
