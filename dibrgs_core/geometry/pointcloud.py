@@ -101,10 +101,22 @@ def point_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> floa
     return float(np.median(d[:, 1]))
 
 
-def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Unique voxel centres ``round(p / voxel) * voxel`` of ``points`` (N,3), as float32."""
-    keys = np.unique(np.round(np.asarray(points, np.float64) / voxel).astype(np.int64), axis=0)
-    return (keys * voxel).astype(np.float32)
+def grid_origin(points: np.ndarray) -> np.ndarray:
+    """(3,) float64 origin of a voxel grid over ``points`` (N,3): their per-axis minimum over the
+    finite rows (zeros when there is none). A grid aligned to the data, not to the coordinate
+    origin, puts the same voxels on a scene wherever it lies: moved by a shift that is not a
+    multiple of the voxel, a scene aligned to (0, 0, 0) gets other anchors and trains differently."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    return p.min(axis=0) if len(p) else np.zeros(3)
+
+
+def voxelize(points: np.ndarray, voxel: float, origin: np.ndarray | None = None) -> np.ndarray:
+    """Unique voxel centres ``origin + round((p - origin) / voxel) * voxel`` of ``points`` (N,3), as
+    float32 (``origin`` None: (0, 0, 0))."""
+    o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+    keys = np.unique(np.round((np.asarray(points, np.float64) - o) / voxel).astype(np.int64), axis=0)
+    return (o + keys * voxel).astype(np.float32)
 
 
 def voxel_confident(points: np.ndarray, colors: np.ndarray, confidence: np.ndarray, voxel: float,

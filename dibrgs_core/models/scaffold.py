@@ -45,7 +45,7 @@ from torch import nn
 
 from ..camera.frame import central_camera
 from ..camera.pinhole import Camera
-from ..geometry.pointcloud import voxelize
+from ..geometry.pointcloud import grid_origin, voxelize
 from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
@@ -68,22 +68,25 @@ def _mlp(in_dim: int, hidden: int, out_dim: int, act: nn.Module | None) -> nn.Se
     return nn.Sequential(*layers)
 
 
-def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float) -> tuple[float, str]:
+def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float,
+                      origin: np.ndarray | None = None) -> tuple[float, str]:
     """The anchor voxel (scene units) for ``points`` and a sentence explaining it.
 
-    ``scale`` is scene units per paper unit (see the module docstring).
+    ``scale`` is scene units per paper unit (see the module docstring); ``origin``: the grid's
+    (default :func:`~dibrgs_core.geometry.pointcloud.grid_origin` of ``points``).
     """
+    origin = grid_origin(points) if origin is None else origin
     voxel = cfg.anchor_voxel * scale
     why = f"{cfg.anchor_voxel} paper units x {scale:.4g} scene units per paper unit = {voxel:.4g}"
     if cfg.max_init_anchors:
         if not cfg.anchor_voxel_growth > 1.0:
             raise ValueError(f"anchor_voxel_growth must be above 1, got {cfg.anchor_voxel_growth}")
-        n = len(voxelize(points, voxel))
+        n = len(voxelize(points, voxel, origin))
         steps = 0
         while n > cfg.max_init_anchors:
             voxel *= cfg.anchor_voxel_growth
             steps += 1
-            n = len(voxelize(points, voxel))
+            n = len(voxelize(points, voxel, origin))
         if steps:
             grown = "doubled" if cfg.anchor_voxel_growth == 2.0 else f"grown by {cfg.anchor_voxel_growth:.4g}"
             why += f"; {grown} {steps}x to {voxel:.4g} to fit the budget of {cfg.max_init_anchors} anchors"
@@ -121,9 +124,13 @@ class NeuralGaussians(nn.Module):
     kind: ClassVar[str] = "dibrgs"
 
     def __init__(self, anchors: torch.Tensor, voxel_size: float, dist_scale: float,
-                 cfg: ModelConfig, use_ibr: bool, paper_unit: float | None = None) -> None:
+                 cfg: ModelConfig, use_ibr: bool, paper_unit: float | None = None,
+                 grid_origin: Sequence[float] | None = None) -> None:
         """``paper_unit``: scene units per paper unit (None: ``voxel_size / cfg.anchor_voxel``,
-        which model files written before it was stored imply)."""
+        which model files written before it was stored imply). ``grid_origin``: (3,) a point of
+        the anchor grid, world units (None: (0, 0, 0), the grid of model files written before it
+        was stored); the initial anchors are its voxel centres and growth adds those of coarser
+        grids through the same point."""
         super().__init__()
         n = anchors.shape[0]
         k, fd = cfg.n_offsets, cfg.feat_dim
@@ -133,6 +140,7 @@ class NeuralGaussians(nn.Module):
         self.voxel_size = float(voxel_size)
         self.dist_scale = float(dist_scale)
         self.paper_unit = float(paper_unit) if paper_unit else self.voxel_size / cfg.anchor_voxel
+        self.grid_origin = tuple(float(v) for v in (grid_origin if grid_origin is not None else (0.0, 0.0, 0.0)))
         self.use_ibr = bool(use_ibr)
         self.anchor = nn.Parameter(anchors.float().clone())
         self.offset = nn.Parameter(torch.zeros(n, k, 3))
@@ -262,14 +270,15 @@ class NeuralGaussians(nn.Module):
     def state(self) -> dict[str, Any]:
         return {"model": self.state_dict(),
                 "model_meta": {"voxel_size": self.voxel_size, "dist_scale": self.dist_scale,
-                               "use_ibr": self.use_ibr, "paper_unit": self.paper_unit}}
+                               "use_ibr": self.use_ibr, "paper_unit": self.paper_unit,
+                               "grid_origin": list(self.grid_origin)}}
 
     @classmethod
     def from_state(cls, st: dict[str, Any], cfg: ModelConfig) -> "NeuralGaussians":
         """A model with the shapes and values of :meth:`state`'s output."""
         sd, meta = st["model"], st["model_meta"]
         model = cls(torch.zeros(sd["anchor"].shape[0], 3), meta["voxel_size"], meta["dist_scale"], cfg,
-                    meta["use_ibr"], meta.get("paper_unit"))
+                    meta["use_ibr"], meta.get("paper_unit"), meta.get("grid_origin"))
         model.load_state_dict(sd)
         return model
 
@@ -310,10 +319,12 @@ def build_model(points: np.ndarray, cam_centers: np.ndarray, cfg: ModelConfig, u
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) == 0:
         raise ValueError("the initial point cloud is empty; cannot place anchors")
-    voxel, why = anchor_voxel_size(pts, cfg, scale)
-    anchors = torch.from_numpy(voxelize(pts, voxel))
+    origin = grid_origin(pts)
+    voxel, why = anchor_voxel_size(pts, cfg, scale, origin)
+    anchors = torch.from_numpy(voxelize(pts, voxel, origin))
     centre = np.median(pts, axis=0)
     dist_scale = float(np.mean(np.linalg.norm(np.asarray(cam_centers) - centre, axis=1)))
-    model = NeuralGaussians(anchors, voxel, max(dist_scale, 1e-6), cfg, use_ibr, paper_unit=scale)
+    model = NeuralGaussians(anchors, voxel, max(dist_scale, 1e-6), cfg, use_ibr, paper_unit=scale,
+                            grid_origin=origin)
     log.info("anchors: %d from %d points (voxel %s)", model.num_anchors, len(pts), why)
     return model, why

@@ -161,6 +161,7 @@ class AnchorStrategy(Strategy):
         k = self.k
         init_len = model.num_anchors * k
         added = vetoed = 0
+        origin = torch.tensor(model.grid_origin, dtype=torch.float32)  # the grid of the initial anchors
         for i in range(cfg.update_depth):
             thr = cfg.grad_threshold * (cfg.update_hierarchy_factor // 2) ** i
             cand = (grads >= thr) & offset_mask
@@ -183,8 +184,8 @@ class AnchorStrategy(Strategy):
             if len(sel_xyz) == 0:
                 continue
             size = model.voxel_size * (cfg.update_init_factor // cfg.update_hierarchy_factor ** i)
-            cells, inv = torch.unique(torch.round(sel_xyz / size).long(), dim=0, return_inverse=True)
-            existing = torch.unique(torch.round(model.anchor / size).long(), dim=0)
+            cells, inv = torch.unique(torch.round((sel_xyz - origin) / size).long(), dim=0, return_inverse=True)
+            existing = torch.unique(torch.round((model.anchor - origin) / size).long(), dim=0)
             both = torch.cat([existing, cells], 0)
             _, binv, counts = torch.unique(both, dim=0, return_inverse=True, return_counts=True)
             new = counts[binv[len(existing):]] == 1
@@ -200,7 +201,7 @@ class AnchorStrategy(Strategy):
                     new_idx = new_idx[torch.randperm(len(new_idx))[:room]].sort().values
             if len(new_idx) == 0:
                 continue
-            pos = cells[new_idx].float() * size
+            pos = origin + cells[new_idx].float() * size
             m = len(pos)
             cat_rows(optimizer, model, {
                 "anchor": pos,
