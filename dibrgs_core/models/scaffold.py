@@ -30,7 +30,9 @@ Like the geometry stage (``init.py``), we convert paper units to scene units wit
 cameras are about 115 units from the scene), so ``voxel = 0.03 * scale``. That is
 much finer than the dense cloud's 1.0-unit downsampling voxel, so in the paper
 every fused point becomes an anchor. A preset may cap the initial anchor count;
-the voxel then doubles until the cloud fits (reported).
+the voxel then doubles until the cloud fits (reported). The grid goes through the
+cloud's lowest corner (``grid_origin``, kept with the model), so a scene gets the same
+anchors wherever its coordinates put it.
 """
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor
 
-from ..common.vml import init_vml
+from .vml import init_vml
 from . import fast
 from .depth import expected_depth
 from .projection import Projected, project_gaussians, quat_to_rotmat
@@ -48,7 +48,7 @@ __all__ = [
 
 log = logging.getLogger("dibrgs.render")
 
-# Before any operator runs on two threads: the same values in every process (common/vml.py).
+# Before any operator runs on two threads: the same values in every process (vml.py).
 init_vml()
 
 Backend = Literal["auto", "fast", "reference"]

@@ -161,7 +161,8 @@ class AnchorStrategy(Strategy):
         k = self.k
         init_len = model.num_anchors * k
         added = vetoed = 0
-        origin = torch.tensor(model.grid_origin, dtype=torch.float32)  # the grid of the initial anchors
+        # The grid of the initial anchors; float64 as the corner may lie far from the anchors.
+        origin = torch.tensor(model.grid_origin, dtype=torch.float64)
         for i in range(cfg.update_depth):
             thr = cfg.grad_threshold * (cfg.update_hierarchy_factor // 2) ** i
             cand = (grads >= thr) & offset_mask
@@ -184,8 +185,9 @@ class AnchorStrategy(Strategy):
             if len(sel_xyz) == 0:
                 continue
             size = model.voxel_size * (cfg.update_init_factor // cfg.update_hierarchy_factor ** i)
-            cells, inv = torch.unique(torch.round((sel_xyz - origin) / size).long(), dim=0, return_inverse=True)
-            existing = torch.unique(torch.round((model.anchor - origin) / size).long(), dim=0)
+            cells, inv = torch.unique(torch.round((sel_xyz.double() - origin) / size).long(), dim=0,
+                                      return_inverse=True)
+            existing = torch.unique(torch.round((model.anchor.double() - origin) / size).long(), dim=0)
             both = torch.cat([existing, cells], 0)
             _, binv, counts = torch.unique(both, dim=0, return_inverse=True, return_counts=True)
             new = counts[binv[len(existing):]] == 1
@@ -201,7 +203,7 @@ class AnchorStrategy(Strategy):
                     new_idx = new_idx[torch.randperm(len(new_idx))[:room]].sort().values
             if len(new_idx) == 0:
                 continue
-            pos = origin + cells[new_idx].float() * size
+            pos = (origin + cells[new_idx].double() * size).float()
             m = len(pos)
             cat_rows(optimizer, model, {
                 "anchor": pos,

@@ -70,6 +70,35 @@ def test_a_moved_cloud_gets_the_moved_anchors_and_grows_them_alike():
     assert NeuralGaussians.from_state(st, cfg.model).grid_origin == (0.0, 0.0, 0.0)
 
 
+def test_growth_stays_on_the_grid_when_a_stray_point_sets_its_corner_far_out():
+    """One point 1e7 voxels below the cloud puts the grid's corner there: growth, measuring from it
+    in float64, still adds anchors at the centres of empty cells of that grid next to the cloud."""
+    from dibrgs_core.models.scaffold import build_model
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-10, 10, (400, 3)) * np.array([1, 1, 0.1])
+    cfg = preset("test")
+    voxel = cfg.model.anchor_voxel
+    stray = np.concatenate([pts, [[0.0, 0.0, -1e7 * voxel]]])
+    m, _ = build_model(stray, np.array([[0, -30, 40.0]]), cfg.model, use_ibr=False, scale=1.0)
+    assert m.grid_origin[2] == -1e7 * voxel
+    s = AnchorStrategy(m, cfg.growth, 30000)
+    opt = stepped_optimizer(m)
+    n0 = m.num_anchors
+    with torch.no_grad():
+        m.offset[:40] = 5.0
+    s.offset_grad[: 40 * m.n_offsets] = 1.0
+    s.offset_denom[:] = 1000
+    torch.manual_seed(0)
+    assert s.adjust(m, opt).added > 0
+    new = m.anchor[n0:].double()
+    assert torch.isfinite(new).all() and (new[:, 2].abs() < 100).all()
+    # Every level's cell centres are whole voxels from the corner. Float32 anchors near the cloud:
+    # on the grid to their own rounding (float32 arithmetic from a corner this far out misses).
+    k = (new - torch.tensor(m.grid_origin, dtype=torch.float64)) / m.voxel_size
+    assert (k - k.round()).abs().max() < 1e-3
+
+
 def test_height_map_vetoes_growth_at_the_coarsest_level_only():
     from dibrgs_core.geometry.height_map import HeightMap
 
