@@ -70,6 +70,7 @@ def test_a_moved_cloud_gets_the_moved_anchors_and_grows_them_alike():
     assert NeuralGaussians.from_state(st, cfg.model).grid_origin == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.stability
 def test_growth_stays_on_the_grid_when_a_stray_point_sets_its_corner_far_out():
     """One point 1e7 voxels below the cloud puts the grid's corner there: growth, measuring from it
     in float64, still adds anchors at the centres of empty cells of that grid next to the cloud."""
