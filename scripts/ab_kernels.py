@@ -88,6 +88,7 @@ def main() -> int:
     from bench_rasterizer import composite_inputs, garden
 
     from dibrgs_core.render import fast
+    from dibrgs_core.training.losses import _SIGMA, _WINDOW, _gauss_1d
 
     torch.set_num_threads(args.threads)
     mods = [build(v) for v in args.versions]
@@ -106,9 +107,7 @@ def main() -> int:
 
     gen = torch.Generator().manual_seed(2)
     x, y = torch.rand(size, size, 3, generator=gen), torch.rand(size, size, 3, generator=gen)
-    k = torch.arange(11, dtype=torch.float32) - 5
-    win = torch.exp(-k * k / (2 * 1.5 ** 2))
-    win = (win / win.sum()).contiguous()
+    win = _gauss_1d(_WINDOW, _SIGMA, torch.float32, torch.device("cpu")).contiguous()  # the training loss's
     wl = ws = torch.full((size, size, 3), 1.0 / (size * size * 3))
 
     def call(m, o) -> None:

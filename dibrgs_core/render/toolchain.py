@@ -41,14 +41,6 @@ ALIGN_BRANCHES = "-Wa,-mbranches-within-32B-boundaries"
 OPTIONAL_FLAGS = (ALIGN_BRANCHES,)
 
 
-def assembler_aligns_branches(cxx: str) -> bool:
-    """Whether ``cxx``'s assembler takes :data:`ALIGN_BRANCHES` (GNU as >= 2.34; False without a compiler)."""
-    if shutil.which(cxx) is None:
-        return False
-    with tempfile.TemporaryDirectory(prefix="dibrgs_probe_") as tmp:
-        return not rejected_flags(cxx, [ALIGN_BRANCHES], Path(tmp))
-
-
 def default_flags() -> list[str]:
     """Compile flags: optimised for this CPU, OpenMP for torch's parallel_for, IEEE comparisons kept;
     8-lane compositing vectors on AVX-512 CPUs that run it at half width, and on Intel's Skylake family

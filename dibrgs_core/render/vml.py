@@ -18,16 +18,11 @@ import torch
 _OPS = (torch.acos, torch.asin, torch.atan, torch.cos, torch.erf, torch.erfc, torch.erfinv, torch.exp,
         torch.log, torch.log10, torch.log2, torch.sin, torch.sqrt, torch.tan, torch.tanh, torch.trunc)
 
-_done = False
-
 
 def init_vml() -> None:
-    """Call each VML-backed operator once on one thread (idempotent; about 5 ms once a process)."""
-    global _done
-    if _done:
-        return
+    """Call each VML-backed operator once on one thread (about 5 ms; once a process, at import of
+    :mod:`dibrgs_core.render`)."""
     for dt in (torch.float32, torch.float64):
         x = torch.linspace(0.1, 0.9, 64, dtype=dt)  # far below torch's grain size of 2048: one thread
         for op in _OPS:
             op(x)
-    _done = True

@@ -65,12 +65,13 @@ def test_default_flags_align_branches_on_affected_cpus(monkeypatch, affected):
     monkeypatch.setattr(toolchain, "jcc_erratum", lambda: affected)
     monkeypatch.setenv("CXX", "/nonexistent/c++")
     assert (toolchain.ALIGN_BRANCHES in toolchain.default_flags()) is affected
-    assert not toolchain.assembler_aligns_branches("/nonexistent/c++")
+    with pytest.raises(toolchain.BuildError, match="no C\\+\\+ compiler"):  # never probed without one
+        toolchain.check_prerequisites("/nonexistent/c++", toolchain.default_flags())
 
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
-def test_gnu_assembler_takes_the_branch_alignment():
-    assert toolchain.assembler_aligns_branches("g++")
+def test_gnu_assembler_takes_the_branch_alignment(tmp_path):
+    assert toolchain.rejected_flags("g++", [toolchain.ALIGN_BRANCHES], tmp_path) == []
 
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
@@ -81,5 +82,5 @@ def test_an_assembler_without_branch_alignment_is_detected(tmp_path):
     cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = "-Wa,-mbranches-within-32B-boundaries" ] && exit 1; done\n'
                   'exec g++ "$@"\n')
     cc.chmod(0o755)
-    assert not toolchain.assembler_aligns_branches(str(cc))
+    assert toolchain.rejected_flags(str(cc), [toolchain.ALIGN_BRANCHES], tmp_path) == [toolchain.ALIGN_BRANCHES]
     assert toolchain.check_prerequisites(str(cc), ["-O2", toolchain.ALIGN_BRANCHES]) == ["-O2"]
