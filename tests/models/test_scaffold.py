@@ -7,7 +7,7 @@ import torch
 
 from dibrgs_core.training.config import TrainConfig
 from dibrgs_core.models.scaffold import build_model
-from dibrgs_core.geometry.pointcloud import voxelize
+from dibrgs_core.geometry.pointcloud import grid_origin, voxelize
 from model_synth import camera_tensors, small_camera, small_model
 
 torch.set_num_threads(1)
@@ -46,7 +46,8 @@ def test_fine_voxel_steps_keep_the_anchors_near_the_budget():
         cfg.anchor_voxel_growth = growth
         for share in (1.0, 0.84):  # the same ground with a sixth of it unmeasured
             pts = ground[ground[:, 0] <= -110 + share * 220]
-            counts[growth, share] = len(voxelize(pts, anchor_voxel_size(pts, cfg, scale=1.0)[0]))
+            # the anchors build_model places: the cells of the grid through the cloud's corner
+            counts[growth, share] = len(voxelize(pts, anchor_voxel_size(pts, cfg, scale=1.0)[0], grid_origin(pts)))
     fine = [counts[2 ** 0.25, s] for s in (1.0, 0.84)]
     assert all(2000 < n <= 3000 for n in fine) and max(fine) / min(fine) < 1.3, counts
     assert max(counts[2.0, 1.0], counts[2.0, 0.84]) / min(counts[2.0, 1.0], counts[2.0, 0.84]) > 2.0, counts
