@@ -20,6 +20,8 @@ from dibrgs_core.models.ibr.projection import project_rows
 from dibrgs_core.models.ibr.resnet import ResNetFeatures
 from dibrgs_core.models.ibr.sampling import upsampled_taps
 from dibrgs_core.models.ibr.vit import ViTFeatures
+from dibrgs_core.render import set_backend
+from dibrgs_core.render.fast import available
 from model_synth import ring_views, small_camera, small_model
 
 torch.set_num_threads(2)
@@ -204,17 +206,53 @@ def test_neural_gaussians_use_the_features_of_their_visible_anchors():
     assert all(p.grad is not None for p in ibr.projection_parameters())
 
 
-def test_projection_node_gradcheck_and_no_grad_values():
-    """``project_rows``: one node (float64 gradcheck over every level's weight and bias, a seen
-    column with zeros), and the same values without recording."""
+@pytest.mark.parametrize("backend", ["fast", "reference"])
+def test_projection_node_gradcheck_and_no_grad_values(backend):
+    """``project_rows`` on either backend: one node (float64 gradcheck over every level's weight
+    and bias, a seen column with zeros), the same values without recording, and a mask's rows
+    bit for bit those of all rows (a row's value does not depend on the rows beside it)."""
     g = torch.Generator().manual_seed(3)
-    rows = torch.rand(40, 3 + 6 + 12 + 1, generator=g, dtype=torch.float64)
-    rows[:, -1] = (torch.rand(40, generator=g) > 0.25).double()
+    rows = torch.rand(600, 3 + 6 + 12 + 1, generator=g, dtype=torch.float64)
+    rows[:, -1] = (torch.rand(600, generator=g) > 0.25).double()
+    mask = torch.rand(600, generator=g) > 0.3
     ws = [torch.randn(shape, generator=g, dtype=torch.float64) for shape in ((4, 3, 1, 1), (4, 6, 1, 1), (4, 12))]
     bs = [torch.randn(4, generator=g, dtype=torch.float64) for _ in ws]
     params = [p.requires_grad_() for p in ws + bs]
-    out = project_rows(rows, ws, bs)
-    assert out.grad_fn.name() == "_ProjectRowsBackward"
-    assert torch.autograd.gradcheck(lambda *p: project_rows(rows, list(p[:3]), list(p[3:])), tuple(params))
-    with torch.no_grad():
-        assert torch.equal(project_rows(rows, ws, bs), out.detach())
+    set_backend(backend)
+    try:
+        out = project_rows(rows, ws, bs, mask)
+        assert out.grad_fn.name() == {"fast": "_ProjectRowsFastBackward", "reference": "_ProjectRowsBackward"}[backend]
+        assert torch.autograd.gradcheck(lambda *p: project_rows(rows[:40], list(p[:3]), list(p[3:])), tuple(params))
+        assert torch.autograd.gradcheck(lambda *p: project_rows(rows[:60], list(p[:3]), list(p[3:]), mask[:60]),
+                                        tuple(params))
+        with torch.no_grad():
+            assert torch.equal(project_rows(rows, ws, bs, mask), out.detach())
+            every = project_rows(rows, ws, bs)
+        if backend == "fast":
+            assert torch.equal(every[mask], out.detach())
+        want = rows[mask, :-1] @ torch.cat([w.reshape(4, -1) for w in ws], 1).T + rows[mask, -1:] * sum(bs)
+        torch.testing.assert_close(out, want, rtol=1e-12, atol=1e-12)
+    finally:
+        set_backend(None)
+
+
+def test_fast_projection_gradient_is_the_same_on_any_thread_count():
+    """The C++ weight gradient sums fixed blocks of rows in order: 1 and 2 threads agree bit for bit."""
+    if not available():
+        pytest.skip("the C++ path does not build here")
+    g = torch.Generator().manual_seed(4)
+    rows = torch.rand(2_000, 26, generator=g)
+    mask = torch.rand(2_000, generator=g) > 0.1
+    ws = [torch.randn(32, 10, 1, 1, generator=g).requires_grad_(), torch.randn(32, 15, generator=g).requires_grad_()]
+    bs = [torch.randn(32, generator=g).requires_grad_() for _ in ws]
+    up = torch.randn(int(mask.sum()), 32, generator=g)
+    got = []
+    for n in (1, 2):
+        torch.set_num_threads(n)
+        for p in ws + bs:
+            p.grad = None
+        (project_rows(rows, ws, bs, mask) * up).sum().backward()
+        got.append([p.grad.clone() for p in ws + bs])
+    torch.set_num_threads(2)
+    assert all(torch.equal(a, b) for a, b in zip(*got))
+    assert torch.equal(got[0][2], got[0][3])  # the levels' biases are summed: equal gradients

@@ -247,10 +247,7 @@ class IBRFeatures(nn.Module):
         rows, omega = self.anchor_rows(anchors)
         params = self.projection_parameters()
         if torch.is_grad_enabled() and any(p.requires_grad for p in params):
-            if mask is None:
-                return self._project(rows, omega)
-            # omega (the view weights) serves only DINO's CLS term: no second gather without it.
-            return self._project(rows[mask], omega[mask] if self.encoder == "dino" else omega)
+            return self._project(rows, omega, mask)
         # No gradient can reach P (frozen, or evaluation): project every anchor once and
         # keep it while neither P (its versions) nor the anchors change.
         key = (self._rows_generation,) + tuple((p._version, p.data_ptr()) for p in params)
@@ -334,14 +331,14 @@ class IBRFeatures(nn.Module):
         cols.append((omega.sum(1, keepdim=True) > 0).float())
         return torch.cat(cols, 1), omega
 
-    def _project(self, rows: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
-        """``P`` applied to :meth:`anchor_rows`: one matmul (weights of every level side by
-        side, their biases summed on the "seen" column) plus, for DINO, the CLS term (``omega``:
-        the rows' view weights, read only then)."""
+    def _project(self, rows: torch.Tensor, omega: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """``P`` applied to :meth:`anchor_rows` (those ``mask`` selects): one matmul (weights of
+        every level side by side, their biases summed on the "seen" column) plus, for DINO, the
+        CLS term (``omega``: the rows' view weights, read only then)."""
         levels = [self.proj[n] for n in self._levels]
-        out = project_rows(rows, [m.weight for m in levels], [m.bias for m in levels])
+        out = project_rows(rows, [m.weight for m in levels], [m.bias for m in levels], mask)
         if self.encoder == "dino":
-            out = out + omega @ self.proj["vit_cls"](self.feat_vit_cls)
+            out = out + (omega if mask is None else omega[mask]) @ self.proj["vit_cls"](self.feat_vit_cls)
         return out
 
 

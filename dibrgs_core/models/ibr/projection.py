@@ -7,12 +7,16 @@ product with the levels' weights side by side and their biases summed on that la
 from torch operators that is about eight operators and as many autograd nodes a training step,
 each a few dozen microseconds of dispatch on the step's serial path (issue 17); here the weight
 matrix is assembled without recording and the backward hands each level's weight and bias its
-slice of one product.
+slice of one product. On the rasterizer's C++ path the rows a view sees are selected, projected
+and, backward, summed into the weights' gradients in the extension (``render/csrc/project_rows.h``):
+one call each way, split over the threads, with the same values whether recorded or not.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+
+from ...render import uses_fast
 
 
 def _matrix(weights: tuple[torch.Tensor, ...], biases: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -45,10 +49,41 @@ class _ProjectRows(torch.autograd.Function):
         return tuple(grads)
 
 
-def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
-    """``rows`` (M, D + 1) through ``P``: ``rows[:, :D] @ [W_1 .. W_L]^T + rows[:, D] * sum(b_l)``
-    ((M, C_r)), ``weights`` (C_r, D_l, ...) and ``biases`` (C_r,) one a level in the rows' order.
-    Differentiable in the weights and biases (the rows are sampled features, constants)."""
-    if not torch.is_grad_enabled() or not any(p.requires_grad for p in (*weights, *biases)):
+class _ProjectRowsFast(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rows, mask, *params):  # type: ignore[override]
+        from ...render.fast import extension
+
+        n = len(params) // 2
+        out, idx = extension().project_rows_forward(rows, mask, list(params[:n]), list(params[n:]))
+        ctx.save_for_backward(rows, idx)
+        ctx.shapes = [list(w.shape) for w in params[:n]]
+        return out
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        from ...render.fast import extension
+
+        rows, idx = ctx.saved_tensors
+        return (None, None, *extension().project_rows_backward(g, rows, idx, ctx.shapes))
+
+
+def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
+                 mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``rows`` (N, D + 1), or those ``mask`` ((N,) bool) selects, through ``P``:
+    ``rows[:, :D] @ [W_1 .. W_L]^T + rows[:, D] * sum(b_l)`` ((M, C_r)), ``weights`` (C_r, D_l, ...)
+    and ``biases`` (C_r,) one a level in the rows' order. Differentiable in the weights and biases
+    (the rows are sampled features, constants)."""
+    grad = torch.is_grad_enabled() and any(p.requires_grad for p in (*weights, *biases))
+    if uses_fast(None, rows):
+        sel = rows.new_empty(0, dtype=torch.bool) if mask is None else mask
+        if grad:
+            return _ProjectRowsFast.apply(rows.detach(), sel, *weights, *biases)
+        from ...render.fast import extension
+
+        with torch.no_grad():
+            return extension().project_rows_forward(rows, sel, list(weights), list(biases))[0]
+    rows = rows if mask is None else rows[mask]
+    if not grad:
         return F.linear(rows, _matrix(tuple(weights), tuple(biases)))
     return _ProjectRows.apply(rows.detach(), *weights, *biases)

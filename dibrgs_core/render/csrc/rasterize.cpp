@@ -28,6 +28,7 @@
 #include "loss.h"
 #include "spawn.h"
 #include "project.h"
+#include "project_rows.h"
 #include "rows.h"
 #include "ssim.h"
 #include "zbuffer.h"
@@ -942,6 +943,98 @@ std::vector<torch::Tensor> take_rows_backward(std::vector<torch::Tensor> grads, 
   return outs;
 }
 
+// The IBR projection P (project_rows.h) of the rows of rows (N, K) that mask (N,) bool selects (all
+// of them when mask is empty): weights one (C, D_l, ...) a level, biases one (C,) a level, the D_l
+// summing to K - 1. Returns out (M, C) and the selected rows' indices (M,) for the backward.
+std::vector<torch::Tensor> project_rows_forward(torch::Tensor rows, torch::Tensor mask,
+                                                std::vector<torch::Tensor> weights, std::vector<torch::Tensor> biases) {
+  TORCH_CHECK(rows.dim() == 2 && rows.device().is_cpu(), "project_rows: rows must be (N, K) on the CPU");
+  TORCH_CHECK(!weights.empty() && weights.size() == biases.size(), "project_rows: one weight and one bias a level");
+  const int64_t N = rows.size(0), K = rows.size(1), C = weights[0].size(0);
+  const auto dt = rows.scalar_type();
+  auto x = rows.contiguous();
+  torch::Tensor idx;
+  if (mask.numel() == 0) {
+    idx = torch::arange(N, torch::kInt64);
+  } else {
+    TORCH_CHECK(mask.dim() == 1 && mask.size(0) == N && mask.scalar_type() == torch::kBool,
+                "project_rows: mask must be (N,) bool");
+    auto m = mask.contiguous();
+    const bool* pm = m.data_ptr<bool>();
+    idx = torch::empty({std::count(pm, pm + N, true)}, torch::kInt64);
+    int64_t* pi = idx.data_ptr<int64_t>();
+    for (int64_t r = 0; r < N; ++r)
+      if (pm[r]) *pi++ = r;
+  }
+  // Wt (K, C): each level's weight transposed into its rows, the biases summed in the last (plain
+  // loops: as ATen operators this assembly was a dozen dispatches a call).
+  std::vector<at::Tensor> w(weights.size()), b(biases.size());
+  int64_t width = 0;
+  for (size_t l = 0; l < weights.size(); ++l) {
+    TORCH_CHECK(weights[l].size(0) == C && biases[l].numel() == C && weights[l].scalar_type() == dt &&
+                    biases[l].scalar_type() == dt,
+                "project_rows: every level's weight (C, ...) and bias (C,) in the rows' dtype");
+    w[l] = weights[l].contiguous(), b[l] = biases[l].contiguous();
+    width += w[l].numel() / C;
+  }
+  TORCH_CHECK(width == K - 1, "project_rows: the levels' widths sum to ", width, ", the rows have ", K - 1,
+              " feature columns");
+  const int64_t M = idx.size(0);
+  auto Wt = torch::empty({K, C}, x.options());
+  auto out = torch::empty({M, C}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_project_rows", [&] {
+    scalar_t* pw = Wt.data_ptr<scalar_t>();
+    int64_t start = 0;
+    std::fill(pw + (K - 1) * C, pw + K * C, scalar_t(0));
+    for (size_t l = 0; l < w.size(); ++l) {
+      const int64_t D = w[l].numel() / C;
+      const scalar_t* src = w[l].data_ptr<scalar_t>();
+      const scalar_t* bias = b[l].data_ptr<scalar_t>();
+      for (int64_t c = 0; c < C; ++c) {
+        for (int64_t j = 0; j < D; ++j) pw[(start + j) * C + c] = src[c * D + j];
+        pw[(K - 1) * C + c] += bias[c];
+      }
+      start += D;
+    }
+    dibrgs::prows::forward<scalar_t>(x.data_ptr<scalar_t>(), idx.data_ptr<int64_t>(), M, K, pw, C,
+                                     out.data_ptr<scalar_t>());
+  });
+  return {out, idx};
+}
+
+// Gradients of project_rows_forward's weights (one a level, shaped as shapes[l]) and biases (one (C,)
+// tensor a level, all equal: the biases are summed) from g (M, C), the rows and the indices it returned.
+std::vector<torch::Tensor> project_rows_backward(torch::Tensor g, torch::Tensor rows, torch::Tensor idx,
+                                                 std::vector<std::vector<int64_t>> shapes) {
+  const int64_t M = idx.size(0), K = rows.size(1), C = g.size(1);
+  TORCH_CHECK(g.dim() == 2 && g.size(0) == M, "project_rows_backward: g must be (M, C)");
+  const auto dt = rows.scalar_type();
+  auto gc = g.to(dt).contiguous(), x = rows.contiguous();
+  std::vector<torch::Tensor> grads;
+  for (const auto& shape : shapes) grads.push_back(torch::empty(shape, x.options()));
+  for (size_t l = 0; l < shapes.size(); ++l) grads.push_back(torch::empty({C}, x.options()));
+  AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_project_rows_backward", [&] {
+    std::vector<scalar_t> G(static_cast<size_t>(K * C));
+    dibrgs::prows::weight_grad<scalar_t>(gc.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(), idx.data_ptr<int64_t>(), M,
+                                         K, C, G.data());
+    // G (K, C) back into each level's (C, D_l) weight gradient; every bias gets the last row.
+    const size_t n = shapes.size();
+    int64_t start = 0;
+    for (size_t l = 0; l < n; ++l) {
+      const int64_t D = grads[l].numel() / C;
+      TORCH_CHECK(grads[l].size(0) == C && start + D <= K - 1, "project_rows_backward: shapes do not fit the rows");
+      scalar_t* gw = grads[l].data_ptr<scalar_t>();
+      scalar_t* gb = grads[n + l].data_ptr<scalar_t>();
+      for (int64_t c = 0; c < C; ++c) {
+        for (int64_t j = 0; j < D; ++j) gw[c * D + j] = G[(start + j) * C + c];
+        gb[c] = G[(K - 1) * C + c];
+      }
+      start += D;
+    }
+  });
+  return grads;
+}
+
 // Frustum culling of anchors (spawn.h visible): anchor (N, 3), offset (N, k, 3), log_scaling (N, 6)
 // of one dtype, K (3, 3) pixels, w2c (4, 4) world-to-camera. Returns (N,) bool.
 torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torch::Tensor log_scaling, torch::Tensor K,
@@ -1283,6 +1376,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("decoder_backward", &decoder_backward, "gradients of decoder_forward");
   m.def("anchor_visibility", &anchor_visibility, "frustum culling of anchors");
   m.def("take_rows_forward", &take_rows_forward, "rows of a tensor");
+  m.def("project_rows_forward", &project_rows_forward, "the IBR projection P of the selected rows");
+  m.def("project_rows_backward", &project_rows_backward, "gradients of project_rows_forward's weights and biases");
   m.def("take_rows_backward", &take_rows_backward, "gradient of take_rows_forward");
   m.def("zbuffer_quads", &zbuffer_quads, "depth map of planar quads (a height field's mesh)");
 }
