@@ -4,8 +4,9 @@ Build and cache
     The extension (``csrc/rasterize.cpp`` with the projection ``csrc/project.h`` and the tile
     kernels ``csrc/composite.h``; for training, the loss ``csrc/ssim.h`` and ``csrc/loss.h``, the
     optimiser's step ``csrc/adam.h``, the anchors' culling, gathers, decoder and spawning
-    ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``, the IBR projection ``csrc/project_rows.h``;
-    for the pseudo views' height field, the quads' z-buffer ``csrc/zbuffer.h``) is compiled for the machine that runs it
+    ``csrc/spawn.h``, ``csrc/rows.h``, ``csrc/decoder.h``, the IBR projection
+    ``csrc/project_rows.h``; for the pseudo views' height field, the quads' z-buffer
+    ``csrc/zbuffer.h``) is compiled for the machine that runs it
     (``-march=native``: 16-lane float vectors with AVX-512, 8 with AVX2 and on AVX-512 CPUs that
     run it at half width, :mod:`..common.cpu`) by :func:`build`, which :func:`extension` calls on first
     use. Its cache lives in ``$DIBRGS_EXT_DIR`` (default ``~/.cache/dibrgs/ext``), in a folder
