@@ -174,12 +174,14 @@ def rasterize(
         proj = fast.project_fast(means, quats, scales, viewmat, K, width, height, near, far)
     else:
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
-    ones = torch.ones_like(proj.depths)
-    feats = torch.cat([colors, proj.depths[:, None], ones[:, None]], dim=1)
     if use_fast:
+        # The compositing's features are the colours, each Gaussian's depth and a one (for the
+        # expected depth and alpha), read in place: a concatenated copy cost 0.3 ms a 256x256 step.
         image, depth_acc, alpha = fast.composite_fast(
-            proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height, (C, 1, 1))
+            proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, (C, 1, 1),
+            depth_alpha=True)
     else:
+        feats = torch.cat([colors, proj.depths[:, None], torch.ones_like(proj.depths)[:, None]], dim=1)
         out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)
         image, depth_acc, alpha = out[..., :C], out[..., C : C + 1], out[..., C + 1 : C + 2]
     # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.

@@ -220,13 +220,19 @@ def available(required: bool = False) -> bool:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, gids, masks, width,  # type: ignore[override]
-                height, groups):
-        *outs, tfin, ncon, rec = extension().forward(means2d, conics, opacities, feats, offsets, gids, masks, width,
-                                                     height, list(groups))
+    def forward(ctx, means2d, conics, opacities, feats, depth, offsets, gids, masks,  # type: ignore[override]
+                width, height, groups):
+        mod = extension()
+        if depth is None:
+            res = mod.forward(means2d, conics, opacities, feats, offsets, gids, masks, width, height, list(groups))
+        else:
+            res = mod.forward_colour_depth(means2d, conics, opacities, feats, depth, offsets, gids, masks, width,
+                                           height, list(groups))
+        *outs, tfin, ncon, rec = res
         ctx.save_for_backward(rec, offsets, gids, masks, tfin, ncon)
         ctx.size = (width, height)
         ctx.groups = list(groups)
+        ctx.split = None if depth is None else feats.shape[1]
         ctx.set_materialize_grads(False)  # an unused group's gradient stays None: no zero image made
         return tuple(outs)
 
@@ -238,7 +244,9 @@ class _Composite(torch.autograd.Function):
         gm, gc, go, gf = extension().backward(rec, offsets, gids, masks,
                                               [empty if g is None else g.contiguous() for g in gouts], ctx.groups,
                                               tfin, ncon, width, height)
-        return gm, gc, go, gf, None, None, None, None, None, None
+        c = ctx.split
+        gfeat, gdepth = (gf, None) if c is None else (gf[:, :c], gf[:, c])
+        return gm, gc, go, gfeat, gdepth, None, None, None, None, None, None
 
 
 def composite_fast(
@@ -251,19 +259,24 @@ def composite_fast(
     width: int,
     height: int,
     groups: tuple[int, ...],
+    depth_alpha: bool = False,
 ) -> tuple[Tensor, ...]:
     """C++ version of :func:`reference.composite_reference` (CPU tensors, float32 or float64), its
     (H, W, C) result as one contiguous (H, W, n) tensor for each channel count of ``groups``
     (consecutive channels, summing to C; up to four): what would otherwise be strided slices
-    (the renderer's colour, depth, alpha), written in place."""
+    (the renderer's colour, depth, alpha), written in place. With ``depth_alpha`` the features
+    composited are ``feats`` then each Gaussian's depth (differentiable) and a one, as the
+    renderer's colour, depth and alpha, without concatenating them first (``groups`` then sum to
+    ``feats``' columns + 2)."""
     mod = extension()
     dt = feats.dtype
     m2 = means2d.to(dt).contiguous()
     con = conics.to(dt).contiguous()
     op = opacities.to(dt).contiguous()
     fe = feats.contiguous()
+    dep = depths.to(dt).contiguous() if depth_alpha else None
     offsets, gids, masks = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
-    return _Composite.apply(m2, con, op, fe, offsets, gids, masks, width, height, tuple(groups))
+    return _Composite.apply(m2, con, op, fe, dep, offsets, gids, masks, width, height, tuple(groups))
 
 
 class _Project(torch.autograd.Function):

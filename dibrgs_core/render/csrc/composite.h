@@ -426,11 +426,13 @@ struct Geo {
 enum { G_MX, G_MY, G_O, G_A, G_B, G_C, G_LO, G_RA, G_RB, G_RC, G_F };
 
 // Records of Gaussians [i0, i1) (rec: N * (G_F + C)); lop = ln(max(opacity,
-// 1e-30)), computed by the caller over the whole array at once (vectorised).
+// 1e-30)), computed by the caller over the whole array at once (vectorised). The C features are
+// feat's Cf columns, then, when depth is not null, the Gaussian's depth and a one (C = Cf + 2: the
+// renderer's depth and alpha channels, without a concatenated copy of its features).
 template <typename T>
-void make_records(const T* m2, const T* con, const T* op, const T* lop, const T* feat, int64_t i0, int64_t i1,
-                  int64_t C, T* rec) {
-  const int64_t R = G_F + C;
+void make_records(const T* m2, const T* con, const T* op, const T* lop, const T* feat, const T* depth, int64_t i0,
+                  int64_t i1, int64_t Cf, T* rec) {
+  const int64_t C = depth != nullptr ? Cf + 2 : Cf, R = G_F + C;
   const T k = Exp<T>::kscale;
   for (int64_t g = i0; g < i1; ++g) {
     T* r = rec + g * R;
@@ -439,7 +441,8 @@ void make_records(const T* m2, const T* con, const T* op, const T* lop, const T*
     r[G_A] = T(-0.5) * k * ca, r[G_B] = -k * cb, r[G_C] = T(-0.5) * k * cc;
     r[G_LO] = lop[g] * k;  // listed Gaussians have o >= 1/255; others get a finite value (never read)
     r[G_RA] = ca, r[G_RB] = cb, r[G_RC] = cc;
-    for (int64_t ch = 0; ch < C; ++ch) r[G_F + ch] = feat[g * C + ch];
+    for (int64_t ch = 0; ch < Cf; ++ch) r[G_F + ch] = feat[g * Cf + ch];
+    if (depth != nullptr) r[G_F + Cf] = depth[g], r[G_F + Cf + 1] = T(1);
   }
 }
 

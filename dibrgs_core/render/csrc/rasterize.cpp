@@ -396,16 +396,23 @@ dibrgs::Scene<T> scene(const torch::Tensor& rec, const torch::Tensor& offsets, c
                           W, H, (W + TILE - 1) / TILE};
 }
 
-// Records (N, G_F + C) of the Gaussians for the kernels (see composite.h).
-torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats) {
-  const int64_t N = feats.size(0), C = feats.size(1);
+// Records (N, G_F + C) of the Gaussians for the kernels (see composite.h): feats (N, Cf) and, when
+// depth (N,) is defined, each Gaussian's depth and a one (C = Cf + 2), else C = Cf.
+torch::Tensor records(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac, torch::Tensor feats,
+                      torch::Tensor depth) {
+  const int64_t N = feats.size(0), Cf = feats.size(1), C = depth.defined() ? Cf + 2 : Cf;
+  TORCH_CHECK(!depth.defined() || (depth.numel() == N && depth.scalar_type() == feats.scalar_type() &&
+                                   depth.is_contiguous()),
+              "composite: depth must be (N,) contiguous, of the features' dtype");
   auto rec = torch::empty({N, dibrgs::G_F + C}, feats.options());
   const auto lop = at::log(at::clamp_min(opac, 1e-30));  // ATen's vectorised log (a scalar one cost 5 % of the forward)
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "dibrgs_records", [&] {
     const scalar_t *pm = means2d.data_ptr<scalar_t>(), *pc = conics.data_ptr<scalar_t>();
     const scalar_t *po = opac.data_ptr<scalar_t>(), *pl = lop.data_ptr<scalar_t>(), *pf = feats.data_ptr<scalar_t>();
+    const scalar_t* pd = depth.defined() ? depth.data_ptr<scalar_t>() : nullptr;
     scalar_t* pr = rec.data_ptr<scalar_t>();
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pl, pf, b, e, C, pr); });
+    at::parallel_for(0, N, 8192,
+                     [&](int64_t b, int64_t e) { dibrgs::make_records(pm, pc, po, pl, pf, pd, b, e, Cf, pr); });
   });
   return rec;
 }
@@ -460,18 +467,17 @@ void forward_tiles(const dibrgs::Scene<T>& sc, const dibrgs::Planes<T>& out, T* 
   });
 }
 
-// Forward compositing. Returns the composited features as one (H, W, n) tensor for each of
-// the channel counts `groups` (summing to the features' C: [C] for one tensor), then T_final
-// (H, W), n_contrib (H, W) int32 (1 + tile-list position of the last Gaussian composited) and
-// the Gaussian records for backward.
-std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                   torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
-                                   torch::Tensor masks, int64_t W, int64_t H, std::vector<int64_t> groups) {
-  const int64_t C = feats.size(1);
+namespace {
+
+std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                             torch::Tensor feats, torch::Tensor depth, torch::Tensor offsets,
+                                             torch::Tensor gids, torch::Tensor masks, int64_t W, int64_t H,
+                                             const std::vector<int64_t>& groups) {
+  const int64_t C = feats.size(1) + (depth.defined() ? 2 : 0);
   int64_t total = 0;
   for (const int64_t n : groups) total += n;
   TORCH_CHECK(total == C, "composite: channel groups sum to ", total, ", the features have ", C);
-  auto rec = records(means2d, conics, opac, feats);
+  auto rec = records(means2d, conics, opac, feats, depth);
   std::vector<torch::Tensor> res;
   for (const int64_t n : groups) res.push_back(torch::empty({H, W, n}, feats.options()));
   auto tfin = torch::empty({H, W}, feats.options());
@@ -482,6 +488,27 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
   });
   res.insert(res.end(), {tfin, ncon, rec});
   return res;
+}
+
+}  // namespace
+
+// Forward compositing. Returns the composited features as one (H, W, n) tensor for each of
+// the channel counts `groups` (summing to the features' C: [C] for one tensor), then T_final
+// (H, W), n_contrib (H, W) int32 (1 + tile-list position of the last Gaussian composited) and
+// the Gaussian records for backward.
+std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                   torch::Tensor feats, torch::Tensor offsets, torch::Tensor gids,
+                                   torch::Tensor masks, int64_t W, int64_t H, std::vector<int64_t> groups) {
+  return composite_forward(means2d, conics, opac, feats, torch::Tensor(), offsets, gids, masks, W, H, groups);
+}
+
+// forward with the features [colors (N, C), depth (N,), 1]: the renderer's colour, depth and alpha
+// channels (C + 2 in all) read in place rather than concatenated first.
+std::vector<torch::Tensor> forward_colour_depth(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                                torch::Tensor colors, torch::Tensor depth, torch::Tensor offsets,
+                                                torch::Tensor gids, torch::Tensor masks, int64_t W, int64_t H,
+                                                std::vector<int64_t> groups) {
+  return composite_forward(means2d, conics, opac, colors, depth, offsets, gids, masks, W, H, groups);
 }
 
 template <typename T, bool STATS>
@@ -1355,6 +1382,7 @@ torch::Tensor zbuffer_quads(torch::Tensor quads, torch::Tensor M, torch::Tensor 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists of screen-space Gaussians");
   m.def("forward", &forward, "front-to-back compositing");
+  m.def("forward_colour_depth", &forward_colour_depth, "front-to-back compositing of colours, depth and alpha");
   m.def("backward", &backward, "gradients of the compositing");
   m.def("composite_stats", &composite_stats, "instrumented compositing (pair counts)");
   m.def("simd", &simd, "vector code path of this build");
