@@ -291,11 +291,12 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_m2, g_con, g_dep, _g_rad):  # type: ignore[override]
         means, quats, scales, K, viewmat = ctx.saved_tensors
-        grads = [
-            torch.zeros_like(ref) if g is None else g.contiguous()
-            for g, ref in ((g_m2, means[:, :2]), (g_con, means), (g_dep, means[:, 0]))
-        ]
-        gm, gq, gs = extension().project_backward(means, quats, scales, K, viewmat, *ctx.args, *grads)
+        n = means.shape[0]
+        g_m2 = means.new_zeros(n, 2) if g_m2 is None else g_m2.contiguous()
+        g_con = means.new_zeros(n, 3) if g_con is None else g_con.contiguous()
+        # The depths' gradient is a column of the compositing's feature gradient: read with its stride.
+        g_dep = means.new_zeros(n) if g_dep is None else g_dep
+        gm, gq, gs = extension().project_backward(means, quats, scales, K, viewmat, *ctx.args, g_m2, g_con, g_dep)
         return gm, gq, gs, None, None, None, None, None, None
 
 

@@ -176,15 +176,16 @@ inline void forward(const Cam& cam, const T* m, const T* q, const T* s, int64_t 
 }
 
 // Backward of the Gaussians [i, i + width<D>()): gradients of means, quats, scales from those
-// of means2d, conics, depths. A Gaussian without incoming gradient (none of its tiles listed
-// it) gets exact zeros whatever its projection computes.
+// of means2d, conics, depths (the depths' gradient gd read every gd_stride values: a column of
+// the compositing's feature gradient, not copied first). A Gaussian without incoming gradient (none
+// of its tiles listed it) gets exact zeros whatever its projection computes.
 template <typename D, typename T>
 inline void backward(const Cam& cam, const T* m, const T* q, const T* s, int64_t i, double near, double far,
-                     const T* gm2, const T* gc, const T* gd, T* om, T* oq, T* os) {
+                     const T* gm2, const T* gc, const T* gd, int64_t gd_stride, T* om, T* oq, T* os) {
   State<D> st;
   project_one<D>(cam, m, q, s, i, near, far, st);
   const D g0 = load<D>(gc, 3, i, 0), g1 = load<D>(gc, 3, i, 1), g2 = load<D>(gc, 3, i, 2);
-  const D gmx = load<D>(gm2, 2, i, 0), gmy = load<D>(gm2, 2, i, 1), gdep = load<D>(gd, 1, i, 0);
+  const D gmx = load<D>(gm2, 2, i, 0), gmy = load<D>(gm2, 2, i, 1), gdep = load<D>(gd, gd_stride, i, 0);
   const D zero = splat<D>(0.0);
   const typename State<D>::M none =
       (g0 == zero) & (g1 == zero) & (g2 == zero) & (gmx == zero) & (gmy == zero) & (gdep == zero);

@@ -665,16 +665,22 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
   return {m2, con, dep, rad};
 }
 
-// Backward projection: gradients (means (N, 3), quats (N, 4), scales (N, 3))
-// from those of means2d, conics and depths.
+// Backward projection: gradients (means (N, 3), quats (N, 4), scales (N, 3)) from those of
+// means2d (N, 2) and conics (N, 3), contiguous, and depths (N,), any stride.
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                             torch::Tensor K, torch::Tensor w2c, int64_t W, int64_t H, double near,
                                             double far,
                                             torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_dep) {
   const int64_t N = means.size(0);
+  TORCH_CHECK(g_m2.is_contiguous() && g_m2.numel() == 2 * N && g_con.is_contiguous() && g_con.numel() == 3 * N &&
+                  g_dep.dim() == 1 && g_dep.size(0) == N,
+              "project_backward: gradients must be means2d (N, 2) and conics (N, 3) contiguous, depths (N,)");
+  for (const auto* g : {&g_m2, &g_con, &g_dep})
+    TORCH_CHECK(g->scalar_type() == means.scalar_type(), "project_backward: gradients in the means' dtype");
   auto gm = torch::empty_like(means);
   auto gq = torch::empty_like(quats);
   auto gs = torch::empty_like(scales);
+  const int64_t ds = g_dep.stride(0);
   const dibrgs::proj::Cam cm(camera_params(K, w2c).data(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_backward", [&] {
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
@@ -682,7 +688,7 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
     scalar_t *om = gm.data_ptr<scalar_t>(), *oq = gq.data_ptr<scalar_t>(), *os = gs.data_ptr<scalar_t>();
     over_gaussians(N, [&](int64_t i, auto vec) {
       typedef typename std::conditional<decltype(vec)::value, dibrgs::VD, double>::type D;
-      dibrgs::proj::backward<D>(cm, pm, pq, ps, i, near, far, gm2, gc, gd, om, oq, os);
+      dibrgs::proj::backward<D>(cm, pm, pq, ps, i, near, far, gm2, gc, gd, ds, om, oq, os);
     });
   });
   return {gm, gq, gs};
