@@ -134,8 +134,10 @@ class _SpawnFast(torch.autograd.Function):
     def forward(ctx, nop, color, cov, anchor, log_scal, offset):  # type: ignore[override]
         from ..render.fast import extension
 
+        # nop is read by its values (M k of them), whatever its shape: no reshape (a view, but tens
+        # of microseconds of dispatch in place, between the heavy passes).
         means, quats, scales, opac, colors, start, selected = extension().spawn_forward(
-            nop.reshape(-1), color, cov, anchor, log_scal, offset)
+            nop, color, cov, anchor, log_scal, offset)
         ctx.save_for_backward(nop, cov, log_scal, offset, start)
         ctx.mark_non_differentiable(selected)
         return means, quats, scales, opac, colors, selected
@@ -145,6 +147,5 @@ class _SpawnFast(torch.autograd.Function):
         from ..render.fast import extension
 
         nop, cov, log_scal, offset, start = ctx.saved_tensors
-        dnop, dcolor, dcov, danchor, dlog, doffset = extension().spawn_backward(
-            gm, gq, gs, go, gc, nop.reshape(-1), cov, log_scal, offset, start)
-        return dnop.reshape(nop.shape), dcolor, dcov, danchor, dlog, doffset
+        # dnop comes back in nop's shape (empty_like).
+        return tuple(extension().spawn_backward(gm, gq, gs, go, gc, nop, cov, log_scal, offset, start))
