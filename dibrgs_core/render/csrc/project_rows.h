@@ -15,22 +15,15 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <cstring>
 #include <vector>
 
 #include "composite.h"  // the build's vector type, Vec<T>::V
+#include "ssim.h"       // ssim::load / ssim::store: unaligned vector loads and stores
 
 namespace dibrgs {
 namespace prows {
 
 constexpr int64_t BLOCK = 256;  // rows a partial sum of the gradient
-
-template <typename T>
-inline typename Vec<T>::V load(const T* p) {
-  typename Vec<T>::V v;
-  std::memcpy(&v, p, sizeof(v));
-  return v;
-}
 
 // Sums of R rows (or R k's) in flight at once: one chain of fused multiply-adds is bound by their
 // latency, not their throughput (four cycles each); R independent chains fill the pipeline.
@@ -52,10 +45,10 @@ void forward(const T* rows, const int64_t* idx, int64_t M, int64_t K, const T* W
       for (; c0 + L <= C; c0 += L) {
         V acc[R] = {};
         for (int64_t k = 0; k < K; ++k) {
-          const V w = load(Wt + k * C + c0);
+          const V w = ssim::load<V>(Wt + k * C + c0);
           for (int64_t r = 0; r < R; ++r) acc[r] += x[r][k] * w;
         }
-        for (int64_t r = 0; r < n; ++r) std::memcpy(out + (i + r) * C + c0, &acc[r], sizeof(V));
+        for (int64_t r = 0; r < n; ++r) ssim::store(out + (i + r) * C + c0, acc[r]);
       }
       for (int64_t c = c0; c < C; ++c)
         for (int64_t r = 0; r < n; ++r) {
@@ -87,11 +80,11 @@ void weight_grad(const T* g, const T* rows, const int64_t* idx, int64_t M, int64
         for (; c0 + L <= C; c0 += L) {
           V acc[R] = {};
           for (int64_t i = i0; i < i1; ++i) {
-            const V gi = load(g + i * C + c0);
+            const V gi = ssim::load<V>(g + i * C + c0);
             const T* x = rows + idx[i] * K;
             for (int64_t r = 0; r < R; ++r) acc[r] += x[kk[r]] * gi;
           }
-          for (int64_t r = 0; r < n; ++r) std::memcpy(P + (k + r) * C + c0, &acc[r], sizeof(V));
+          for (int64_t r = 0; r < n; ++r) ssim::store(P + (k + r) * C + c0, acc[r]);
         }
         for (int64_t c = c0; c < C; ++c)
           for (int64_t r = 0; r < n; ++r) {
