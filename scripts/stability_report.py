@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-k", default=None, help="pytest -k expression to run a subset")
     args = p.parse_args(argv)
     col = Collector()
-    pargs = [str(REPO / "tests"), "-m", "stability", "-q", "-p", "no:cacheprovider"]
+    # In this process (-n 0): the collector reads the items, which test processes would hold.
+    pargs = [str(REPO / "tests"), "-m", "stability", "-q", "-p", "no:cacheprovider", "-n", "0"]
     if args.k:
         pargs += ["-k", args.k]
     t0 = time.perf_counter()
