@@ -24,7 +24,9 @@ training views:
 
 ``--ratio-rounds R`` then times the iteration on one thread and on ``--ratio-threads``
 alternately, R rounds in the same process, and reports each round's ratio (two-thread against
-one-thread wall time): separate processes differ by the machine's drift between them.
+one-thread wall time): separate processes differ by the machine's drift between them. Each timing
+is bracketed by a control workload on the same threads; the median over the rounds whose controls
+were at their best (the host calm on both sides) is reported beside the median of all rounds.
 
 Run it from the repository root (or with the package on ``PYTHONPATH``); prints a table
 and writes JSON with the machine (CPU model, vector extensions, cores), the sizes, the load
@@ -246,20 +248,63 @@ def bench_method(args, method: str) -> dict[str, Any]:
     return res
 
 
+#: A round counts as calm when each of its control timings is within this factor of the run's best
+#: for that thread count (a neighbour on the host slows either side of a round).
+CALM_SLACK = 1.1
+
+
+def control_ms(x: torch.Tensor, y: torch.Tensor, repeats: int = 5) -> float:
+    """Wall time (ms, best of ``repeats``) of a fixed workload that splits evenly over any thread
+    count (``exp`` then ``sin`` of 2^20 floats, 4 MiB, no Python between): what the machine gives
+    this many threads right now, beside the step."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.sin(torch.exp(x, out=y), out=y)
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
+
+
+def calm_rounds(controls: list[list[float]], slack: float = CALM_SLACK) -> list[int]:
+    """Indices of the rounds whose controls (one thread before / after, many before / after) were
+    each within ``slack`` of the best control of their thread count over all rounds."""
+    best1 = min(min(c[:2]) for c in controls)
+    bestn = min(min(c[2:]) for c in controls)
+    return [i for i, c in enumerate(controls) if max(c[:2]) <= slack * best1 and max(c[2:]) <= slack * bestn]
+
+
 def thread_ratio(all_views: Callable[[], None], n_views: int, threads: int, rounds: int,
                  repeats: int) -> dict[str, Any]:
     """Iteration wall time on one thread and on ``threads``, alternating in this process for
     ``rounds`` rounds (the same build and model; drift of the machine hits both), and the ratio of
-    each round."""
-    one, many = [], []
+    each round.
+
+    A shared host (a cloud VM whose cores' other hardware threads run other tenants) can slow one
+    core for seconds, so each timing is bracketed by a control workload on the same thread count
+    (:func:`control_ms`); the rounds whose four controls were all within ``CALM_SLACK`` of their
+    thread count's best are reported apart (``calm_*``), beside all rounds, with the controls'
+    own best ratio (about 1 / ``threads`` when the cores are the machine's own)."""
+    x = torch.rand(1 << 20)
+    y = torch.empty_like(x)
+    one, many, ctrl = [], [], []
     for _ in range(rounds):
+        c = []
         for n, acc in ((1, one), (threads, many)):
             torch.set_num_threads(n)
+            c.append(control_ms(x, y))
             acc.append(timed(all_views, repeats)["wall_ms"] / n_views)
+            c.append(control_ms(x, y))
+        ctrl.append(c)  # one thread before / after, then ``threads`` before / after
     ratios = [b / a for a, b in zip(one, many)]
-    return {"threads": threads, "one_ms": one, "many_ms": many, "ratios": ratios,
-            "median_ratio": float(np.median(ratios)), "median_one_ms": float(np.median(one)),
-            "median_many_ms": float(np.median(many))}
+    calm = calm_rounds(ctrl)
+    res = {"threads": threads, "one_ms": one, "many_ms": many, "ratios": ratios,
+           "median_ratio": float(np.median(ratios)), "median_one_ms": float(np.median(one)),
+           "median_many_ms": float(np.median(many)), "control_ms": ctrl,
+           "control_ratio": min(min(c[2:]) for c in ctrl) / min(min(c[:2]) for c in ctrl),
+           "calm_rounds": calm}
+    if calm:
+        res["calm_median_ratio"] = float(np.median([ratios[i] for i in calm]))
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -296,6 +341,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {q['threads']} threads against 1, {len(q['ratios'])} alternating rounds: "
                   f"{q['median_one_ms']:.2f} and {q['median_many_ms']:.2f} ms wall (medians), ratio per round "
                   f"{min(q['ratios']):.3f}-{max(q['ratios']):.3f}, median {q['median_ratio']:.3f}")
+            calm = (f"median {q['calm_median_ratio']:.3f}" if q["calm_rounds"] else "none")
+            print(f"  rounds whose controls were within {CALM_SLACK - 1:.0%} of their best: {len(q['calm_rounds'])} of "
+                  f"{len(q['ratios'])}, {calm} (the control's own {q['threads']}-thread ratio "
+                  f"{q['control_ratio']:.3f}; controls {min(min(c[:2]) for c in q['control_ms']):.2f}-"
+                  f"{max(max(c[:2]) for c in q['control_ms']):.2f} ms on one thread, "
+                  f"{min(min(c[2:]) for c in q['control_ms']):.2f}-{max(max(c[2:]) for c in q['control_ms']):.2f} "
+                  f"on {q['threads']})")
     out["loadavg_end"] = os.getloadavg()
     m = out["machine"]
     print(f"\nmachine: {m['model']}, {m['cores']} cores, vector extensions: {m['vector']}")
