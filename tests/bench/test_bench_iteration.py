@@ -42,3 +42,4 @@ def test_thread_ratio_times_both_sides_and_brackets_them_with_controls(bench):
         calm = sorted(res["ratios"][i] for i in res["calm_rounds"])
         assert calm[0] <= res["calm_median_ratio"] <= calm[-1]
     assert res["control_ratio"] > 0
+    assert res["ratio_of_minima"] == min(res["many_ms"]) / min(res["one_ms"])
