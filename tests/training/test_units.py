@@ -85,23 +85,31 @@ def test_a_far_copy_is_read_back_in_a_frame_of_its_own(tiny_scene, tmp_path):
         assert np.allclose(tb.center, ta.center + shift, atol=1e-6 * spread)
 
 
+#: Training seeds each copy is trained with; the copies are compared by their mean held-out PSNR.
+UNIT_SEEDS = (0, 1, 2)
+
+
 @pytest.mark.slow
 def test_held_out_psnr_does_not_depend_on_the_scene_units_or_placement(tiny_scene, tmp_path):
-    psnr = {}
+    psnr: dict[str, list[float]] = {}
     for name, factor, offset in (("x0.001", 1e-3, None), ("x1", 1.0, None), ("x1000", 1e3, None),
                                  ("far", 1.0, FAR)):
         scene = scaled_scene(tiny_scene, tmp_path / f"scene_{name}", factor, offset)
-        cfg = preset("test")
-        cfg.curve_every_s = 1e9
-        work = tmp_path / f"work_{name}"
-        assert train(scene, work, cfg).status == "done"
-        psnr[name] = _heldout_psnr(work)
-    # Units and placement: all four within 0.3 dB (0.22 at this seed, 2026-11-28). At seeds 1-5 the
-    # spread reads 0.26-0.53 dB: one run moves about 0.2 dB with any change of rounding, so a change
-    # of numerics anywhere can fail this without any dependence on units (docs/benchmarks.md). The
-    # far copy no longer leads x1 (-0.22 to +0.21 over six seeds; +0.10 to +0.35 in every pair
-    # before its anchor grid was aligned to the data, geometry/pointcloud.grid_origin).
-    assert max(psnr.values()) - min(psnr.values()) <= 0.3, psnr
+        for seed in UNIT_SEEDS:
+            cfg = preset("test")
+            cfg.curve_every_s = 1e9
+            cfg.seed = seed
+            work = tmp_path / (f"work_{name}" if seed == UNIT_SEEDS[0] else f"work_{name}_s{seed}")
+            if seed != UNIT_SEEDS[0]:  # the same geometry: training's seed does not enter it
+                shutil.copytree(tmp_path / f"work_{name}" / "init", work / "init")
+            assert train(scene, work, cfg).status == "done"
+            psnr.setdefault(name, []).append(_heldout_psnr(work))
+    # Units and placement: the four copies' means over three training seeds within 0.3 dB. The copies
+    # agree to 0.001 dB after 5 iterations, then diverge both ways as rounding meets growth's
+    # thresholds: one run's spread over the copies read 0.22-0.50 dB at seeds 0-5, the means' 0.18
+    # at seeds 0-2 and 0.32 at seeds 3-5 (2026-11-28, docs/benchmarks.md): still little margin.
+    mean = {k: float(np.mean(v)) for k, v in psnr.items()}
+    assert max(mean.values()) - min(mean.values()) <= 0.3, psnr
     # `dibrgs render` takes cameras in the files' frame: the far run renders a held-out camera of its
     # Cams file as it renders that view of the scene it read (in the scene's own frame).
     from dibrgs_core.cli import main
