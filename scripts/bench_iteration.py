@@ -266,11 +266,18 @@ def control_ms(x: torch.Tensor, y: torch.Tensor, repeats: int = 5) -> float:
     return best * 1e3
 
 
+def control_ranges(controls: list[list[float]]) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(best, worst) of the controls (a round's one thread before / after, many before / after)
+    on one thread and on many, over all rounds."""
+    one = [x for c in controls for x in c[:2]]
+    many = [x for c in controls for x in c[2:]]
+    return (min(one), max(one)), (min(many), max(many))
+
+
 def calm_rounds(controls: list[list[float]], slack: float = CALM_SLACK) -> list[int]:
-    """Indices of the rounds whose controls (one thread before / after, many before / after) were
-    each within ``slack`` of the best control of their thread count over all rounds."""
-    best1 = min(min(c[:2]) for c in controls)
-    bestn = min(min(c[2:]) for c in controls)
+    """Indices of the rounds whose controls were each within ``slack`` of the best control of their
+    thread count over all rounds."""
+    (best1, _), (bestn, _) = control_ranges(controls)
     return [i for i, c in enumerate(controls) if max(c[:2]) <= slack * best1 and max(c[2:]) <= slack * bestn]
 
 
@@ -299,10 +306,11 @@ def thread_ratio(all_views: Callable[[], None], n_views: int, threads: int, roun
         ctrl.append(c)  # one thread before / after, then ``threads`` before / after
     ratios = [b / a for a, b in zip(one, many)]
     calm = calm_rounds(ctrl)
+    (best1, _), (bestn, _) = control_ranges(ctrl)
     res = {"threads": threads, "one_ms": one, "many_ms": many, "ratios": ratios,
            "median_ratio": float(np.median(ratios)), "median_one_ms": float(np.median(one)),
            "median_many_ms": float(np.median(many)), "ratio_of_minima": min(many) / min(one), "control_ms": ctrl,
-           "control_ratio": min(min(c[2:]) for c in ctrl) / min(min(c[:2]) for c in ctrl),
+           "control_ratio": bestn / best1,
            "calm_rounds": calm}
     if calm:
         res["calm_median_ratio"] = float(np.median([ratios[i] for i in calm]))
@@ -346,12 +354,11 @@ def main(argv: list[str] | None = None) -> int:
                   f"fastest round of each {min(q['one_ms']):.2f} and {min(q['many_ms']):.2f} ms, "
                   f"ratio {q['ratio_of_minima']:.3f}")
             calm = (f"median {q['calm_median_ratio']:.3f}" if q["calm_rounds"] else "none")
+            (lo1, hi1), (lon, hin) = control_ranges(q["control_ms"])
             print(f"  rounds whose controls were within {CALM_SLACK - 1:.0%} of their best: {len(q['calm_rounds'])} of "
                   f"{len(q['ratios'])}, {calm} (the control's own {q['threads']}-thread ratio "
-                  f"{q['control_ratio']:.3f}; controls {min(min(c[:2]) for c in q['control_ms']):.2f}-"
-                  f"{max(max(c[:2]) for c in q['control_ms']):.2f} ms on one thread, "
-                  f"{min(min(c[2:]) for c in q['control_ms']):.2f}-{max(max(c[2:]) for c in q['control_ms']):.2f} "
-                  f"on {q['threads']})")
+                  f"{q['control_ratio']:.3f}; controls {lo1:.2f}-{hi1:.2f} ms on one thread, "
+                  f"{lon:.2f}-{hin:.2f} on {q['threads']})")
     out["loadavg_end"] = os.getloadavg()
     m = out["machine"]
     print(f"\nmachine: {m['model']}, {m['cores']} cores, vector extensions: {m['vector']}")

@@ -17,7 +17,9 @@ def pytest_xdist_auto_num_workers(config) -> int:
     """``-n auto`` (pyproject's addopts): one test process per CPU this process may run on, as few
     as the memory holds. Most tests are one thread of Python, so two processes on two cores take
     about 0.6 of one's time; ``-n 0`` runs them in this process (for ``--pdb``)."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    from dibrgs_core.commands.options import available_cores  # no torch: the wait policy above still applies
+
+    cpus = available_cores()
     try:
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
