@@ -155,8 +155,8 @@ def rasterize(
         ``depth`` is the *normalised* expected camera z,
         ``sum_i w_i z_i / alpha`` (0 where ``alpha == 0``); multiply by
         ``alpha`` for the accumulated form. ``meta`` holds ``"radii"`` (N,)
-        int32 pixels, ``"visible"`` (N,) bool, ``"means2d"`` (N, 2) whose
-        ``.grad`` is filled by backward (``retain_grad`` already called),
+        int32 pixels, ``"visible"`` (N,) bool, ``"means2d"`` (N, 2) (call its
+        ``retain_grad()`` before backward to read its ``.grad``),
         ``"depths"`` (N,) and ``"conics"`` (N, 3).
     """
     N = means.shape[0]

@@ -324,6 +324,4 @@ def project_fast(
         means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), K.detach(), viewmat.detach(),
         width, height, float(near), float(far),
     )
-    if m2.requires_grad:
-        m2.retain_grad()
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=rad > 0)

@@ -45,8 +45,9 @@ class Projected:
 
     Attributes:
         means2d: (N, 2) pixel coordinates of the projected centres (pixel
-            centres at +0.5). ``retain_grad()`` has been called on it when it
-            requires grad.
+            centres at +0.5). Its gradient is kept only when the caller calls
+            ``retain_grad()`` on it before backward (the densification strategies
+            do while they gather statistics).
         conics: (N, 3) upper triangle ``(a, b, c)`` of the inverse 2D
             covariance, in 1/px^2; the Gaussian falls off as
             ``exp(-0.5 (a dx^2 + 2 b dx dy + c dy^2))``.
@@ -166,8 +167,6 @@ def project_gaussians(
         radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
 
     means2d = torch.stack([mx, my], dim=-1).to(dtype)
-    if means2d.requires_grad:
-        means2d.retain_grad()
     return Projected(
         means2d=means2d,
         conics=conics.to(dtype),

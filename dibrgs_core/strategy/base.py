@@ -39,10 +39,15 @@ class Strategy(ABC):
     until: int
     every: int
 
+    def collects(self, step: int) -> bool:
+        """Whether ``step`` gathers statistics from the screen-space means' gradient."""
+        return step < self.until
+
     def step_pre_backward(self, model: nn.Module, optimizer: torch.optim.Optimizer, step: int,
                           info: dict[str, Any] | None) -> None:
-        """Before ``loss.backward()``: keep the gradient of the screen-space means."""
-        if info is not None and info["means2d"].requires_grad:
+        """Before ``loss.backward()``: keep the gradient of the screen-space means when this step
+        gathers statistics from it (keeping it costs a copy of it every step)."""
+        if info is not None and self.collects(step) and info["means2d"].requires_grad:
             info["means2d"].retain_grad()
 
     @abstractmethod

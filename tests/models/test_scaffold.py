@@ -128,6 +128,7 @@ def test_decode_backprop_through_rasterizer_reaches_all_parameters():
     c = camera_tensors(small_camera())
     d = m.decode(c.K, c.w2c, c.center, 32, 32)
     img, _, _, meta = rasterize(d.means, d.quats, d.scales, d.opacities, d.colors, c.w2c, c.K, 32, 32)
+    meta["means2d"].retain_grad()
     (img.mean() + d.scales.prod(1).mean()).backward()
     for name in ("offset", "anchor_feat", "scaling"):
         g = getattr(m, name).grad

@@ -57,6 +57,23 @@ def test_fast_matches_reference_values_and_gradients(dtype):
     assert torch.isfinite(a.means).all() and torch.isfinite(a.scales).all()
 
 
+def test_colour_gradient_read_with_its_row_stride():
+    # The renderer composites the colours beside each Gaussian's depth and a one, so the colours'
+    # gradient arrives as three columns of a wider one: read in place, it must give what a
+    # contiguous copy gives.
+    x = _inputs(32, 6, torch.float32, seed=5)
+    y = [t.detach().clone().requires_grad_() for t in x]
+    a, b = spawn(*x, backend="fast"), spawn(*y, backend="fast")
+    w = torch.randn(a.colors.shape[0], 5, generator=torch.Generator().manual_seed(1))
+    wide = torch.cat([a.colors, a.means[:, 2:], torch.ones_like(a.opacities)[:, None]], 1)
+    g = torch.autograd.grad((w * wide).sum(), a.colors, retain_graph=True)[0]
+    assert g.stride() == (5, 1)  # what spawn_backward is given for the colours
+    (w * wide).sum().backward()
+    ((w[:, :3] * b.colors).sum() + (w[:, 3:4] * b.means[:, 2:]).sum()).backward()
+    for p, q in zip(x, y):
+        assert p.grad is not None and torch.equal(p.grad, q.grad)
+
+
 def test_fast_gradients_against_finite_differences():
     torch.autograd.gradcheck(lambda *t: tuple(spawn(*t, backend="fast")[:5]), _inputs(5, 4, torch.float64, seed=3, special=False))
 

@@ -41,6 +41,8 @@ def render(params, backend, width=W, height=H, K=None, viewmat=None, bg=None, **
         assert torch.isfinite(t).all()
     assert (alpha >= 0).all() and (alpha <= 1 + 1e-6).all()
     loss = img.sum() + alpha.sum() + 1e-3 * depth.sum()
+    if meta["means2d"].requires_grad:
+        meta["means2d"].retain_grad()
     if loss.requires_grad:
         loss.backward()
     grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in ps]

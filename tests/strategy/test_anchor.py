@@ -167,6 +167,12 @@ def test_update_accumulates_ndc_gradients_of_rasterized_gaussians():
     c = camera_tensors(small_camera())
     d = m.decode(c.K, c.w2c, c.center, 32, 32)
     img, _, _, meta = rasterize(d.means, d.quats, d.scales, d.opacities, d.colors, c.w2c, c.K, 32, 32)
+    inside, after = s.stat_start + 1, s.until
+    assert s.collects(inside) and not s.collects(after)
+    s.step_pre_backward(m, None, after, meta)
+    assert not meta["means2d"].retains_grad  # no statistics after growth: no copy of the gradient
+    s.step_pre_backward(m, None, inside, meta)
+    assert meta["means2d"].retains_grad
     img.mean().backward()
     s.update(d, meta["means2d"].grad, meta["radii"], 32, 32)
     seen = int((meta["radii"] > 0).sum())

@@ -88,6 +88,20 @@ void input_rows(const T* feat, const T* gate, const T* ref, const T* anchor, con
   }
 }
 
+// y (n, C) += b (C), then max(y, 0) when relu. addmm adds a bias by copying it into every row
+// before the product, a pass that cost as much as a third of the products (strided broadcast
+// copies of 10-70 columns); here it is one pass with the ReLU.
+template <typename T>
+void add_bias(T* y, const T* b, int64_t n, int64_t C, bool relu) {
+  for (int64_t r = 0; r < n; ++r) {
+    T* yr = y + r * C;
+    if (relu)
+      for (int64_t c = 0; c < C; ++c) yr[c] = std::max(yr[c] + b[c], T(0));
+    else
+      for (int64_t c = 0; c < C; ++c) yr[c] += b[c];
+  }
+}
+
 // gz (n, O) = g * act'(out) and its column sums added to db2 (O).
 template <typename T>
 void output_grad(const T* g, const T* out, T* gz, T* db2, int64_t n, int64_t O, Act act) {

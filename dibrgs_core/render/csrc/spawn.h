@@ -100,12 +100,12 @@ void forward(const T* nop, const T* color, const T* cov, const T* anchor, const 
   });
 }
 
-// Gradients of the inputs from those of the outputs (g*: rows as the forward's). Every entry
-// of the outputs is written (zero where a row was not kept).
+// Gradients of the inputs from those of the outputs (g*: rows as the forward's; gcolors' rows gcs
+// values apart). Every entry of the outputs is written (zero where a row was not kept).
 template <typename T>
-void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac, const T* gcolors, const T* nop,
-              const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k, const int64_t* start, T* dnop,
-              T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
+void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac, const T* gcolors, int64_t gcs,
+              const T* nop, const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k, const int64_t* start,
+              T* dnop, T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
   at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
@@ -148,7 +148,7 @@ void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac
           for (int d = 0; d < 4; ++d) dc[3 + d] = T(0);
         }
         dnop[row] = gopac[r];
-        for (int d = 0; d < 3; ++d) dcl[d] = gcolors[3 * r + d];
+        for (int d = 0; d < 3; ++d) dcl[d] = gcolors[gcs * r + d];
         ++r;
       }
       for (int d = 0; d < 3; ++d) danchor[3 * a + d] = ga[d];
