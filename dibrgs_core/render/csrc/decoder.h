@@ -40,6 +40,7 @@ template <typename F>
 void for_blocks(int64_t M, int64_t nb, F&& fn) {
   const int64_t rows = (M + nb - 1) / nb;
   at::parallel_for(0, nb, 1, [&](int64_t b0, int64_t b1) {
+    at::AutoDispatchBelowADInplaceOrView guard;  // on every thread: the guard is thread-local
     for (int64_t b = b0; b < b1; ++b) {
       const int64_t r0 = std::min(M, b * rows), n = std::min(M, r0 + rows) - r0;
       if (n > 0) fn(b, r0, n);
