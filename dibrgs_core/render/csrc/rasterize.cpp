@@ -235,10 +235,12 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
 // The live Gaussians' bins in increasing depth, ties by index (keys: 32-bit for float32
 // depths, the same order as their exact double values). Blocks of the Gaussians build their
 // bins and keys in parallel and compact them in index order; the sort is parallel too. nout:
-// the number of live Gaussians.
+// the number of live Gaussians; area (nout + 1): area[j + 1] the tiles of bin j's rectangle
+// (area[0] = 0), written with the bins (read back serially from the bins, their 64-byte records
+// half in the other core's cache, this was most of the binning's serial part).
 template <typename S, typename R, typename D>
 RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
-                                  int64_t tx, int64_t ty, int64_t& nout) {
+                                  int64_t tx, int64_t ty, int64_t& nout, std::vector<int64_t>& area) {
   typedef typename std::conditional<sizeof(D) == 4, uint32_t, uint64_t>::type K;
   RawArray<Bin> bins(N);
   std::vector<uint8_t> alive(N);
@@ -264,8 +266,12 @@ RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R
   sort_by_key(key, live);
   nout = nlive;
   RawArray<Bin> order(nlive);
+  area.assign(nlive + 1, 0);
   at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t j = b; j < e; ++j) new (&order[j]) Bin(bins[live[j]]);
+    for (int64_t j = b; j < e; ++j) {
+      const Bin& g = *new (&order[j]) Bin(bins[live[j]]);
+      area[j + 1] = int64_t(g.x1 - g.x0) * (g.y1 - g.y0);
+    }
   });
   return order;
 }
@@ -292,12 +298,13 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
   RawArray<Bin> order(0);
   int64_t nlive = 0;
+  std::vector<int64_t> work;  // the rectangles' tiles, then their running sum (below)
   AT_DISPATCH_FLOATING_TYPES(sdt, "dibrgs_bin_tiles", [&] {
     const scalar_t *pm = m.data_ptr<scalar_t>(), *pc = con.data_ptr<scalar_t>(), *po = op.data_ptr<scalar_t>();
     auto by_radius = [&](const auto* pr) {
       order = dep.scalar_type() == torch::kFloat32
-                  ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive)
-                  : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive);
+                  ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive, work)
+                  : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive, work);
     };
     if (rad.scalar_type() == torch::kInt32)
       by_radius(rad.data_ptr<int32_t>());
@@ -309,9 +316,7 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   // scatter them (a tile's entries: the chunks in order, each in depth order). The chunks hold
   // equal numbers of rectangle tiles, not of Gaussians: the nearest Gaussians, first in the
   // order, cover the most tiles. Per-chunk tile counts are bounded to about 2^20 entries.
-  std::vector<int64_t> work(nlive + 1, 0);
-  for (int64_t j = 0; j < nlive; ++j)
-    work[j + 1] = work[j] + int64_t(order[j].x1 - order[j].x0) * (order[j].y1 - order[j].y0);
+  std::partial_sum(work.begin(), work.end(), work.begin());
   const int64_t nchunk =
       std::max<int64_t>(1, std::min(block_count(nlive, 512), (int64_t(1) << 20) / std::max<int64_t>(ntiles, 1)));
   std::vector<int64_t> cut(nchunk + 1);
