@@ -625,9 +625,20 @@ std::string simd() { return std::string(dibrgs::simd_name()) + " x" + std::to_st
 // and t of the world-to-camera w2c (4, 4), then fx, fy, cx, cy of K (3, 3, pixels).
 std::array<double, 16> camera_params(const torch::Tensor& K, const torch::Tensor& w2c) {
   TORCH_CHECK(K.numel() == 9 && w2c.numel() == 16, "camera: K must be 3 x 3 and w2c 4 x 4");
-  const auto Kd = K.cpu().to(torch::kFloat64).contiguous(), vm = w2c.cpu().to(torch::kFloat64).contiguous();
-  const double* pk = Kd.data_ptr<double>();
-  const double* pv = vm.data_ptr<double>();
+  // Read in their own dtype when it is float32 or float64 (a float64 copy of each was two small
+  // allocations and conversions a call, three calls a step); other dtypes converted first.
+  auto read = [](const torch::Tensor& m, double* out) {
+    const auto st = m.scalar_type();
+    const bool plain = m.device().is_cpu() && (st == torch::kFloat32 || st == torch::kFloat64);
+    const auto c = plain ? m.contiguous() : m.cpu().to(torch::kFloat64).contiguous();
+    AT_DISPATCH_FLOATING_TYPES(c.scalar_type(), "dibrgs_camera_params", [&] {
+      const scalar_t* p = c.data_ptr<scalar_t>();
+      for (int64_t i = 0; i < c.numel(); ++i) out[i] = static_cast<double>(p[i]);
+    });
+  };
+  double pk[9], pv[16];
+  read(K, pk);
+  read(w2c, pv);
   std::array<double, 16> cam;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) cam[3 * i + j] = pv[4 * i + j];
