@@ -243,8 +243,8 @@ class NeuralGaussians(nn.Module):
         anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
         opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
                                            (self.mlp_opacity, self.mlp_cov, self.mlp_color))
-        neural_opacity = opacity.reshape(-1)
-        g = spawn(neural_opacity, color, cov, anchor, log_s, offset)
+        neural_opacity = opacity.reshape(-1)  # for the strategy's statistics, outside the loss's graph
+        g = spawn(opacity, color, cov, anchor, log_s, offset)
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
                        anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
 

@@ -49,7 +49,8 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, log_scal: Ten
     """Gaussians of the rows with ``nop > 0``.
 
     Args:
-        nop: (M*k,) Tanh opacities; color: (M, 3k) colours in [0, 1]; cov: (M, 7k) raw scale
+        nop: (M, k) or (M*k,) Tanh opacities (the opacity head's output as it is: a reshape
+            would be one more autograd node a step); color: (M, 3k) colours in [0, 1]; cov: (M, 7k) raw scale
             logits and quaternions (7 a row); anchor: (M, 3) anchor positions; log_scal: (M, 6)
             the anchors' scaling logs (activated here: :func:`activate_scaling`); offset: (M, k, 3)
             learned offsets.
@@ -60,7 +61,7 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, log_scal: Ten
         means, quats, scales, opac, colors, selected = _SpawnFast.apply(
             *(t.to(dt).contiguous() for t in (nop, color, cov, anchor, log_scal, offset)))
         return Spawned(means, quats, scales, opac, colors, selected)
-    return spawn_reference(nop, color, cov, anchor, activate_scaling(log_scal), offset)
+    return spawn_reference(nop.reshape(-1), color, cov, anchor, activate_scaling(log_scal), offset)
 
 
 def take_rows(tensors: Sequence[Tensor], idx: Tensor, backend: Backend | None = None) -> list[Tensor]:

@@ -177,7 +177,9 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
         # The C++ path: L1 and D-SSIM with per-value weights in one autograd node.
         from ..render.ssim import photometric_fast
 
-        return photometric_fast(pred.reshape(H, W, C), gt.reshape(H, W, C),
+        # A reshape to the same shape is still a view and an autograd node: only (H, W) images take one.
+        p, g = (pred, gt) if pred.dim() == 3 else (pred.reshape(H, W, C), gt.reshape(H, W, C))
+        return photometric_fast(p, g,
                                 _gauss_1d(_WINDOW, _SIGMA, pred.dtype, pred.device), wl, ws, lam)
 
     if mask is None:

@@ -57,6 +57,25 @@ def test_fast_matches_reference_values_and_gradients(dtype):
     assert torch.isfinite(a.means).all() and torch.isfinite(a.scales).all()
 
 
+@pytest.mark.parametrize("backend", ["fast", "reference"])
+def test_opacities_as_the_heads_rows(backend):
+    # The decoder's opacity head gives (M, k): spawning takes it as it is (no reshape node), with
+    # the same Gaussians and its gradient in that shape.
+    M, k = 16, 5
+    x = _inputs(M, k, torch.float64, seed=7)
+    y = [t.detach().clone().requires_grad_() for t in x]
+    a = spawn(x[0].view(M, k), *x[1:], backend=backend)
+    b = spawn(*y, backend=backend)
+    assert torch.equal(a.selected, b.selected) and a.selected.shape == (M * k,)
+    for p, q in zip(a[:5], b[:5]):
+        assert torch.equal(p, q)
+    w = [torch.randn_like(t) for t in a[:5]]
+    sum((wi * t).sum() for wi, t in zip(w, a[:5])).backward()
+    sum((wi * t).sum() for wi, t in zip(w, b[:5])).backward()
+    for p, q in zip(x, y):
+        torch.testing.assert_close(p.grad, q.grad, rtol=1e-12, atol=1e-12)
+
+
 def test_colour_gradient_read_with_its_row_stride():
     # The renderer composites the colours beside each Gaussian's depth and a one, so the colours'
     # gradient arrives as three columns of a wider one: read in place, it must give what a
