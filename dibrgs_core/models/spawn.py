@@ -50,10 +50,10 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, log_scal: Ten
 
     Args:
         nop: (M, k) or (M*k,) Tanh opacities (the opacity head's output as it is: a reshape
-            would be one more autograd node a step); color: (M, 3k) colours in [0, 1]; cov: (M, 7k) raw scale
-            logits and quaternions (7 a row); anchor: (M, 3) anchor positions; log_scal: (M, 6)
-            the anchors' scaling logs (activated here: :func:`activate_scaling`); offset: (M, k, 3)
-            learned offsets.
+            would be one more autograd node a step); color: (M, 3k) colours in [0, 1]; cov:
+            (M, 7k) raw scale logits and quaternions (7 a row); anchor: (M, 3) anchor positions;
+            log_scal: (M, 6) the anchors' scaling logs (activated here:
+            :func:`activate_scaling`); offset: (M, k, 3) learned offsets.
         backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
     """
     if uses_fast(backend, anchor):

@@ -1128,7 +1128,8 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
   AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_spawn_backward", [&] {
     dibrgs::spawn::backward<scalar_t>(
         gmeans.data_ptr<scalar_t>(), gquats.data_ptr<scalar_t>(), gscales.data_ptr<scalar_t>(),
-        gopac.data_ptr<scalar_t>(), gcolors.data_ptr<scalar_t>(), gcs, nop.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
+        gopac.data_ptr<scalar_t>(), gcolors.data_ptr<scalar_t>(), gcs, nop.data_ptr<scalar_t>(),
+        cov.data_ptr<scalar_t>(),
         log_scal.data_ptr<scalar_t>(), offset.data_ptr<scalar_t>(), M, k, start.data_ptr<int64_t>(),
         dnop.data_ptr<scalar_t>(), dcolor.data_ptr<scalar_t>(), dcov.data_ptr<scalar_t>(),
         danchor.data_ptr<scalar_t>(), dlog_scal.data_ptr<scalar_t>(), doffset.data_ptr<scalar_t>());
@@ -1429,7 +1430,8 @@ auto below_autograd(R (*f)(A...)) {
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", below_autograd(&bin_tiles), "tile lists of screen-space Gaussians");
   m.def("forward", below_autograd(&forward), "front-to-back compositing");
-  m.def("forward_colour_depth", below_autograd(&forward_colour_depth), "front-to-back compositing of colours, depth and alpha");
+  m.def("forward_colour_depth", below_autograd(&forward_colour_depth),
+        "front-to-back compositing of colours, depth and alpha");
   m.def("backward", below_autograd(&backward), "gradients of the compositing");
   m.def("composite_stats", below_autograd(&composite_stats), "instrumented compositing (pair counts)");
   m.def("simd", &simd, "vector code path of this build");
@@ -1452,7 +1454,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("anchor_visibility", below_autograd(&anchor_visibility), "frustum culling of anchors");
   m.def("take_rows_forward", below_autograd(&take_rows_forward), "rows of a tensor");
   m.def("project_rows_forward", below_autograd(&project_rows_forward), "the IBR projection P of the selected rows");
-  m.def("project_rows_backward", below_autograd(&project_rows_backward), "gradients of project_rows_forward's weights and biases");
+  m.def("project_rows_backward", below_autograd(&project_rows_backward),
+        "gradients of project_rows_forward's weights and biases");
   m.def("take_rows_backward", below_autograd(&take_rows_backward), "gradient of take_rows_forward");
   m.def("zbuffer_quads", below_autograd(&zbuffer_quads), "depth map of planar quads (a height field's mesh)");
 }

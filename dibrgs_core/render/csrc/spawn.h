@@ -104,8 +104,8 @@ void forward(const T* nop, const T* color, const T* cov, const T* anchor, const 
 // values apart). Every entry of the outputs is written (zero where a row was not kept).
 template <typename T>
 void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac, const T* gcolors, int64_t gcs,
-              const T* nop, const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k, const int64_t* start,
-              T* dnop, T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
+              const T* nop, const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k,
+              const int64_t* start, T* dnop, T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
   at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
