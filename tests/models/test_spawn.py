@@ -59,8 +59,8 @@ def test_fast_matches_reference_values_and_gradients(dtype):
 
 @pytest.mark.parametrize("backend", ["fast", "reference"])
 def test_opacities_as_the_heads_rows(backend):
-    # The decoder's opacity head gives (M, k): spawning takes it as it is (no reshape node), with
-    # the same Gaussians and its gradient in that shape.
+    # The decoder's opacity head gives (M, k): spawning takes it as it is (no reshape node) and
+    # gives the same Gaussians and gradients as from the flat opacities.
     M, k = 16, 5
     x = _inputs(M, k, torch.float64, seed=7)
     y = [t.detach().clone().requires_grad_() for t in x]
