@@ -66,7 +66,7 @@ class DensifyStrategy(Strategy):
     def step_post_backward(self, model: Gaussians3D, optimizer: torch.optim.Optimizer, step: int,
                            info: dict[str, Any] | None) -> dict[str, int]:
         """Statistics of this view, then densification and opacity reset when due (before ``until``)."""
-        if step >= self.until:
+        if not self.collects(step):  # the window in which step_pre_backward keeps the gradient
             return {}
         if info is not None:
             self.update(info["means2d"].grad, info["radii"], info["width"], info["height"])
