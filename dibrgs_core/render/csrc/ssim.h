@@ -146,16 +146,20 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
   const int64_t WC = W * C, ld = padded<T>(WC), pld = ld + 2 * r * C, R = 2 * r + 1;
   at::parallel_for(0, H, 16, [&](int64_t y0, int64_t y1) {
     std::vector<T> P(NS * pld), ring(R * NS * ld);
+    std::vector<const T*> window(R);  // the blurred rows under the window of the current row
     auto slot = [&](int64_t row) { return ring.data() + (row % R) * NS * ld; };
     int64_t next = std::max<int64_t>(y0 - r, 0);  // the first image row not blurred yet
     for (int64_t row = y0; row < y1; ++row) {
       for (const int64_t last = std::min<int64_t>(row + r, H - 1); next <= last; ++next)
         blur_row(x + next * WC, y + next * WC, W, C, g, r, P.data(), pld, slot(next), ld);
+      // Once a row, not in the loop below: there the modulo was an integer division a tap and
+      // a block, half of this pass's time.
+      for (int k = 0; k <= 2 * r; ++k) window[k] = slot(std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1));
       const int64_t base = row * WC;
       for (int64_t j = 0; j < WC; j += N) {
         V m[NS][NV] = {};
         for (int k = 0; k <= 2 * r; ++k) {
-          const T* h = slot(std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1)) + j;
+          const T* h = window[k] + j;
           const V w = V{} + g[k];
           for (int q = 0; q < NS; ++q)
             for (int n = 0; n < NV; ++n) m[q][n] = madd(w, load<V>(h + q * ld + n * L), m[q][n]);
@@ -177,28 +181,41 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
   });
 }
 
-// Vertical adjoint of G a, G b, G c for image row m, values [j, j + NN Lanes<U>::value) into
-// z[s * zld + j]: row m gathers the rows t that replicate it (t = m inside, t <= 0 for the first
-// row, t >= H - 1 for the last), each t the window's zero-padded rows.
-template <typename U, int NN, typename T>
-inline void vadjoint_block(const T* G, const T* A, const T* Bc, const T* Cc, int64_t H, int64_t WC, const T* g,
-                           int r, int64_t m, int64_t j, T* z, int64_t zld) {
-  constexpr int64_t L = Lanes<U>::value;
-  U acc[NB][NN] = {};
+// The taps of image row m's vertical adjoint: row m gathers the rows t that replicate it (t = m
+// inside, t <= 0 for the first row, t >= H - 1 for the last), each t the window's zero-padded
+// rows; tap i reads image row offset[i] / WC with weight w[i] (t, then the window, in order).
+// Returns the number of taps, under (2 r + 1)^2.
+template <typename T>
+inline int vadjoint_taps(int64_t H, int64_t WC, const T* g, int r, int64_t m, int64_t* offset, T* w) {
+  int n = 0;
   const int64_t t0 = m == 0 ? -r : m, t1 = m == H - 1 ? H - 1 + r : m;
   for (int64_t t = t0; t <= t1; ++t)
     for (int k = 0; k <= 2 * r; ++k) {
       const int64_t src = t - k + r;
       if (src < 0 || src >= H) continue;
-      const U w = U{} + g[k];
-      const int64_t o = src * WC + j;
-      for (int n = 0; n < NN; ++n) {
-        const U wg = w * load<U>(G + o + n * L);
-        acc[0][n] = madd(wg, load<U>(A + o + n * L), acc[0][n]);
-        acc[1][n] = madd(wg, load<U>(Bc + o + n * L), acc[1][n]);
-        acc[2][n] = madd(wg, load<U>(Cc + o + n * L), acc[2][n]);
-      }
+      offset[n] = src * WC, w[n] = g[k], ++n;
     }
+  return n;
+}
+
+// Vertical adjoint of G a, G b, G c for one image row, values [j, j + NN Lanes<U>::value) into
+// z[s * zld + j], from its taps (vadjoint_taps): one flat loop, whose accumulators stay in
+// registers (the two nested loops with a skip kept them on the stack).
+template <typename U, int NN, typename T>
+inline void vadjoint_block(const T* G, const T* A, const T* Bc, const T* Cc, const int64_t* offset, const T* w,
+                           int taps, int64_t j, T* z, int64_t zld) {
+  constexpr int64_t L = Lanes<U>::value;
+  U acc[NB][NN] = {};
+  for (int i = 0; i < taps; ++i) {
+    const U wv = U{} + w[i];
+    const int64_t o = offset[i] + j;
+    for (int n = 0; n < NN; ++n) {
+      const U wg = wv * load<U>(G + o + n * L);
+      acc[0][n] = madd(wg, load<U>(A + o + n * L), acc[0][n]);
+      acc[1][n] = madd(wg, load<U>(Bc + o + n * L), acc[1][n]);
+      acc[2][n] = madd(wg, load<U>(Cc + o + n * L), acc[2][n]);
+    }
+  }
   for (int q = 0; q < NB; ++q)
     for (int n = 0; n < NN; ++n) store(z + q * zld + j + n * L, acc[q][n]);
 }
@@ -213,12 +230,14 @@ void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const
   at::parallel_for(0, H, 16, [&](int64_t m0, int64_t m1) {
     // z: the vertical adjoint of a row with 2r zero pixels each side; e: its horizontal adjoint
     // over the row and r pixels each side (pixel u of e is image pixel u - r).
-    std::vector<T> z(NB * zld, T(0)), e(NB * eld);
+    std::vector<T> z(NB * zld, T(0)), e(NB * eld), tw((2 * r + 1) * (2 * r + 1));
+    std::vector<int64_t> to(tw.size());
     for (int64_t m = m0; m < m1; ++m) {
       T* zm = z.data() + 2 * r * C;
+      const int taps = vadjoint_taps(H, WC, g, r, m, to.data(), tw.data());
       int64_t j = 0;
-      for (; j + N <= WC; j += N) vadjoint_block<V, NV>(G, A, Bc, Cc, H, WC, g, r, m, j, zm, zld);
-      for (; j < WC; ++j) vadjoint_block<T, 1>(G, A, Bc, Cc, H, WC, g, r, m, j, zm, zld);
+      for (; j + N <= WC; j += N) vadjoint_block<V, NV>(G, A, Bc, Cc, to.data(), tw.data(), taps, j, zm, zld);
+      for (; j < WC; ++j) vadjoint_block<T, 1>(G, A, Bc, Cc, to.data(), tw.data(), taps, j, zm, zld);
       for (int64_t i = 0; i < EW; i += N) {
         V acc[NB][NV] = {};
         for (int k = 0; k <= 2 * r; ++k) {
