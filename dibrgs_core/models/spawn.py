@@ -141,6 +141,8 @@ class _SpawnFast(torch.autograd.Function):
             nop, color, cov, anchor, log_scal, offset)
         ctx.save_for_backward(nop, cov, log_scal, offset, start)
         ctx.mark_non_differentiable(selected)
+        ctx.set_materialize_grads(False)  # the row mask's gradient was a zero tensor made every step
+        ctx.rows = means.shape[0]
         return means, quats, scales, opac, colors, selected
 
     @staticmethod
@@ -148,5 +150,8 @@ class _SpawnFast(torch.autograd.Function):
         from ..render.fast import extension
 
         nop, cov, log_scal, offset, start = ctx.saved_tensors
+        n = ctx.rows
+        gm, gq, gs, gc = (nop.new_zeros(n, w) if g is None else g for g, w in ((gm, 3), (gq, 4), (gs, 3), (gc, 3)))
+        go = nop.new_zeros(n) if go is None else go
         # dnop comes back in nop's shape (empty_like).
         return tuple(extension().spawn_backward(gm, gq, gs, go, gc, nop, cov, log_scal, offset, start))

@@ -286,6 +286,7 @@ class _Project(torch.autograd.Function):
         ctx.save_for_backward(means, quats, scales, K, viewmat)
         ctx.args = (width, height, near, far)
         ctx.mark_non_differentiable(rad)
+        ctx.set_materialize_grads(False)  # the radii's gradient was a zero tensor made every step
         return m2, con, dep, rad
 
     @staticmethod

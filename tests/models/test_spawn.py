@@ -57,6 +57,26 @@ def test_fast_matches_reference_values_and_gradients(dtype):
     assert torch.isfinite(a.means).all() and torch.isfinite(a.scales).all()
 
 
+@pytest.mark.parametrize("used", range(5))
+def test_one_output_alone_gives_the_reference_gradients(used):
+    """A loss on one of means, quats, scales, opacities, colours alone: the others' gradients
+    reach the C++ backward as None (not materialised), and it reads them as zeros."""
+    M, k = 16, 4
+    fast_in = _inputs(M, k, torch.float64, seed=2)
+    ref_in = [t.detach().clone().requires_grad_() for t in fast_in]
+    a = spawn(*fast_in, backend="fast")
+    b = spawn_reference(*ref_in[:4], activate_scaling(ref_in[4]), ref_in[5])
+    w = torch.randn_like(b[used])
+    (w * a[used]).sum().backward()
+    (w * b[used]).sum().backward()
+    got = [x.grad for x in fast_in]
+    assert sum(float(g.abs().sum()) for g in got if g is not None) > 0
+    for x, y in zip(fast_in, ref_in):
+        gx = torch.zeros_like(x) if x.grad is None else x.grad
+        gy = torch.zeros_like(y) if y.grad is None else y.grad
+        torch.testing.assert_close(gx, gy, rtol=1e-10, atol=1e-10)
+
+
 @pytest.mark.parametrize("backend", ["fast", "reference"])
 def test_opacities_as_the_heads_rows(backend):
     # The decoder's opacity head gives (M, k): spawning takes it as it is (no reshape node) and

@@ -1355,7 +1355,15 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
   });
   // Summed over the blocks, then cut into the layers' gradients: contiguous views of one tensor
   // (they become the parameters' .grad as they are; nothing writes one through another).
-  const auto total = nb == 1 ? partial[0] : partial.sum(0);
+  // Added into block 0's row in place: partial.sum(0), a reduction through TensorIterator, took
+  // about 60 us of the calling thread's time a step for some ten thousand values.
+  const auto total = partial[0];
+  AT_DISPATCH_FLOATING_TYPES(dt, "dibrgs_decoder_partial_sum", [&] {
+    scalar_t* t0 = partial.data_ptr<scalar_t>();  // (nb, n), contiguous: block b's row at b n
+    const int64_t n = starts.back();
+    for (int64_t b = 1; b < nb; ++b)
+      for (int64_t i = 0; i < n; ++i) t0[i] += t0[b * n + i];
+  });
   std::vector<torch::Tensor> res{dfeat, danchor, dibr};
   for (size_t k = 0; k < shapes.size(); ++k)
     res.push_back(total.narrow(0, starts[k], starts[k + 1] - starts[k]).view(shapes[k]));
