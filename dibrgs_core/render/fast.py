@@ -282,15 +282,16 @@ def composite_fast(
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, K, viewmat, width, height, near, far):  # type: ignore[override]
-        m2, con, dep, rad = extension().project_forward(means, quats, scales, K, viewmat, width, height, near, far)
+        m2, con, dep, rad, vis = extension().project_forward(means, quats, scales, K, viewmat, width, height, near,
+                                                             far)
         ctx.save_for_backward(means, quats, scales, K, viewmat)
         ctx.args = (width, height, near, far)
-        ctx.mark_non_differentiable(rad)
-        ctx.set_materialize_grads(False)  # the radii's gradient was a zero tensor made every step
-        return m2, con, dep, rad
+        ctx.mark_non_differentiable(rad, vis)
+        ctx.set_materialize_grads(False)  # the radii's and the mask's gradients were zero tensors made every step
+        return m2, con, dep, rad, vis
 
     @staticmethod
-    def backward(ctx, g_m2, g_con, g_dep, _g_rad):  # type: ignore[override]
+    def backward(ctx, g_m2, g_con, g_dep, _g_rad, _g_vis):  # type: ignore[override]
         means, quats, scales, K, viewmat = ctx.saved_tensors
         n = means.shape[0]
         g_m2 = means.new_zeros(n, 2) if g_m2 is None else g_m2.contiguous()
@@ -321,8 +322,8 @@ def project_fast(
     if not near > 0:
         raise ValueError(f"near plane must be positive, got {near}")
     dt = means.dtype
-    m2, con, dep, rad = _Project.apply(
+    m2, con, dep, rad, vis = _Project.apply(
         means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), K.detach(), viewmat.detach(),
         width, height, float(near), float(far),
     )
-    return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=rad > 0)
+    return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=vis)
