@@ -52,7 +52,7 @@ from ..render import uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .decoder import decode as decode_heads, fuse
-from .spawn import activate_scaling, spawn, take_rows
+from .spawn import activate_scaling, spawn, take_rows, true_indices
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -239,7 +239,7 @@ class NeuralGaussians(nn.Module):
         """
         if visible is None:
             visible = self.visible_anchors(K, w2c, width, height)
-        idx = torch.nonzero(visible).squeeze(1)
+        idx = true_indices(visible)
         anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
         opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
                                            (self.mlp_opacity, self.mlp_cov, self.mlp_color))

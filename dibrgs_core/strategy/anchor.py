@@ -48,6 +48,7 @@ from typing import Any, Protocol
 import torch
 
 from ..models.scaffold import ANCHOR_PARAMS, Decoded, NeuralGaussians
+from ..models.spawn import true_indices
 from ..training.config import GrowthConfig
 from .base import Strategy
 from .ops import cat_rows, keep_rows
@@ -116,7 +117,7 @@ class AnchorStrategy(Strategy):
         self.anchor_denom[vis] += 1
         if means2d_grad is None:
             return
-        aidx = torch.nonzero(vis).squeeze(1)
+        aidx = true_indices(vis)
         gidx = (aidx[:, None] * self.k + torch.arange(self.k)).reshape(-1)[dec.selected]
         seen = radii.reshape(-1) > 0
         g = means2d_grad.detach()[seen] * torch.tensor([width / 2.0, height / 2.0])

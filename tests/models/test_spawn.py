@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dibrgs_core.models.spawn import activate_scaling, spawn, spawn_reference, take_rows
+from dibrgs_core.models.spawn import activate_scaling, spawn, spawn_reference, take_rows, true_indices
 from dibrgs_core.render import set_backend
 from model_synth import camera_tensors, small_camera, small_model
 
@@ -249,3 +249,18 @@ def test_take_rows_values_and_gradients(dtype, kind):
         assert bool((grads[0][unselected] == 0).all()) and bool((grads[0][idx] == up).all())
     with pytest.raises(RuntimeError, match="out of range"):
         take_rows([src], torch.tensor([N]), backend="fast")
+
+
+@pytest.mark.parametrize("kind", ["random", "none", "all", "empty", "strided"])
+def test_true_indices_equal_torch_nonzero(kind):
+    """The C++ positions of a mask's true entries equal torch.nonzero's, int64 and increasing,
+    on both backends (a strided view of a mask included)."""
+    g = torch.Generator().manual_seed(7)
+    base = torch.rand(2 * 3001, generator=g) > 0.4
+    mask = {"random": base[:3001], "none": torch.zeros(50, dtype=torch.bool),
+            "all": torch.ones(77, dtype=torch.bool), "empty": torch.zeros(0, dtype=torch.bool),
+            "strided": base[::2]}[kind]
+    want = torch.nonzero(mask).squeeze(1)
+    for backend in ("fast", "reference"):
+        got = true_indices(mask, backend=backend)
+        assert got.dtype == torch.int64 and torch.equal(got, want)

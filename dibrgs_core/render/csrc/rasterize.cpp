@@ -1107,6 +1107,24 @@ torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torc
   return out;
 }
 
+// Positions (int64, increasing) of the true entries of a 1-d bool tensor: torch.nonzero(mask)[:, 0].
+// One pass on the calling thread; torch's nonzero (a count, an allocation, a fill through
+// TensorIterator) cost 40 us a step for 2,900 anchors and 150-300 us for 29,000.
+torch::Tensor true_indices(torch::Tensor mask) {
+  TORCH_CHECK(mask.dim() == 1 && mask.scalar_type() == torch::kBool && mask.device().is_cpu(),
+              "true_indices: the mask must be a 1-d bool CPU tensor");
+  mask = mask.contiguous();
+  const bool* m = mask.data_ptr<bool>();
+  const int64_t n = mask.numel();
+  int64_t count = 0;
+  for (int64_t i = 0; i < n; ++i) count += m[i];
+  auto out = torch::empty({count}, torch::kInt64);
+  int64_t* o = out.data_ptr<int64_t>();
+  for (int64_t i = 0, j = 0; i < n; ++i)
+    if (m[i]) o[j++] = i;
+  return out;
+}
+
 // Gradients {nop, color, cov, anchor, log_scal, offset} of spawn_forward's inputs from those of its
 // outputs (gmeans, gquats, gscales, gopac, gcolors) and the inputs it saved.
 std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gquats, torch::Tensor gscales,
@@ -1464,6 +1482,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("decoder_forward", below_autograd(&decoder_forward), "IBR fusion and decoder heads of the visible anchors");
   m.def("decoder_backward", below_autograd(&decoder_backward), "gradients of decoder_forward");
   m.def("anchor_visibility", below_autograd(&anchor_visibility), "frustum culling of anchors");
+  m.def("true_indices", below_autograd(&true_indices), "positions of a bool mask's true entries");
   m.def("take_rows_forward", below_autograd(&take_rows_forward), "rows of a tensor");
   m.def("project_rows_forward", below_autograd(&project_rows_forward), "the IBR projection P of the selected rows");
   m.def("project_rows_backward", below_autograd(&project_rows_backward),
