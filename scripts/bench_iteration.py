@@ -133,7 +133,7 @@ def iteration(t: Trainer, frame, it: int) -> None:
     strategy.step_pre_backward(model, m.optimizer, it, info)
     loss = photometric_loss(img, frame.image, lam=cfg.lambda_dssim, mask=frame.mask)
     if cfg.lambda_volume:
-        loss = loss + cfg.lambda_volume * m.regulariser(info)
+        loss = loss + m.regulariser(info, cfg.lambda_volume)
     loss.backward()
     if all_finite([p.grad for p in m.parameters()]):
         m.step(it)

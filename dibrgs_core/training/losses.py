@@ -214,33 +214,35 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
 
 class _MeanVolume(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, scales, unit):  # type: ignore[override]
+    def forward(ctx, scales, unit, weight):  # type: ignore[override]
         from ..render.fast import extension
 
         ctx.save_for_backward(scales)
-        ctx.unit = unit
-        return extension().volume_forward(scales, unit)
+        ctx.unit, ctx.weight = unit, weight
+        return extension().volume_forward(scales, unit, weight)
 
     @staticmethod
     def backward(ctx, g):  # type: ignore[override]
         from ..render.fast import extension
 
         (scales,) = ctx.saved_tensors
-        return extension().volume_backward(g, scales, ctx.unit), None
+        return extension().volume_backward(g, scales, ctx.unit, ctx.weight), None, None
 
 
-def mean_volume(scales: torch.Tensor, unit: float) -> torch.Tensor:
-    """Mean over Gaussians of their volume ``prod(scales / unit)`` ((N, 3) scales; ``unit`` the
-    length that counts as 1, so that the term weighs the same in any scene's units); 0 without
-    Gaussians. On the C++ path one autograd node (torch's ``prod`` and its backward, which guards
-    zeros with several passes, cost about 0.6 ms of a 22 ms step at 256x256); otherwise the same
+def mean_volume(scales: torch.Tensor, unit: float, weight: float = 1.0) -> torch.Tensor:
+    """``weight`` times the mean over Gaussians of their volume ``prod(scales / unit)`` ((N, 3)
+    scales; ``unit`` the length that counts as 1, so that the term weighs the same in any scene's
+    units); 0 without Gaussians. On the C++ path one autograd node, the weight included (torch's
+    ``prod`` and its backward, which guards zeros with several passes, cost about 0.6 ms of a 22 ms
+    step at 256x256, and a separate product with the weight is one more node); otherwise the same
     product in torch."""
     if scales.shape[0] == 0:
         return scales.sum() * 0.0
     if scales.dtype in (torch.float32, torch.float64) and uses_fast(None, scales):
-        return _MeanVolume.apply(scales.contiguous(), float(unit))
+        return _MeanVolume.apply(scales.contiguous(), float(unit), float(weight))
     s = scales / unit
-    return (s[:, 0] * s[:, 1] * s[:, 2]).mean()
+    v = (s[:, 0] * s[:, 1] * s[:, 2]).mean()
+    return v if weight == 1.0 else weight * v
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

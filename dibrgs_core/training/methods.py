@@ -49,8 +49,8 @@ class TrainingMethod(ABC):
     def set_lr(self, it: int) -> None:
         """Learning rates of iteration ``it``."""
 
-    def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
-        """The method's regularisation term for this view (0 by default)."""
+    def regulariser(self, info: dict[str, Any] | None, weight: float = 1.0) -> torch.Tensor:
+        """The method's regularisation term for this view times ``weight`` (0 by default)."""
         return torch.zeros(())
 
     def as_photographed(self, img: torch.Tensor, cam: CameraTensors) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,10 +154,10 @@ class ScaffoldTraining(TrainingMethod):
             if isinstance(sched, tuple):
                 g["lr"] = expon_lr(it, self.cfg.iterations, *sched)
 
-    def regulariser(self, info: dict[str, Any] | None) -> torch.Tensor:
+    def regulariser(self, info: dict[str, Any] | None, weight: float = 1.0) -> torch.Tensor:
         if info is None:
             return torch.zeros(())
-        return mean_volume(info["gaussians"].scales, self.model.paper_unit)
+        return mean_volume(info["gaussians"].scales, self.model.paper_unit, weight)
 
     def parameters(self) -> list[torch.Tensor]:
         return super().parameters() + self.p_params

@@ -331,7 +331,7 @@ class Trainer:
                 seen, colour_penalty = method.as_photographed(img, frame.cam)
                 loss = photometric_loss(seen, frame.image, lam=cfg.lambda_dssim, mask=frame.mask) + colour_penalty
                 if cfg.lambda_volume:
-                    loss = loss + cfg.lambda_volume * method.regulariser(info)
+                    loss = loss + method.regulariser(info, cfg.lambda_volume)
                 lv = float(loss.detach())
                 stepped = False
                 if not math.isfinite(lv):

@@ -829,9 +829,9 @@ std::vector<torch::Tensor> expected_depth_backward(torch::Tensor g, torch::Tenso
   return {ga, gw};
 }
 
-// The volume regulariser of (N, 3) scales (training/losses.py mean_volume): the mean over rows of
-// prod(s / unit), 0 without rows; a 0-d tensor of the scales' dtype.
-torch::Tensor volume_forward(torch::Tensor s, double unit) {
+// The volume regulariser of (N, 3) scales (training/losses.py mean_volume): weight times the mean
+// over rows of prod(s / unit), 0 without rows; a 0-d tensor of the scales' dtype.
+torch::Tensor volume_forward(torch::Tensor s, double unit, double weight) {
   TORCH_CHECK(s.dim() == 2 && s.size(1) == 3 && s.device().is_cpu(), "volume_forward: scales must be (N, 3) on the CPU");
   TORCH_CHECK(unit > 0.0 && std::isfinite(unit), "volume_forward: unit must be positive and finite");
   s = s.detach().contiguous();
@@ -840,16 +840,16 @@ torch::Tensor volume_forward(torch::Tensor s, double unit) {
   AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_volume_forward", [&] {
     total = dibrgs::loss::volume_sum<scalar_t>(s.data_ptr<scalar_t>(), n, unit);
   });
-  return torch::full({}, n > 0 ? total / static_cast<double>(n) : 0.0, s.options());
+  return torch::full({}, n > 0 ? weight * total / static_cast<double>(n) : 0.0, s.options());
 }
 
 // Gradient of volume_forward with respect to the scales, times g (its 0-d gradient).
-torch::Tensor volume_backward(torch::Tensor g, torch::Tensor s, double unit) {
+torch::Tensor volume_backward(torch::Tensor g, torch::Tensor s, double unit, double weight) {
   s = s.detach().contiguous();
   const int64_t n = s.size(0);
   auto ds = torch::empty_like(s);
   if (n == 0) return ds;
-  const double k = g.item<double>() / static_cast<double>(n);
+  const double k = g.item<double>() * weight / static_cast<double>(n);
   AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_volume_backward", [&] {
     dibrgs::loss::volume_grad<scalar_t>(s.data_ptr<scalar_t>(), n, k, unit, ds.data_ptr<scalar_t>());
   });
