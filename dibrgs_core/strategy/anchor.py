@@ -196,7 +196,7 @@ class AnchorStrategy(Strategy):
                 continue
             pooled = torch.full((len(cells), sel_feat.shape[1]), -math.inf)
             pooled.scatter_reduce_(0, inv[:, None].expand_as(sel_feat), sel_feat, reduce="amax")
-            new_idx = torch.nonzero(new).squeeze(1)
+            new_idx = true_indices(new)
             if cfg.max_anchors is not None:
                 room = max(cfg.max_anchors - model.num_anchors, 0)
                 if len(new_idx) > room:

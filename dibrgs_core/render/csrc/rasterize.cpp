@@ -996,6 +996,22 @@ std::vector<torch::Tensor> take_rows_backward(std::vector<torch::Tensor> grads, 
   return outs;
 }
 
+// Positions (int64, increasing) of the true entries of a 1-d bool tensor: torch.nonzero(mask)[:, 0].
+// One pass on the calling thread; torch's nonzero (a count, an allocation, a fill through
+// TensorIterator) cost 40 us a step for 2,900 anchors and 150-300 us for 29,000.
+torch::Tensor true_indices(torch::Tensor mask) {
+  TORCH_CHECK(mask.dim() == 1 && mask.scalar_type() == torch::kBool && mask.device().is_cpu(),
+              "true_indices: the mask must be a 1-d bool CPU tensor");
+  mask = mask.contiguous();
+  const bool* m = mask.data_ptr<bool>();
+  const int64_t n = mask.numel();
+  auto out = torch::empty({std::count(m, m + n, true)}, torch::kInt64);
+  int64_t* o = out.data_ptr<int64_t>();
+  for (int64_t i = 0; i < n; ++i)
+    if (m[i]) *o++ = i;
+  return out;
+}
+
 // The IBR projection P (project_rows.h) of the rows of rows (N, K) that mask (N,) bool selects (all
 // of them when mask is empty): weights one (C, D_l, ...) a level, biases one (C,) a level, the D_l
 // summing to K - 1. Returns out (M, C) and the selected rows' indices (M,) for the backward.
@@ -1012,12 +1028,7 @@ std::vector<torch::Tensor> project_rows_forward(torch::Tensor rows, torch::Tenso
   } else {
     TORCH_CHECK(mask.dim() == 1 && mask.size(0) == N && mask.scalar_type() == torch::kBool,
                 "project_rows: mask must be (N,) bool");
-    auto m = mask.contiguous();
-    const bool* pm = m.data_ptr<bool>();
-    idx = torch::empty({std::count(pm, pm + N, true)}, torch::kInt64);
-    int64_t* pi = idx.data_ptr<int64_t>();
-    for (int64_t r = 0; r < N; ++r)
-      if (pm[r]) *pi++ = r;
+    idx = true_indices(mask);
   }
   // Wt (K, C): each level's weight transposed into its rows, the biases summed in the last (plain
   // loops: as ATen operators this assembly was a dozen dispatches a call).
@@ -1104,24 +1115,6 @@ torch::Tensor anchor_visibility(torch::Tensor anchor, torch::Tensor offset, torc
     dibrgs::spawn::visible<scalar_t>(a.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), l.data_ptr<scalar_t>(), N, k,
                                      cam.data(), W, H, near, out.data_ptr<bool>());
   });
-  return out;
-}
-
-// Positions (int64, increasing) of the true entries of a 1-d bool tensor: torch.nonzero(mask)[:, 0].
-// One pass on the calling thread; torch's nonzero (a count, an allocation, a fill through
-// TensorIterator) cost 40 us a step for 2,900 anchors and 150-300 us for 29,000.
-torch::Tensor true_indices(torch::Tensor mask) {
-  TORCH_CHECK(mask.dim() == 1 && mask.scalar_type() == torch::kBool && mask.device().is_cpu(),
-              "true_indices: the mask must be a 1-d bool CPU tensor");
-  mask = mask.contiguous();
-  const bool* m = mask.data_ptr<bool>();
-  const int64_t n = mask.numel();
-  int64_t count = 0;
-  for (int64_t i = 0; i < n; ++i) count += m[i];
-  auto out = torch::empty({count}, torch::kInt64);
-  int64_t* o = out.data_ptr<int64_t>();
-  for (int64_t i = 0, j = 0; i < n; ++i)
-    if (m[i]) o[j++] = i;
   return out;
 }
 
