@@ -72,6 +72,36 @@ def test_fast_matches_torch(threads, fused, M):
         assert float(fast[1][2].abs().sum()) > 0
 
 
+def _mkl_max_threads():
+    """MKL's thread count for the calling thread, read through torch's own MKL (None without one)."""
+    import ctypes
+    from pathlib import Path
+
+    lib = Path(torch.__file__).parent / "lib" / "libtorch_cpu.so"
+    try:
+        fn = ctypes.CDLL(str(lib)).MKL_Get_Max_Threads
+    except (OSError, AttributeError):
+        return None
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def test_blocks_give_back_mkls_thread_count():
+    """The blocks run MKL on one thread each (csrc/decoder.h SerialMkl) and then restore MKL's count:
+    products the calling thread runs afterwards still have both threads."""
+    get = _mkl_max_threads()
+    if get is None:
+        pytest.skip("this torch has no MKL")
+    heads, fusion = _layers(torch.float32)
+    weights = [p for m in heads + list(fusion) for p in m.parameters()]
+    feat, ibr, anchor = _inputs(700, torch.float32)
+    with torch_threads(2):
+        before = get()
+        _run("fast", feat, ibr, anchor, torch.tensor([90.0, 110.0, 20.0]), heads, fusion, weights)
+        after = get()
+    assert before == after == 2
+
+
 def test_fast_gradients_against_finite_differences():
     heads, fusion = _layers(torch.float64, seed=3)
     feat, ibr, anchor = _inputs(4, torch.float64, seed=4)

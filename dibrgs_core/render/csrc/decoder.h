@@ -35,12 +35,44 @@ inline int64_t blocks(int64_t M) {
   return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), M / MIN_BLOCK_ROWS));
 }
 
+}  // namespace decoder
+}  // namespace dibrgs
+
+// MKL's per-thread thread count (its C interface; weak: absent from a torch built without MKL).
+extern "C" int MKL_Set_Num_Threads_Local(int) __attribute__((weak));
+
+namespace dibrgs {
+namespace decoder {
+
+// MKL on one thread for this thread while alive, inside a parallel region. Left to itself, MKL
+// runs a product called from inside an OpenMP region on one thread but by a slower path for a
+// transposed left factor (the weight gradients' g^T h): 26-78 % slower a product on 2 cores
+// (docs/benchmarks.md, session 39); told it has one thread, as fast as on one thread outside.
+class SerialMkl {
+  int prev_ = 0;
+  bool set_ = false;
+
+ public:
+  SerialMkl() {
+    if (MKL_Set_Num_Threads_Local != nullptr && at::in_parallel_region()) {
+      prev_ = MKL_Set_Num_Threads_Local(1);
+      set_ = true;
+    }
+  }
+  ~SerialMkl() {
+    if (set_) MKL_Set_Num_Threads_Local(prev_);  // 0: back to MKL's global count
+  }
+  SerialMkl(const SerialMkl&) = delete;
+  SerialMkl& operator=(const SerialMkl&) = delete;
+};
+
 // Runs fn(block, first row, rows) for each of nb blocks of M rows, one block a thread.
 template <typename F>
 void for_blocks(int64_t M, int64_t nb, F&& fn) {
   const int64_t rows = (M + nb - 1) / nb;
   at::parallel_for(0, nb, 1, [&](int64_t b0, int64_t b1) {
     at::AutoDispatchBelowADInplaceOrView guard;  // on every thread: the guard is thread-local
+    const SerialMkl one_mkl_thread;
     for (int64_t b = b0; b < b1; ++b) {
       const int64_t r0 = std::min(M, b * rows), n = std::min(M, r0 + rows) - r0;
       if (n > 0) fn(b, r0, n);
