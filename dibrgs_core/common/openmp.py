@@ -6,8 +6,13 @@ at 256x256 with two threads:
 
 * workers that go to sleep at once (``OMP_WAIT_POLICY=PASSIVE``) pay a wake-up in every region:
   two threads take longer than one;
-* workers that spin a short while before sleeping (``GOMP_SPINCOUNT=10000``, about ten
-  microseconds) catch the next region: about 0.65x the one-thread time;
+* workers that spin a while before sleeping catch the next region. A spin is counted in
+  ``pause`` instructions, whose length differs several-fold between CPUs (5 ns on the Cascade Lake
+  host, 12 ns on the Ice Lake one), and it must outlast the Python between two extension calls
+  (up to about a millisecond): at 10,000 spins (0.12 ms on the Ice Lake) the worker still slept
+  in many gaps, and waking it cost 0.9 ms a step of waiting at region starts; at 100,000
+  (0.5-1.2 ms) 0.1 ms, and two threads took 0.60-0.61x the one-thread time instead of
+  0.64-0.66x (docs/benchmarks.md, session 39);
 * but spinning workers take the cores from any other busy process: two two-thread runs side by
   side each ran over twice as long as with passive waiting.
 
@@ -21,8 +26,8 @@ import os
 import time
 from typing import MutableMapping
 
-#: Spin iterations before a waiting worker sleeps when the machine is idle.
-SHORT_SPIN = "10000"
+#: Spin iterations before a waiting worker sleeps when the machine is idle (see above).
+SHORT_SPIN = "100000"
 #: The CPUs count as idle when fewer than this many of them were busy (summed over all CPUs).
 IDLE_BUSY_CPUS = 0.5
 
