@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Protocol, Sequence
 import torch
 
 from ..camera.pinhole import Camera
+from ..render import rasterize
 
 
 @dataclass
@@ -84,8 +85,6 @@ def render_model(model: GaussianModel, cam: CameraTensors, background: torch.Ten
     ``gaussians`` themselves; None when the model shows this camera no Gaussian (the image
     is then the background, alpha and depth 0).
     """
-    from ..render import rasterize
-
     W, H = cam.cam.width, cam.cam.height
     g = model.gaussians(cam)
     if g.means.shape[0] == 0:

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from ..render import Backend, uses_fast
+from ..render import Backend, fast, uses_fast
 
 #: Activation codes of decoder.h (``decoder::Act``).
 _ACTS: dict[type | None, int] = {None: 0, nn.Tanh: 1, nn.Sigmoid: 2}
@@ -99,14 +99,13 @@ class _DecodeFast(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, spec, feat, anchor, centre, *rest):  # type: ignore[override]
-        from ..render.fast import extension
-
         acts, fused, dist_scale = spec
         n = len(acts)
         ibr = rest[0] if fused else feat.new_empty(0)
         params = rest[1:] if fused else rest
         W1, b1, W2, b2, fusion = _layers(params, n)
-        res = extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2, list(acts))
+        res = fast.extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2,
+                                               list(acts))
         outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
         ctx.save_for_backward(ibr, x, dist, gate, ref, *hidden, *outs, *params)
         ctx.spec = spec
@@ -115,8 +114,6 @@ class _DecodeFast(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *gouts):  # type: ignore[override]
-        from ..render.fast import extension
-
         acts, fused, dist_scale = ctx.spec
         n = len(acts)
         ibr, x, dist, gate, ref, *rest = ctx.saved_tensors
@@ -124,8 +121,8 @@ class _DecodeFast(torch.autograd.Function):
         W1, b1, W2, b2, fusion = _layers(params, n)
         want_dibr = fused and ctx.needs_input_grad[4]
         grads = [torch.zeros_like(o) if g is None else g for g, o in zip(gouts, outs)]
-        res = extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),
-                                           dist_scale, W1, b1, W2, b2, list(acts), want_dibr)
+        res = fast.extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),
+                                                dist_scale, W1, b1, W2, b2, list(acts), want_dibr)
         dfeat, danchor, dibr = res[:3]
         fusion_grads, head_grads = (res[3:7], res[7:]) if fused else ([], res[3:])
         return (None, dfeat, danchor, None, *([dibr if want_dibr else None] if fused else []),

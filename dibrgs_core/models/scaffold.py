@@ -48,7 +48,7 @@ from torch import nn
 from ..camera.frame import central_camera
 from ..camera.pinhole import Camera
 from ..geometry.pointcloud import grid_origin, voxelize
-from ..render import uses_fast
+from ..render import fast, uses_fast
 from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .decoder import decode as decode_heads, fuse
@@ -207,10 +207,9 @@ class NeuralGaussians(nn.Module):
         """
         near = self.near if near is None else near
         if uses_fast(None, self.anchor):
-            from ..render.fast import extension
-
-            return extension().anchor_visibility(self.anchor.detach(), self.offset.detach(), self.scaling.detach(),
-                                                 K, w2c, int(width), int(height), float(near))
+            return fast.extension().anchor_visibility(self.anchor.detach(), self.offset.detach(),
+                                                      self.scaling.detach(), K, w2c, int(width), int(height),
+                                                      float(near))
         with torch.no_grad():
             x = self.anchor @ w2c[:3, :3].T + w2c[:3, 3]
             z = x[:, 2]

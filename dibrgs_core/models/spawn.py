@@ -22,7 +22,7 @@ from typing import NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from ..render import Backend, uses_fast
+from ..render import Backend, fast, uses_fast
 
 QUAT_EPS = 1e-12  # a quaternion this short has no direction (spawn.h uses the same)
 LOG_SCALING_RANGE = (-30.0, 20.0)  # anchor scaling logs are clamped to this before exp (spawn.h too)
@@ -70,9 +70,7 @@ def true_indices(mask: Tensor, backend: Backend | None = None) -> Tensor:
     of the extension: torch's nonzero costs tens of microseconds for a few thousand anchors and
     hundreds for tens of thousands, on the step's serial path."""
     if mask.dim() == 1 and mask.dtype == torch.bool and uses_fast(backend, mask):
-        from ..render.fast import extension
-
-        return extension().true_indices(mask)
+        return fast.extension().true_indices(mask)
     return torch.nonzero(mask).squeeze(1)
 
 
@@ -96,9 +94,7 @@ def take_rows(tensors: Sequence[Tensor], idx: Tensor, backend: Backend | None = 
 class _TakeRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, idx, *tensors):  # type: ignore[override]
-        from ..render.fast import extension
-
-        outs, increasing = extension().take_rows_forward(list(tensors), idx)
+        outs, increasing = fast.extension().take_rows_forward(list(tensors), idx)
         ctx.save_for_backward(idx)
         ctx.shapes, ctx.increasing = [t.shape for t in tensors], increasing
         ctx.set_materialize_grads(False)  # a row set nobody used needs no gradient
@@ -106,13 +102,11 @@ class _TakeRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):  # type: ignore[override]
-        from ..render.fast import extension
-
         (idx,) = ctx.saved_tensors
         want = [i for i, g in enumerate(grads) if g is not None and ctx.needs_input_grad[1 + i]]
         out: list[Tensor | None] = [None] * len(grads)
         if ctx.increasing:
-            got = extension().take_rows_backward([grads[i] for i in want], idx, ctx.shapes[0][0])
+            got = fast.extension().take_rows_backward([grads[i] for i in want], idx, ctx.shapes[0][0])
         else:
             got = [grads[i].new_zeros(ctx.shapes[i]).index_add_(0, idx, grads[i]) for i in want]
         for i, g in zip(want, got):
@@ -145,11 +139,9 @@ def spawn_reference(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, sca
 class _SpawnFast(torch.autograd.Function):
     @staticmethod
     def forward(ctx, nop, color, cov, anchor, log_scal, offset):  # type: ignore[override]
-        from ..render.fast import extension
-
         # nop is read by its values (M k of them), whatever its shape: no reshape (a view, but tens
         # of microseconds of dispatch in place, between the heavy passes).
-        means, quats, scales, opac, colors, start, selected = extension().spawn_forward(
+        means, quats, scales, opac, colors, start, selected = fast.extension().spawn_forward(
             nop, color, cov, anchor, log_scal, offset)
         ctx.save_for_backward(nop, cov, log_scal, offset, start)
         ctx.mark_non_differentiable(selected)
@@ -159,11 +151,9 @@ class _SpawnFast(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gm, gq, gs, go, gc, _gsel):  # type: ignore[override]
-        from ..render.fast import extension
-
         nop, cov, log_scal, offset, start = ctx.saved_tensors
         n = ctx.rows
         gm, gq, gs, gc = (nop.new_zeros(n, w) if g is None else g for g, w in ((gm, 3), (gq, 4), (gs, 3), (gc, 3)))
         go = nop.new_zeros(n) if go is None else go
         # dnop comes back in nop's shape (empty_like).
-        return tuple(extension().spawn_backward(gm, gq, gs, go, gc, nop, cov, log_scal, offset, start))
+        return tuple(fast.extension().spawn_backward(gm, gq, gs, go, gc, nop, cov, log_scal, offset, start))

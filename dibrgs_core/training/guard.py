@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 
 import torch
 
-from ..render import uses_fast
+from ..render import fast, uses_fast
 
 log = logging.getLogger("dibrgs.train")
 
@@ -28,9 +28,7 @@ def all_finite(tensors: list[torch.Tensor | None]) -> bool:
     if not ts:
         return True
     if uses_fast(None, ts[0]):
-        from ..render.fast import extension
-
-        found = extension().all_finite(ts)  # -1: a tensor the extension does not test
+        found = fast.extension().all_finite(ts)  # -1: a tensor the extension does not test
         if found >= 0:
             return bool(found)
     if bool(torch.isfinite(torch.stack([t.sum() for t in ts])).all()):

@@ -21,7 +21,8 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from ..render import uses_fast
+from ..render import fast, uses_fast
+from ..render.ssim import photometric_fast, ssim_map_fast
 
 _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
@@ -67,8 +68,6 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = _WINDOW, sigma:
     hwc = pred.shape if pred.dim() == 3 else pred.shape + (1,)
     p3, t3 = pred.reshape(hwc), gt.to(pred.dtype).reshape(hwc)
     if _kernel_applies(pred, gt):
-        from ..render.ssim import ssim_map_fast
-
         return ssim_map_fast(p3, t3, g).reshape(pred.shape)
     x, y = p3.permute(2, 0, 1)[None], t3.permute(2, 0, 1)[None]  # (1, C, H, W)
     # The five local means in one blur: fewer, larger operators (faster, and they use a second thread).
@@ -175,8 +174,6 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
 
     def one_node(wl: torch.Tensor, ws: torch.Tensor) -> torch.Tensor:
         # The C++ path: L1 and D-SSIM with per-value weights in one autograd node.
-        from ..render.ssim import photometric_fast
-
         # A reshape to the same shape is still a view and an autograd node: only (H, W) images take one.
         p, g = (pred, gt) if pred.dim() == 3 else (pred.reshape(H, W, C), gt.reshape(H, W, C))
         return photometric_fast(p, g,
@@ -215,18 +212,14 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
 class _MeanVolume(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scales, unit, weight):  # type: ignore[override]
-        from ..render.fast import extension
-
         ctx.save_for_backward(scales)
         ctx.unit, ctx.weight = unit, weight
-        return extension().volume_forward(scales, unit, weight)
+        return fast.extension().volume_forward(scales, unit, weight)
 
     @staticmethod
     def backward(ctx, g):  # type: ignore[override]
-        from ..render.fast import extension
-
         (scales,) = ctx.saved_tensors
-        return extension().volume_backward(g, scales, ctx.unit, ctx.weight), None, None
+        return fast.extension().volume_backward(g, scales, ctx.unit, ctx.weight), None, None
 
 
 def mean_volume(scales: torch.Tensor, unit: float, weight: float = 1.0) -> torch.Tensor:

@@ -21,7 +21,7 @@ from typing import Any, Callable
 import torch
 from torch.optim import optimizer as _torch_optimizer
 
-from ..render import uses_fast
+from ..render import fast, uses_fast
 
 
 # Group options torch's step handles and the one loop does not.
@@ -96,10 +96,8 @@ def _one_loop(optimizers: Sequence[Adam]) -> list[Adam]:
         return left
     if not uses_fast(None, batch.params[0]):
         return left + taken
-    from ..render.fast import extension
-
-    if not extension().adam_step(batch.params, batch.grads, batch.exp_avgs, batch.exp_avg_sqs, batch.steps,
-                                 batch.hyper):
+    if not fast.extension().adam_step(batch.params, batch.grads, batch.exp_avgs, batch.exp_avg_sqs, batch.steps,
+                                      batch.hyper):
         return left + taken
     return left
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ...render import uses_fast
+from ...render import fast, uses_fast
 
 
 def _matrix(weights: tuple[torch.Tensor, ...], biases: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -52,20 +52,16 @@ class _ProjectRows(torch.autograd.Function):
 class _ProjectRowsFast(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows, mask, *params):  # type: ignore[override]
-        from ...render.fast import extension
-
         n = len(params) // 2
-        out, idx = extension().project_rows_forward(rows, mask, list(params[:n]), list(params[n:]))
+        out, idx = fast.extension().project_rows_forward(rows, mask, list(params[:n]), list(params[n:]))
         ctx.save_for_backward(rows, idx)
         ctx.shapes = [list(w.shape) for w in params[:n]]
         return out
 
     @staticmethod
     def backward(ctx, g):  # type: ignore[override]
-        from ...render.fast import extension
-
         rows, idx = ctx.saved_tensors
-        return (None, None, *extension().project_rows_backward(g, rows, idx, ctx.shapes))
+        return (None, None, *fast.extension().project_rows_backward(g, rows, idx, ctx.shapes))
 
 
 def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
@@ -79,10 +75,8 @@ def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[t
         sel = rows.new_empty(0, dtype=torch.bool) if mask is None else mask
         if grad:
             return _ProjectRowsFast.apply(rows.detach(), sel, *weights, *biases)
-        from ...render.fast import extension
-
         with torch.no_grad():
-            return extension().project_rows_forward(rows, sel, list(weights), list(biases))[0]
+            return fast.extension().project_rows_forward(rows, sel, list(weights), list(biases))[0]
     rows = rows if mask is None else rows[mask]
     if not grad:
         return F.linear(rows, _matrix(tuple(weights), tuple(biases)))
