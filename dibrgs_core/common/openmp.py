@@ -10,9 +10,9 @@ at 256x256 with two threads:
   ``pause`` instructions, whose length differs several-fold between CPUs (5 ns on the Cascade Lake
   host, 12 ns on the Ice Lake one), and it must outlast the Python between two extension calls
   (up to about a millisecond): at 10,000 spins (0.12 ms on the Ice Lake) the worker still slept
-  in many gaps, and waking it cost 0.9 ms a step of waiting at region starts; at 100,000
-  (0.5-1.2 ms) 0.1 ms, and two threads took 0.60-0.61x the one-thread time instead of
-  0.64-0.66x (docs/benchmarks.md, session 39);
+  in many gaps, and waking it cost 0.9-2.9 ms a step of waiting at region starts; at 100,000
+  (0.5-1.2 ms) 0.1 ms, and the benchmark's two-thread step took 0.65-0.66x the one-thread time
+  instead of 0.72x (medians; docs/benchmarks.md, session 39);
 * but spinning workers take the cores from any other busy process: two two-thread runs side by
   side each ran over twice as long as with passive waiting.
 
