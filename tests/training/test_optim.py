@@ -3,18 +3,21 @@ from __future__ import annotations
 
 import pytest
 import torch
+from threads import torch_threads
 
 from dibrgs_core import render
 from dibrgs_core.training.optim import Adam, step_together
 
 # A Scaffold model's tensors in miniature: offsets, features, scalings, MLP weights and biases.
 SHAPES = [(301, 10, 3), (301, 32), (301, 6), (32, 36), (32,), (10, 32), (10,), (1,)]
+# Ten times the anchors: about 220,000 elements, as a real step's, above chunks.h's SERIAL_BELOW.
+LARGE = [(3001, 10, 3), (3001, 32), (3001, 6), (32, 36), (32,), (70, 32), (70,), (1,)]
 
 
-def pair(**kw):
+def pair(shapes=SHAPES, **kw):
     """The same parameters twice, one group each (its own learning rate), under torch's Adam and ours."""
     torch.manual_seed(0)
-    base = [torch.randn(s) for s in SHAPES]
+    base = [torch.randn(s) for s in shapes]
     out = []
     for cls in (torch.optim.Adam, Adam):
         ps = [b.clone().requires_grad_() for b in base]
@@ -23,11 +26,11 @@ def pair(**kw):
     return out
 
 
-def run(steps: int, pairs, skip_every: int = 0) -> None:
+def run(steps: int, pairs, skip_every: int = 0, shapes=SHAPES) -> None:
     gen = torch.Generator().manual_seed(1)
     for it in range(steps):
         # Gradients over six orders of magnitude, and now and then a parameter without one.
-        grads = [torch.randn(s, generator=gen) * 10.0 ** (it % 6 - 3) for s in SHAPES]
+        grads = [torch.randn(s, generator=gen) * 10.0 ** (it % 6 - 3) for s in shapes]
         for ps, opt in pairs:
             for i, (p, g) in enumerate(zip(ps, grads)):
                 p.grad = None if skip_every and (it + i) % skip_every == 0 else g.clone()
@@ -47,6 +50,17 @@ def test_the_one_loop_step_follows_torch(kw):
         assert float(ta.state[p]["step"]) == float(ours.state[q]["step"])
     # Same state layout: torch's Adam continues from ours and ours from torch's.
     ta.load_state_dict(ours.state_dict())
+
+
+def test_the_step_split_over_two_threads_follows_torch():
+    """Above SERIAL_BELOW elements the step runs as one equal run of elements a thread, cutting a
+    tensor anywhere (csrc/chunks.h): the same values as torch's step on both sides of the cut."""
+    (a, ta), (b, ours) = pair(LARGE)
+    with torch_threads(2):
+        run(12, [(a, ta), (b, ours)], skip_every=5, shapes=LARGE)
+    for p, q in zip(a, b):
+        assert torch.allclose(p, q, rtol=1e-5, atol=1e-6), float((p - q).abs().max())
+        assert torch.allclose(ta.state[p]["exp_avg"], ours.state[q]["exp_avg"], rtol=1e-5, atol=1e-12)
 
 
 def spy_on_adam_step(monkeypatch) -> list[int]:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from threads import torch_threads
 
 from dibrgs_core.training import curve as curve_module
 from dibrgs_core.training import trainer as trainer_module
@@ -99,6 +100,22 @@ class PoisonedTrainer(Trainer):
 
         target.register_hook(hook)
         return ck
+
+
+def test_all_finite_split_over_two_threads():
+    """Above SERIAL_BELOW elements the C++ check runs as two equal runs of elements that cut a tensor
+    anywhere (csrc/chunks.h; here 60,005 elements, cut inside the 5-element tensor): a bad value is
+    found in either run and on either side of the cut."""
+    set_backend("fast")
+    try:
+        with torch_threads(2):
+            assert all_finite([torch.ones(30000), torch.ones(5), torch.ones(30000)])
+            for t, pos in ((0, 29999), (1, 1), (1, 2), (2, 0), (2, 29999)):
+                ts = [torch.ones(30000), torch.ones(5), torch.ones(30000)]
+                ts[t][pos] = math.nan
+                assert not all_finite(ts), (t, pos)
+    finally:
+        set_backend(None)
 
 
 @pytest.mark.parametrize("method", ["dibrgs", "3dgs"])

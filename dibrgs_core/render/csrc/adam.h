@@ -1,8 +1,8 @@
 // One Adam step over many parameter tensors in one parallel loop (training/optim.py).
 // torch's CPU Adam runs about ten operators per tensor; a Scaffold model has nineteen
 // tensors of a few dozen to 84,000 elements, so the step is mostly dispatch and it does
-// not split over threads. Here every tensor is cut into chunks and all chunks of all
-// tensors are one parallel loop. The arithmetic is torch's (torch/optim/adam.py,
+// not split over threads. Here all tensors' elements, end to end, are one parallel loop
+// (chunks.h). The arithmetic is torch's (torch/optim/adam.py,
 // single-tensor path), in float32 with the same order of operations:
 //   decoupled:  p *= 1 - lr wd            else: g += wd p   (when wd != 0)
 //   m = lerp(m, g, 1 - b1)   v = v b2 + (1 - b2) g^2
@@ -38,10 +38,10 @@ struct Slot {
 // torch's lerp(self, end, w) for a weight below one half: self + w (end - self).
 inline float lerp_small(float a, float b, float w) { return w < 0.5f ? a + w * (b - a) : b - (b - a) * (1.0f - w); }
 
-inline void run(const std::vector<Slot>& slots, int64_t chunk) {
+inline void run(const std::vector<Slot>& slots, int64_t grain) {
   std::vector<int64_t> lengths;
   for (const Slot& s : slots) lengths.push_back(s.n);
-  parallel_chunks(lengths, chunk, [&](int64_t t, int64_t i0, int64_t i1) {
+  parallel_chunks(lengths, grain, [&](int64_t t, int64_t i0, int64_t i1) {
     const Slot& s = slots[t];
     for (int64_t i = i0; i < i1; ++i) {
       float p = s.p[i];

@@ -1,13 +1,12 @@
-// Many small tensors in one parallel loop: every tensor cut into chunks, all chunks of all
-// tensors split over the threads (Adam's step, the finite checks). One loop per tensor would
-// leave most of them too small to split, and each loop costs a fork and a join.
+// Many small tensors in one parallel loop: all tensors' elements end to end, split over the threads
+// (Adam's step, the finite checks). One loop per tensor would leave most of them too small to
+// split, and each loop costs a fork and a join.
 #pragma once
 
 #include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <cstdint>
-#include <utility>
 #include <vector>
 
 namespace dibrgs {
@@ -18,20 +17,26 @@ namespace dibrgs {
 // two threads against 0.39 on one, in the step (docs/benchmarks.md, session 39).
 constexpr int64_t SERIAL_BELOW = int64_t(1) << 15;
 
-// Calls fn(t, i0, i1) for the elements [i0, i1) of tensor t (lengths[t] elements), in chunks of
-// at most `chunk` elements, from one at::parallel_for over all chunks (see SERIAL_BELOW).
+// Calls fn(t, i0, i1) for the elements [i0, i1) of tensor t (lengths[t] elements): all tensors end
+// to end, cut into one equal run of elements a thread (at least `grain` elements each), from one
+// at::parallel_for (see SERIAL_BELOW). Equal runs, not equal counts of pieces: the tensors' sizes
+// differ a thousandfold, and halving a list of pieces gave one thread 2-8x the other's time.
 template <typename F>
-void parallel_chunks(const std::vector<int64_t>& lengths, int64_t chunk, F&& fn) {
-  std::vector<std::pair<int64_t, int64_t>> work;  // (tensor, first element)
-  for (size_t t = 0; t < lengths.size(); ++t)
-    for (int64_t i = 0; i < lengths[t]; i += chunk) work.emplace_back(static_cast<int64_t>(t), i);
+void parallel_chunks(const std::vector<int64_t>& lengths, int64_t grain, F&& fn) {
   int64_t total = 0;
   for (const int64_t l : lengths) total += l;
-  const int64_t n = static_cast<int64_t>(work.size());
-  at::parallel_for(0, n, total < SERIAL_BELOW ? std::max<int64_t>(n, 1) : 1, [&](int64_t w0, int64_t w1) {
-    for (int64_t w = w0; w < w1; ++w) {
-      const int64_t t = work[w].first, i0 = work[w].second;
-      fn(t, i0, std::min(lengths[t], i0 + chunk));
+  const int64_t runs = total < SERIAL_BELOW ? 1
+                                            : std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(),
+                                                                                     total / std::max<int64_t>(grain, 1)));
+  at::parallel_for(0, runs, 1, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const int64_t a = total * r / runs, b = total * (r + 1) / runs;  // this run's elements
+      int64_t start = 0;  // of tensor t, counted end to end
+      for (size_t t = 0; t < lengths.size() && start < b; ++t) {
+        const int64_t i0 = std::max<int64_t>(a - start, 0), i1 = std::min<int64_t>(b - start, lengths[t]);
+        if (i0 < i1) fn(static_cast<int64_t>(t), i0, i1);
+        start += lengths[t];
+      }
     }
   });
 }
