@@ -10,7 +10,7 @@ from dibrgs_core.training.optim import Adam, step_together
 
 # A Scaffold model's tensors in miniature: offsets, features, scalings, MLP weights and biases.
 SHAPES = [(301, 10, 3), (301, 32), (301, 6), (32, 36), (32,), (10, 32), (10,), (1,)]
-# Ten times the anchors: about 220,000 elements, as a real step's, above chunks.h's SERIAL_BELOW.
+# Ten times the anchors: about 208,000 elements, as in a real step, above chunks.h's SERIAL_BELOW.
 LARGE = [(3001, 10, 3), (3001, 32), (3001, 6), (32, 36), (32,), (70, 32), (70,), (1,)]
 
 

@@ -2,8 +2,8 @@
 // torch's CPU Adam runs about ten operators per tensor; a Scaffold model has nineteen
 // tensors of a few dozen to 84,000 elements, so the step is mostly dispatch and it does
 // not split over threads. Here all tensors' elements, end to end, are one parallel loop
-// (chunks.h). The arithmetic is torch's (torch/optim/adam.py,
-// single-tensor path), in float32 with the same order of operations:
+// (chunks.h). The arithmetic is torch's (torch/optim/adam.py, single-tensor path), in
+// float32 with the same order of operations:
 //   decoupled:  p *= 1 - lr wd            else: g += wd p   (when wd != 0)
 //   m = lerp(m, g, 1 - b1)   v = v b2 + (1 - b2) g^2
 //   p -= (lr / (1 - b1^t)) m / (sqrt(v) / sqrt(1 - b2^t) + eps)

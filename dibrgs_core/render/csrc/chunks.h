@@ -13,8 +13,9 @@ namespace dibrgs {
 
 // Fewer elements than this in all run on the calling thread (the fork costs more than the split
 // saves). A step's Adam (about 200,000 elements) once ran on one thread too, when a fork had to
-// wake a sleeping worker; with the worker still spinning (common/openmp.py) it takes 0.30 ms on
-// two threads against 0.39 on one, in the step (docs/benchmarks.md, session 39).
+// wake a sleeping worker; with the worker still spinning (common/openmp.py) and equal shares
+// (below) it takes 0.24 ms on two threads against 0.38 on one, in the step (docs/benchmarks.md,
+// session 39).
 constexpr int64_t SERIAL_BELOW = int64_t(1) << 15;
 
 // Calls fn(t, i0, i1) for the elements [i0, i1) of tensor t (lengths[t] elements): all tensors end
