@@ -99,7 +99,7 @@ class AnchorStrategy(Strategy):
                            info: dict[str, Any] | None) -> dict[str, int]:
         """Statistics of this view (inside the statistics window), then growth and pruning when due."""
         if info is not None and self.collects(step):
-            self.update(info["aux"], info["means2d"].grad, info["radii"], info["width"], info["height"])
+            self.update(info["aux"], info["means2d"].grad, info["visible"], info["width"], info["height"])
         if not self.adjusts(step):
             return {}
         r = self.adjust(model, optimizer)
@@ -108,9 +108,10 @@ class AnchorStrategy(Strategy):
 
     # -- statistics ----------------------------------------------------------
     @torch.no_grad()
-    def update(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor,
+    def update(self, dec: Decoded, means2d_grad: torch.Tensor | None, visible: torch.Tensor,
                width: int, height: int) -> None:
-        """Accumulate opacity and gradient statistics of one rendered view."""
+        """Accumulate opacity and gradient statistics of one rendered view (``visible``: the
+        rasterizer's (N,) mask of Gaussians with a positive radius, its meta's ``"visible"``)."""
         vis = dec.anchor_visible
         op = dec.neural_opacity.detach().clamp_min(0.0).view(-1, self.k).sum(1)
         self.opacity_accum[vis] += op
@@ -119,7 +120,7 @@ class AnchorStrategy(Strategy):
             return
         aidx = true_indices(vis)
         gidx = (aidx[:, None] * self.k + torch.arange(self.k)).reshape(-1)[dec.selected]
-        seen = radii.reshape(-1) > 0
+        seen = visible.reshape(-1)
         g = means2d_grad.detach()[seen] * torch.tensor([width / 2.0, height / 2.0])
         norm = torch.nan_to_num(g.norm(dim=1), nan=0.0, posinf=0.0)
         self.offset_grad.index_add_(0, gidx[seen], norm)

@@ -174,7 +174,7 @@ def test_update_accumulates_ndc_gradients_of_rasterized_gaussians():
     s.step_pre_backward(m, None, inside, meta)
     assert meta["means2d"].retains_grad
     img.mean().backward()
-    s.update(d, meta["means2d"].grad, meta["radii"], 32, 32)
+    s.update(d, meta["means2d"].grad, meta["visible"], 32, 32)
     seen = int((meta["radii"] > 0).sum())
     assert int(s.offset_denom.sum()) == seen > 0
     g = meta["means2d"].grad[meta["radii"] > 0] * torch.tensor([16.0, 16.0])
