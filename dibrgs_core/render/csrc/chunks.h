@@ -6,6 +6,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <vector>
 
@@ -39,6 +40,27 @@ void parallel_chunks(const std::vector<int64_t>& lengths, int64_t grain, F&& fn)
         start += lengths[t];
       }
     }
+  });
+}
+
+// Calls fn(i0, i1) for consecutive runs [i0, i1) of [0, n), `chunk` elements each (the last may be
+// shorter), the threads pulling runs from a shared counter; on the calling thread alone below four
+// runs. For loops whose elements cost about the
+// same but whose halves did not: on two cores the calling thread, which ran the Python between two
+// calls, took 8-25 % longer over its half than the other thread over the same amount of work
+// (spawn, projection; docs/benchmarks.md, session 40), and a static split waits for it.
+template <typename F>
+void dynamic_for(int64_t n, int64_t chunk, F&& fn) {
+  const int64_t nc = (n + chunk - 1) / chunk;
+  const int64_t T = std::min<int64_t>(at::get_num_threads(), nc);
+  if (T < 2 || nc < 4 || at::in_parallel_region()) {
+    if (n > 0) fn(int64_t(0), n);
+    return;
+  }
+  std::atomic<int64_t> next(0);
+  at::parallel_for(0, T, 1, [&](int64_t b, int64_t e) {
+    for (int64_t w = b; w < e; ++w)
+      for (int64_t c = next++; c < nc; c = next++) fn(c * chunk, std::min(n, (c + 1) * chunk));
   });
 }
 

@@ -1,10 +1,11 @@
-// The element-wise passes of the training loss around the SSIM kernels (rasterize.cpp
-// photometric_forward / photometric_backward; training/losses.py photometric_loss):
+// The sums of the training loss beside the SSIM kernels (rasterize.cpp photometric_forward;
+// training/losses.py photometric_loss):
 //   loss = (1 - lam) sum(|x - y| wl) + lam sum((1 - S) ws)
-// over n values (pixels x channels, the weights given per value). Native vectors of
-// composite.h's width, scalar tails; the sums go by fixed blocks of BLOCK values (partial
-// sums in double, added in block order) so that the result does not depend on the thread
-// count. Branch-free: a sign on random data is a misprediction per value as a branch.
+// over n values (pixels x channels, the weights given per value); its gradient is added in the SSIM
+// backward's pass (ssim.h). Native vectors of composite.h's width, scalar tails; the sums go by
+// fixed blocks of BLOCK values (partial sums in double, added in block order) so that the result
+// does not depend on the thread count. Branch-free: a sign on random data is a misprediction per
+// value as a branch.
 #pragma once
 
 #include <ATen/Parallel.h>
@@ -40,7 +41,7 @@ void sums(const T* x, const T* y, const T* S, const T* wl, const T* ws, int64_t 
   constexpr int64_t L = ssim::Lanes<V>::value;
   const int64_t nb = (n + BLOCK - 1) / BLOCK;
   std::vector<double> pa(nb), pb(nb);
-  at::parallel_for(0, nb, 1, [&](int64_t b0, int64_t b1) {
+  dynamic_for(nb, 2, [&](int64_t b0, int64_t b1) {
     for (int64_t b = b0; b < b1; ++b) {
       const int64_t i0 = b * BLOCK, i1 = std::min(n, i0 + BLOCK);
       V a{}, s{};
@@ -65,35 +66,6 @@ void sums(const T* x, const T* y, const T* S, const T* wl, const T* ws, int64_t 
     out[0] += pa[b];
     out[1] += pb[b];
   }
-}
-
-// gS = -(lam g) ws: the SSIM map's share of the loss's gradient (g: the loss's own).
-template <typename T>
-void ssim_grad(const T* ws, int64_t n, T k, T* gS) {
-  at::parallel_for(0, n, BLOCK, [&](int64_t i0, int64_t i1) {
-    for (int64_t i = i0; i < i1; ++i) gS[i] = k * ws[i];
-  });
-}
-
-// dx += k sign(x - y) wl (torch's sign: 0 where x == y); k = (1 - lam) g.
-template <typename T>
-void add_l1_grad(const T* x, const T* y, const T* wl, int64_t n, T k, T* dx) {
-  typedef typename Vec<T>::V V;
-  constexpr int64_t L = ssim::Lanes<V>::value;
-  at::parallel_for(0, n, BLOCK, [&](int64_t i0, int64_t i1) {
-    const V zero{};
-    const V kv = zero + k;
-    int64_t i = i0;
-    for (; i + L <= i1; i += L) {
-      const V d = ssim::load<V>(x + i) - ssim::load<V>(y + i);
-      const V sg = d > 0 ? kv : (d < 0 ? -kv : zero);
-      ssim::store(dx + i, ssim::load<V>(dx + i) + sg * ssim::load<V>(wl + i));
-    }
-    for (; i < i1; ++i) {
-      const T d = x[i] - y[i];
-      dx[i] += (d > 0 ? k : (d < 0 ? -k : T(0))) * wl[i];
-    }
-  });
 }
 
 // The volume regulariser (training/losses.py mean_volume): sum over n rows of s (n, 3) of

@@ -651,7 +651,7 @@ std::array<double, 16> camera_params(const torch::Tensor& K, const torch::Tensor
 // Projection (EWA splatting, project.h): whole vectors of Gaussians, then the rest one by one.
 template <typename F>
 void over_gaussians(int64_t N, F&& f) {
-  at::parallel_for(0, N, 4096, [&](int64_t b0, int64_t b1) {
+  dibrgs::dynamic_for(N, 1024, [&](int64_t b0, int64_t b1) {  // a multiple of proj::LD
     int64_t i = b0;
     for (; i + dibrgs::proj::LD <= b1; i += dibrgs::proj::LD) f(i, std::true_type());
     for (; i < b1; ++i) f(i, std::false_type());
@@ -740,10 +740,10 @@ torch::Tensor ssim_backward(torch::Tensor gS, torch::Tensor x, torch::Tensor y, 
   auto dx = torch::empty_like(x);
   const int r = static_cast<int>(g.numel() / 2);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_ssim_backward", [&] {
-    dibrgs::ssim::backward<scalar_t>(gS.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(),
-                                     A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(), C.data_ptr<scalar_t>(),
-                                     x.size(0), x.size(1), x.size(2), g.data_ptr<scalar_t>(), r,
-                                     dx.data_ptr<scalar_t>());
+    dibrgs::ssim::backward<scalar_t>(gS.data_ptr<scalar_t>(), scalar_t(1), x.data_ptr<scalar_t>(),
+                                     y.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(),
+                                     C.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2), g.data_ptr<scalar_t>(),
+                                     r, nullptr, scalar_t(0), dx.data_ptr<scalar_t>());
   });
   return dx;
 }
@@ -776,15 +776,17 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
   const double G = gl.item<double>();
   wl = wl.to(x.scalar_type()).contiguous();  // as the forward reads them
   ws = ws.to(x.scalar_type()).contiguous();
-  auto gS = torch::empty_like(x);
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_gS", [&] {
-    dibrgs::loss::ssim_grad<scalar_t>(ws.data_ptr<scalar_t>(), x.numel(), static_cast<scalar_t>(-lam * G),
-                                      gS.data_ptr<scalar_t>());
-  });
-  auto dx = ssim_backward(gS, x, y, A, B, C, g);
+  // The SSIM term's upstream gradient is -lam G ws: ws and its factor go to the adjoint apart, the
+  // L1 term's gradient is added in the same pass (ssim.h backward).
+  auto dx = torch::empty_like(x);
+  const int r = static_cast<int>(g.numel() / 2);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_backward", [&] {
-    dibrgs::loss::add_l1_grad<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), wl.data_ptr<scalar_t>(),
-                                        x.numel(), static_cast<scalar_t>((1.0 - lam) * G), dx.data_ptr<scalar_t>());
+    const auto gc = g.to(x.scalar_type()).contiguous();
+    dibrgs::ssim::backward<scalar_t>(ws.data_ptr<scalar_t>(), static_cast<scalar_t>(-lam * G), x.data_ptr<scalar_t>(),
+                                     y.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(),
+                                     C.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2), gc.data_ptr<scalar_t>(),
+                                     r, wl.data_ptr<scalar_t>(), static_cast<scalar_t>((1.0 - lam) * G),
+                                     dx.data_ptr<scalar_t>());
   });
   return dx;
 }

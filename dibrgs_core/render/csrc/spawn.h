@@ -21,6 +21,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "chunks.h"
+
 namespace dibrgs {
 namespace spawn {
 
@@ -73,7 +75,7 @@ int64_t count(const T* nop, int64_t M, int64_t k, int64_t* start, bool* selected
 template <typename T>
 void forward(const T* nop, const T* color, const T* cov, const T* anchor, const T* log_scal, const T* offset,
              int64_t M, int64_t k, const int64_t* start, T* means, T* quats, T* scales, T* opac, T* colors) {
-  at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
+  dynamic_for(M, 128, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
       const T* an = anchor + 3 * a;
@@ -106,7 +108,7 @@ template <typename T>
 void backward(const T* gmeans, const T* gquats, const T* gscales, const T* gopac, const T* gcolors, int64_t gcs,
               const T* nop, const T* cov, const T* log_scal, const T* offset, int64_t M, int64_t k,
               const int64_t* start, T* dnop, T* dcolor, T* dcov, T* danchor, T* dlog_scal, T* doffset) {
-  at::parallel_for(0, M, 256, [&](int64_t b, int64_t e) {
+  dynamic_for(M, 128, [&](int64_t b, int64_t e) {
     for (int64_t a = b; a < e; ++a) {
       int64_t r = start[a];
       T s[6];

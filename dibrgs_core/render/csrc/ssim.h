@@ -11,9 +11,9 @@
 // with B' the adjoint of B (a window of zero-padded gradients whose share
 // outside the image folds onto the edge pixels it replicated).
 //
-// Each thread takes a band of rows. The forward keeps the horizontally blurred
-// statistics of the last 2r + 1 image rows in a ring (L2-sized) instead of a
-// whole-image buffer, and every window sum is accumulated in registers over a
+// The forward's threads work through bands of rows (two threads a band, from its two ends), each
+// keeping the horizontally blurred statistics of the last 2r + 1 image rows in a ring (L2-sized)
+// instead of a whole-image buffer, and every window sum is accumulated in registers over a
 // block of NV native vectors (composite.h's width) and stored once: a loop that
 // adds one tap at a time into memory is bound by its stores and by loads 4 KiB
 // apart from them. Row buffers are padded so that consecutive rows are not.
@@ -22,10 +22,12 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <cstring>
 #include <vector>
 
+#include "chunks.h"
 #include "composite.h"
 
 namespace dibrgs {
@@ -137,6 +139,26 @@ inline void formula(const U* m, U& S, U& A, U& Bc, U& Cc) {
   Cc = two * a1 * inv;
 }
 
+// Rows of a band [y0, y1) shared by one or two threads: the first takes rows from the top down,
+// the second from the bottom up, each claiming one row at a time from a common count, until they
+// meet. Each thread blurs the rows of its own windows only once, like a static split, and both end
+// together whatever slows one of them: on two cores the calling thread, back from the Python between
+// two calls, took up to 17 % longer than the other over half of the rows (docs/benchmarks.md,
+// session 40).
+class TwoEnded {
+  std::atomic<int64_t> claimed_{0};
+  int64_t y0_ = 0, y1_ = 0, taken_[2] = {0, 0};
+
+ public:
+  void reset(int64_t y0, int64_t y1) { y0_ = y0, y1_ = y1, claimed_ = 0, taken_[0] = taken_[1] = 0; }
+  // The next row of end e (0: top, 1: bottom) into row; false when the band is done.
+  bool next(int e, int64_t& row) {
+    if (claimed_.fetch_add(1, std::memory_order_relaxed) >= y1_ - y0_) return false;
+    row = e == 0 ? y0_ + taken_[0]++ : y1_ - 1 - taken_[1]++;
+    return true;
+  }
+};
+
 // Forward: S, a, b, c (each H x W x C).
 template <typename T>
 void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g, int r, T* S, T* A, T* Bc,
@@ -144,14 +166,20 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
   typedef typename Block<T>::V V;
   constexpr int64_t L = Block<T>::L, N = Block<T>::N;
   const int64_t WC = W * C, ld = padded<T>(WC), pld = ld + 2 * r * C, R = 2 * r + 1;
-  at::parallel_for(0, H, 16, [&](int64_t y0, int64_t y1) {
+  // The rows one thread computes, in the order band.next(end, row) gives them: the ring holds the
+  // blurred statistics of the window of the last row, and a row's window differs from it by one
+  // row when the rows go one by one up or down. One function for every split: two instantiations
+  // of the arithmetic could contract its products and sums into FMAs differently.
+  auto rows = [&](TwoEnded& band, int end) {
     std::vector<T> P(NS * pld), ring(R * NS * ld);
     std::vector<const T*> window(R);  // the blurred rows under the window of the current row
     auto slot = [&](int64_t row) { return ring.data() + (row % R) * NS * ld; };
-    int64_t next = std::max<int64_t>(y0 - r, 0);  // the first image row not blurred yet
-    for (int64_t row = y0; row < y1; ++row) {
-      for (const int64_t last = std::min<int64_t>(row + r, H - 1); next <= last; ++next)
-        blur_row(x + next * WC, y + next * WC, W, C, g, r, P.data(), pld, slot(next), ld);
+    int64_t lo = 0, hi = -1;  // the image rows whose blurred statistics the ring holds
+    for (int64_t row; band.next(end, row);) {
+      const int64_t a = std::max<int64_t>(row - r, 0), b = std::min<int64_t>(row + r, H - 1);
+      for (int64_t q = a; q <= b; ++q)
+        if (q < lo || q > hi) blur_row(x + q * WC, y + q * WC, W, C, g, r, P.data(), pld, slot(q), ld);
+      lo = a, hi = b;
       // Once a row, not in the loop below: there the modulo was an integer division a tap and
       // a block, half of this pass's time.
       for (int k = 0; k <= 2 * r; ++k) window[k] = slot(std::min<int64_t>(std::max<int64_t>(row + k - r, 0), H - 1));
@@ -178,6 +206,22 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
         std::memcpy(Cc + base + j, out[3], cnt * sizeof(T));
       }
     }
+  };
+  // A band of rows for each pair of threads (and one for a last thread on its own), at least
+  // 16 rows a thread.
+  const int64_t T_ = std::min<int64_t>(at::in_parallel_region() ? 1 : at::get_num_threads(), H / 16);
+  if (T_ < 2) {
+    TwoEnded all;
+    all.reset(0, H);
+    rows(all, 0);
+    return;
+  }
+  const int64_t bands = (T_ + 1) / 2;
+  std::vector<TwoEnded> band(bands);
+  auto band_rows = [&](int64_t i) { return H * std::min<int64_t>(2 * i, T_) / T_; };  // pairs share twice the rows
+  for (int64_t i = 0; i < bands; ++i) band[i].reset(band_rows(i), band_rows(i + 1));
+  at::parallel_for(0, T_, 1, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) rows(band[t / 2], static_cast<int>(t % 2));
   });
 }
 
@@ -220,14 +264,18 @@ inline void vadjoint_block(const T* G, const T* A, const T* Bc, const T* Cc, con
     for (int n = 0; n < NN; ++n) store(z + q * zld + j + n * L, acc[q][n]);
 }
 
-// Backward: dx (H x W x C) from the upstream gradient G of S.
+// Backward: dx (H x W x C) = k dS/dx applied to G (the upstream gradient of S: the adjoint is
+// linear in it, so the training loss passes its weights and their factor separately) plus, with
+// wl, the L1 term's gradient kl sign(x - y) wl, in the same pass over the rows (the loss's three
+// passes over whole images were three regions and about 4 MB of reads and writes a 256x256 step).
+// Rows are independent: the threads pull runs of them.
 template <typename T>
-void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const T* Cc, int64_t H, int64_t W,
-              int64_t C, const T* g, int r, T* dx) {
+void backward(const T* G, T k, const T* x, const T* y, const T* A, const T* Bc, const T* Cc, int64_t H, int64_t W,
+              int64_t C, const T* g, int r, const T* wl, T kl, T* dx) {
   typedef typename Block<T>::V V;
   constexpr int64_t L = Block<T>::L, N = Block<T>::N;
   const int64_t WC = W * C, EW = (W + 2 * r) * C, eld = padded<T>(EW), zld = eld + 2 * r * C;
-  at::parallel_for(0, H, 16, [&](int64_t m0, int64_t m1) {
+  dynamic_for(H, 8, [&](int64_t m0, int64_t m1) {
     // z: the vertical adjoint of a row with 2r zero pixels each side; e: its horizontal adjoint
     // over the row and r pixels each side (pixel u of e is image pixel u - r).
     std::vector<T> z(NB * zld, T(0)), e(NB * eld), tw((2 * r + 1) * (2 * r + 1));
@@ -240,10 +288,10 @@ void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const
       for (; j < WC; ++j) vadjoint_block<T, 1>(G, A, Bc, Cc, to.data(), tw.data(), taps, j, zm, zld);
       for (int64_t i = 0; i < EW; i += N) {
         V acc[NB][NV] = {};
-        for (int k = 0; k <= 2 * r; ++k) {
-          const V w = V{} + g[k];
+        for (int kk = 0; kk <= 2 * r; ++kk) {
+          const V w = V{} + g[kk];
           for (int q = 0; q < NB; ++q) {
-            const T* zs = z.data() + q * zld + (2 * r - k) * C + i;
+            const T* zs = z.data() + q * zld + (2 * r - kk) * C + i;
             for (int n = 0; n < NV; ++n) acc[q][n] = madd(w, load<V>(zs + n * L), acc[q][n]);
           }
         }
@@ -259,13 +307,32 @@ void backward(const T* G, const T* x, const T* y, const T* A, const T* Bc, const
             es[(W - 1 + r) * C + c] += es[(W + r + u) * C + c];
           }
       }
-      // The chain rule through x, x^2 and xy.
+      // The chain rule through x, x^2 and xy, then the L1 term (torch's sign: 0 where x == y; a
+      // vector select: a sign on real images is a misprediction a value as a branch).
       const T* pa = e.data() + r * C;
       const T* pb = pa + eld;
       const T* pc = pb + eld;
-      const int64_t base = m * WC;
-#pragma GCC ivdep
-      for (int64_t i = 0; i < WC; ++i) dx[base + i] = pa[i] + T(2) * x[base + i] * pb[i] + y[base + i] * pc[i];
+      const T *xm = x + m * WC, *ym = y + m * WC, *wm = wl == nullptr ? nullptr : wl + m * WC;
+      T* dm = dx + m * WC;
+      const V kv = V{} + k, klv = V{} + kl, two = V{} + T(2), zero{};
+      int64_t i = 0;
+      for (; i + L <= WC; i += L) {
+        const V xv = load<V>(xm + i), yv = load<V>(ym + i);
+        V out = kv * (load<V>(pa + i) + two * xv * load<V>(pb + i) + yv * load<V>(pc + i));
+        if (wm != nullptr) {
+          const V d = xv - yv;
+          out += (d > zero ? klv : (d < zero ? -klv : zero)) * load<V>(wm + i);
+        }
+        store(dm + i, out);
+      }
+      for (; i < WC; ++i) {
+        T out = k * (pa[i] + T(2) * xm[i] * pb[i] + ym[i] * pc[i]);
+        if (wm != nullptr) {
+          const T d = xm[i] - ym[i];
+          out += (d > T(0) ? kl : (d < T(0) ? -kl : T(0))) * wm[i];
+        }
+        dm[i] = out;
+      }
     }
   });
 }
