@@ -45,10 +45,10 @@ void parallel_chunks(const std::vector<int64_t>& lengths, int64_t grain, F&& fn)
 
 // Calls fn(i0, i1) for consecutive runs [i0, i1) of [0, n), `chunk` elements each (the last may be
 // shorter), the threads pulling runs from a shared counter; on the calling thread alone below four
-// runs. For loops whose elements cost about the
-// same but whose halves did not: on two cores the calling thread, which ran the Python between two
-// calls, took 8-25 % longer over its half than the other thread over the same amount of work
-// (spawn, projection; docs/benchmarks.md, session 40), and a static split waits for it.
+// runs. For loops whose elements cost about the same but whose halves did not: on two cores the
+// calling thread, which ran the Python between two calls, took 10-23 % longer over its half than
+// the other thread over the same amount of work (spawning, projection; docs/benchmarks.md,
+// session 40), and a static split waits for it.
 template <typename F>
 void dynamic_for(int64_t n, int64_t chunk, F&& fn) {
   const int64_t nc = (n + chunk - 1) / chunk;

@@ -142,9 +142,9 @@ inline void formula(const U* m, U& S, U& A, U& Bc, U& Cc) {
 // Rows of a band [y0, y1) shared by one or two threads: the first takes rows from the top down,
 // the second from the bottom up, each claiming one row at a time from a common count, until they
 // meet. Each thread blurs the rows of its own windows only once, like a static split, and both end
-// together whatever slows one of them: on two cores the calling thread, back from the Python between
-// two calls, took up to 17 % longer than the other over half of the rows (docs/benchmarks.md,
-// session 40).
+// together whatever slows one of them: on two cores, with static halves, either thread could take up
+// to 23 % longer than the other (the one back from the Python between two calls, or the one whose
+// core a neighbour shares; docs/benchmarks.md, session 40).
 class TwoEnded {
   std::atomic<int64_t> claimed_{0};
   int64_t y0_ = 0, y1_ = 0, taken_[2] = {0, 0};
@@ -209,18 +209,18 @@ void forward(const T* x, const T* y, int64_t H, int64_t W, int64_t C, const T* g
   };
   // A band of rows for each pair of threads (and one for a last thread on its own), at least
   // 16 rows a thread.
-  const int64_t T_ = std::min<int64_t>(at::in_parallel_region() ? 1 : at::get_num_threads(), H / 16);
-  if (T_ < 2) {
+  const int64_t nt = std::min<int64_t>(at::in_parallel_region() ? 1 : at::get_num_threads(), H / 16);
+  if (nt < 2) {
     TwoEnded all;
     all.reset(0, H);
     rows(all, 0);
     return;
   }
-  const int64_t bands = (T_ + 1) / 2;
+  const int64_t bands = (nt + 1) / 2;
   std::vector<TwoEnded> band(bands);
-  auto band_rows = [&](int64_t i) { return H * std::min<int64_t>(2 * i, T_) / T_; };  // pairs share twice the rows
+  auto band_rows = [&](int64_t i) { return H * std::min<int64_t>(2 * i, nt) / nt; };  // pairs share twice the rows
   for (int64_t i = 0; i < bands; ++i) band[i].reset(band_rows(i), band_rows(i + 1));
-  at::parallel_for(0, T_, 1, [&](int64_t t0, int64_t t1) {
+  at::parallel_for(0, nt, 1, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) rows(band[t / 2], static_cast<int>(t % 2));
   });
 }
