@@ -43,6 +43,17 @@ void parallel_chunks(const std::vector<int64_t>& lengths, int64_t grain, F&& fn)
   });
 }
 
+// Runs worker(next) on `threads` of torch's intra-op threads (all by default), each pulling work
+// indices from the shared counter next (dynamic scheduling: the compositing's tiles, the binning's
+// blocks, dynamic_for's runs).
+template <typename F>
+void run_workers(F&& worker, int64_t threads = at::get_num_threads()) {
+  std::atomic<int64_t> next(0);
+  at::parallel_for(0, threads, 1, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) worker(next);
+  });
+}
+
 // Calls fn(i0, i1) for consecutive runs [i0, i1) of [0, n), `chunk` elements each (the last may be
 // shorter), the threads pulling runs from a shared counter; on the calling thread alone below four
 // runs. For loops whose elements cost about the same but whose halves did not: on two cores the
@@ -57,11 +68,11 @@ void dynamic_for(int64_t n, int64_t chunk, F&& fn) {
     if (n > 0) fn(int64_t(0), n);
     return;
   }
-  std::atomic<int64_t> next(0);
-  at::parallel_for(0, T, 1, [&](int64_t b, int64_t e) {
-    for (int64_t w = b; w < e; ++w)
-      for (int64_t c = next++; c < nc; c = next++) fn(c * chunk, std::min(n, (c + 1) * chunk));
-  });
+  run_workers(
+      [&](std::atomic<int64_t>& next) {
+        for (int64_t c = next++; c < nc; c = next++) fn(c * chunk, std::min(n, (c + 1) * chunk));
+      },
+      T);
 }
 
 }  // namespace dibrgs

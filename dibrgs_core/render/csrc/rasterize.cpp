@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "adam.h"
+#include "chunks.h"
 #include "composite.h"
 #include "decoder.h"
 #include "loss.h"
@@ -53,20 +54,6 @@ inline double cull_level(double o, double a, double c, double det) {
   return (2.0 * std::log(o * 255.0) * 1.01 + 0.01) * (1.0 + grow);
 }
 
-// Runs worker(next) on every torch intra-op thread; workers pull tile indices
-// from the shared counter (dynamic scheduling: tile costs vary a lot).
-template <typename F>
-void run_workers(F&& worker) {
-  std::atomic<int64_t> next(0);
-  at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t b, int64_t e) {
-    for (int64_t i = b; i < e; ++i) worker(next);
-  });
-}
-
-}  // namespace
-
-namespace {
-
 // Blocks of about `grain` items for the binning's parallel passes: as many as the threads can
 // share out dynamically, none so small that its fork costs more than its work; one on one thread.
 inline int64_t block_count(int64_t n, int64_t grain) {
@@ -77,7 +64,7 @@ inline int64_t block_count(int64_t n, int64_t grain) {
 // Calls fn(b) for b in [0, nb), the blocks pulled dynamically by torch's intra-op threads.
 template <typename F>
 void for_blocks(int64_t nb, F&& fn) {
-  run_workers([&](std::atomic<int64_t>& next) {
+  dibrgs::run_workers([&](std::atomic<int64_t>& next) {
     for (int64_t b = next++; b < nb; b = next++) fn(b);
   });
 }
@@ -459,7 +446,7 @@ void forward_tiles(const dibrgs::Scene<T>& sc, const dibrgs::Planes<T>& out, T* 
   const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
   by_channels(sc.C, [&](auto ct) {
     std::mutex mu;
-    run_workers([&](std::atomic<int64_t>& next) {
+    dibrgs::run_workers([&](std::atomic<int64_t>& next) {
       dibrgs::Workspace<T> ws;
       dibrgs::Stats st;
       for (int64_t t = next++; t < tiles; t = next++)
@@ -522,7 +509,7 @@ void backward_tiles(const dibrgs::Scene<T>& sc, const dibrgs::Planes<const T>& g
   const int64_t tiles = sc.tx * ((sc.H + TILE - 1) / TILE);
   by_channels(sc.C, [&](auto ct) {
     std::mutex mu;
-    run_workers([&](std::atomic<int64_t>& next) {
+    dibrgs::run_workers([&](std::atomic<int64_t>& next) {
       dibrgs::Workspace<T> ws;
       dibrgs::Stats st;
       for (int64_t t = next++; t < tiles; t = next++)
@@ -733,19 +720,32 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch:
   return {S, A, B, C};
 }
 
+namespace {
+
+// k dS/dx applied to G plus, with wl defined, kl sign(x - y) wl (ssim.h backward); G and wl
+// contiguous, of x's dtype.
+torch::Tensor ssim_adjoint(const torch::Tensor& G, double k, const torch::Tensor& x, const torch::Tensor& y,
+                           const torch::Tensor& A, const torch::Tensor& B, const torch::Tensor& C,
+                           const torch::Tensor& g, const torch::Tensor& wl, double kl) {
+  auto dx = torch::empty_like(x);
+  const int r = static_cast<int>(g.numel() / 2);
+  const auto gc = g.to(x.scalar_type()).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_ssim_backward", [&] {
+    dibrgs::ssim::backward<scalar_t>(G.data_ptr<scalar_t>(), static_cast<scalar_t>(k), x.data_ptr<scalar_t>(),
+                                     y.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(),
+                                     C.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2), gc.data_ptr<scalar_t>(),
+                                     r, wl.defined() ? wl.data_ptr<scalar_t>() : nullptr, static_cast<scalar_t>(kl),
+                                     dx.data_ptr<scalar_t>());
+  });
+  return dx;
+}
+
+}  // namespace
+
 // Gradient of sum(gS * S) with respect to x (ssim.h), from ssim_forward's factors.
 torch::Tensor ssim_backward(torch::Tensor gS, torch::Tensor x, torch::Tensor y, torch::Tensor A, torch::Tensor B,
                             torch::Tensor C, torch::Tensor g) {
-  gS = gS.to(x.scalar_type()).contiguous();
-  auto dx = torch::empty_like(x);
-  const int r = static_cast<int>(g.numel() / 2);
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_ssim_backward", [&] {
-    dibrgs::ssim::backward<scalar_t>(gS.data_ptr<scalar_t>(), scalar_t(1), x.data_ptr<scalar_t>(),
-                                     y.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(),
-                                     C.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2), g.data_ptr<scalar_t>(),
-                                     r, nullptr, scalar_t(0), dx.data_ptr<scalar_t>());
-  });
-  return dx;
+  return ssim_adjoint(gS.to(x.scalar_type()).contiguous(), 1.0, x, y, A, B, C, g, torch::Tensor(), 0.0);
 }
 
 // The training loss (training/losses.py photometric_loss) of x against y ((H, W, C) each) in one
@@ -778,17 +778,7 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
   ws = ws.to(x.scalar_type()).contiguous();
   // The SSIM term's upstream gradient is -lam G ws: ws and its factor go to the adjoint apart, the
   // L1 term's gradient is added in the same pass (ssim.h backward).
-  auto dx = torch::empty_like(x);
-  const int r = static_cast<int>(g.numel() / 2);
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "dibrgs_photometric_backward", [&] {
-    const auto gc = g.to(x.scalar_type()).contiguous();
-    dibrgs::ssim::backward<scalar_t>(ws.data_ptr<scalar_t>(), static_cast<scalar_t>(-lam * G), x.data_ptr<scalar_t>(),
-                                     y.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), B.data_ptr<scalar_t>(),
-                                     C.data_ptr<scalar_t>(), x.size(0), x.size(1), x.size(2), gc.data_ptr<scalar_t>(),
-                                     r, wl.data_ptr<scalar_t>(), static_cast<scalar_t>((1.0 - lam) * G),
-                                     dx.data_ptr<scalar_t>());
-  });
-  return dx;
+  return ssim_adjoint(ws, -lam * G, x, y, A, B, C, g, wl, (1.0 - lam) * G);
 }
 
 // Expected depth of a render (render/depth.py): depth_acc / alpha where alpha > 0, else 0, for
