@@ -129,7 +129,7 @@ def iteration(t: Trainer, frame, it: int) -> None:
     """The trainer's step (training/trainer.py ``_loop``), without its book-keeping."""
     m, model, strategy, cfg = t.method, t.method.model, t.method.strategy, t.cfg
     m.set_lr(it)
-    img, _a, _d, info = render_model(model, frame.cam, t.bg)
+    img, _a, _d, info = render_model(model, frame.cam, t.bg, "RGB")
     strategy.step_pre_backward(model, m.optimizer, it, info)
     loss = photometric_loss(img, frame.image, lam=cfg.lambda_dssim, mask=frame.mask)
     if cfg.lambda_volume:

@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Protocol, Sequence
 import torch
 
 from ..camera.pinhole import Camera
-from ..render import rasterize
+from ..render import RenderMode, rasterize
 
 
 @dataclass
@@ -77,19 +77,22 @@ class GaussianModel(Protocol):
         """Everything :meth:`from_state` needs: ``{"model": state_dict, ...shape metadata}``."""
 
 
-def render_model(model: GaussianModel, cam: CameraTensors, background: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any] | None]:
+def render_model(model: GaussianModel, cam: CameraTensors, background: torch.Tensor,
+                 render_mode: RenderMode = "RGB+ED"
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, dict[str, Any] | None]:
     """Render ``model`` from ``cam``: ``(image (H,W,3), alpha (H,W,1), depth (H,W,1), info)``.
 
     ``info`` is the rasterizer's meta plus ``width``, ``height``, the model's ``aux`` and the
     ``gaussians`` themselves; None when the model shows this camera no Gaussian (the image
-    is then the background, alpha and depth 0).
+    is then the background, alpha and depth 0). ``render_mode`` as :func:`rasterize`'s:
+    ``"RGB"`` (a training step) returns None for alpha and depth.
     """
     W, H = cam.cam.width, cam.cam.height
     g = model.gaussians(cam)
     if g.means.shape[0] == 0:
-        zero = torch.zeros(H, W, 1)
+        zero = None if render_mode == "RGB" else torch.zeros(H, W, 1)
         return background.expand(H, W, 3).clone(), zero, zero, None
     img, alpha, depth, meta = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
-                                        cam.w2c, cam.K, W, H, background=background, near=model.near)
+                                        cam.w2c, cam.K, W, H, background=background, near=model.near,
+                                        render_mode=render_mode)
     return img, alpha, depth, {**meta, "width": W, "height": H, "aux": g.aux, "gaussians": g}

@@ -37,6 +37,7 @@ __all__ = [
     "ENV_BACKEND",
     "Backend",
     "Projected",
+    "RenderMode",
     "composite",
     "get_backend",
     "project_gaussians",
@@ -53,6 +54,10 @@ init_vml()
 
 Backend = Literal["auto", "fast", "reference"]
 _BACKENDS = get_args(Backend)
+#: What :func:`rasterize` composites: the features and, with ``"+ED"``, the alpha and the
+#: expected depth (gsplat's names).
+RenderMode = Literal["RGB", "RGB+ED"]
+_RENDER_MODES = get_args(RenderMode)
 ENV_BACKEND = "DIBRGS_RASTERIZER"
 _backend: Backend | None = None
 
@@ -129,7 +134,8 @@ def rasterize(
     near: float = 0.01,
     far: float = 1e10,
     backend: Backend | None = None,
-) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+    render_mode: RenderMode = "RGB+ED",
+) -> tuple[Tensor, Tensor | None, Tensor | None, dict[str, Any]]:
     """Render N 3D Gaussians with one pinhole camera.
 
     Args:
@@ -149,12 +155,19 @@ def rasterize(
             :func:`get_backend`. The fast path projects in C++ too, unless
             ``viewmat`` or ``K`` requires grad (then the torch projection
             carries their gradients).
+        render_mode: ``"RGB+ED"`` composites each Gaussian's depth and a one
+            beside its features, for the alpha and the expected depth;
+            ``"RGB"`` the features alone (what a photometric loss reads; two
+            channels of five fewer made a training step 5-6 % faster at 256x256
+            and 8-9 % at 512x512) and returns None for both (the alpha is still
+            composited, not returned, when a background is blended).
 
     Returns:
         ``(image (H, W, C), alpha (H, W, 1), depth (H, W, 1), meta)``.
         ``depth`` is the *normalised* expected camera z,
         ``sum_i w_i z_i / alpha`` (0 where ``alpha == 0``); multiply by
-        ``alpha`` for the accumulated form. ``meta`` holds ``"radii"`` (N,)
+        ``alpha`` for the accumulated form. ``alpha`` and ``depth`` are None
+        with ``render_mode="RGB"``. ``meta`` holds ``"radii"`` (N,)
         int32 pixels, ``"visible"`` (N,) bool, ``"means2d"`` (N, 2) (call its
         ``retain_grad()`` before backward to read its ``.grad``),
         ``"depths"`` (N,) and ``"conics"`` (N, 3).
@@ -168,13 +181,25 @@ def rasterize(
         raise ValueError(f"shape mismatch: opacities {tuple(opacities.shape)}, colors {tuple(colors.shape)}")
     if width < 1 or height < 1:
         raise ValueError(f"image size must be positive, got {width}x{height}")
+    if render_mode not in _RENDER_MODES:
+        raise ValueError(f"rasterize: unknown render_mode {render_mode!r} (expected RGB or RGB+ED)")
     C = colors.shape[1]
     use_fast = uses_fast(backend, colors)
     if use_fast and not (viewmat.requires_grad or K.requires_grad):
         proj = fast.project_fast(means, quats, scales, viewmat, K, width, height, near, far)
     else:
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
-    if use_fast:
+    # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.
+    blend = background is not None and (background.requires_grad or any(background.reshape(-1).tolist()))
+    if render_mode == "RGB" and not blend:
+        if use_fast:
+            image = fast.composite_fast(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width,
+                                        height, (C,))[0]
+        else:
+            image = composite_reference(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width,
+                                        height)
+        alpha = depth_acc = None
+    elif use_fast:
         # The compositing's features are the colours, each Gaussian's depth and a one (for the
         # expected depth and alpha), read in place: a concatenated copy and its ones were about half a
         # millisecond of a 256x256 step on the calling thread.
@@ -185,12 +210,14 @@ def rasterize(
         feats = torch.cat([colors, proj.depths[:, None], torch.ones_like(proj.depths)[:, None]], dim=1)
         out = composite_reference(proj.means2d, proj.conics, opacities, feats, proj.depths, proj.radii, width, height)
         image, depth_acc, alpha = out[..., :C], out[..., C : C + 1], out[..., C + 1 : C + 2]
-    # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.
-    if background is not None and (background.requires_grad or any(background.reshape(-1).tolist())):
+    if blend:
         # (H,W,1) @ (1,C): the gradient to alpha is then a matmul, not a slow reduction over the
         # few channels (about 1 ms of a 256x256 step); a fixed black background adds nothing.
         image = image + (1.0 - alpha) @ background.to(image).reshape(1, -1)
-    depth = expected_depth(depth_acc, alpha, use_fast)
+    if render_mode == "RGB":
+        alpha = depth = None
+    else:
+        depth = expected_depth(depth_acc, alpha, use_fast)
     meta = {
         "radii": proj.radii,
         "visible": proj.visible,

@@ -2,7 +2,7 @@
 
 A training iteration calls, in this order::
 
-    img, alpha, depth, info = models.base.render_model(model, camera, background)
+    img, _alpha, _depth, info = models.base.render_model(model, camera, background, "RGB")
     strategy.step_pre_backward(model, optimizer, step, info)
     loss.backward()
     optimizer.step(); optimizer.zero_grad()

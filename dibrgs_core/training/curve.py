@@ -46,7 +46,7 @@ def heldout_scores(model: Any, frames: list[Frame], background: torch.Tensor) ->
     """PSNR and SSIM of ``model`` on each of ``frames`` (no autograd; over the pixels that hold data)."""
     ps, ss = [], []
     for f in frames:
-        img = render_model(model, f.cam, background)[0].clamp(0, 1)
+        img = render_model(model, f.cam, background, "RGB")[0].clamp(0, 1)
         ps.append(float(psnr(img, f.image, mask=f.mask)))
         ss.append(float(ssim(img, f.image, mask=f.mask)))
     return np.asarray(ps, dtype=np.float64), np.asarray(ss, dtype=np.float64)

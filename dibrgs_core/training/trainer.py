@@ -325,7 +325,7 @@ class Trainer:
                 it += 1
                 method.set_lr(it)
                 frame = self._next_frame(it, pseudo)
-                img, _alpha, _depth, info = render_model(model, frame.cam, self.bg)
+                img, _alpha, _depth, info = render_model(model, frame.cam, self.bg, "RGB")
                 strategy.step_pre_backward(model, method.optimizer, it, info)
                 # Through the view's colour transform (new views render without one).
                 seen, colour_penalty = method.as_photographed(img, frame.cam)

@@ -172,6 +172,31 @@ def test_rows_follow_growth_and_pruning(monkeypatch):
     assert ibr(Y[:0]).shape == (0, 8)
 
 
+def test_rows_cache_sees_writes_into_the_same_tensor(monkeypatch):
+    """The anchor tensor cached last is a hit without comparing its bits, so a write into it in
+    place (which bumps its version counter) must still resample what changed."""
+    ibr, cams = _ibr("pyramid")
+    X = _anchors(cams)
+    sampled = []
+    real = ibr._sample_rows
+
+    def counting(P):
+        sampled.append(P.shape[0])
+        return real(P)
+
+    monkeypatch.setattr(ibr, "_sample_rows", counting)
+    a = ibr(X)
+    assert torch.equal(ibr(X), a) and sampled == [X.shape[0]]  # the same tensor: a hit
+    with torch.no_grad():
+        X[3] += 0.25 * X[3].abs().max()
+    b = ibr(X)
+    assert sampled == [X.shape[0], 1]  # only the moved anchor
+    fresh, _ = _ibr("pyramid")
+    fresh.load_state_dict(ibr.state_dict())
+    assert torch.equal(b, fresh(X))
+    assert not torch.equal(b[3], a[3]) and torch.equal(b[:3], a[:3])
+
+
 def test_frozen_projection_cache_follows_parameters_and_anchors():
     ibr, cams = _ibr("pyramid")
     X = _anchors(cams)

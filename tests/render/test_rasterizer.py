@@ -293,6 +293,35 @@ def test_outputs_used_alone_give_the_reference_gradients(use):
         torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-7)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("bg", ["black", "grey"])
+def test_rgb_mode_gives_the_image_and_gradients_of_the_full_render(backend, bg):
+    """``render_mode="RGB"`` (a training step) composites the colours alone: the same image and,
+    for a loss on it, the same gradients, bit for bit, as the full render; no alpha or depth. A
+    background that is blended still gets its alpha composited (the image changes with it)."""
+    means, quats, scales, opac, cols = random_scene(11, 80)
+    W, H = 45, 31
+    vm, K = camera(W, H)
+    back = torch.zeros(3) if bg == "black" else torch.tensor([0.5, 0.25, 0.75])
+    wgt = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(8))
+    res = {}
+    for mode in ("RGB+ED", "RGB"):
+        inputs = [t.clone().requires_grad_() for t in (means, quats, scales, opac, cols)]
+        img, alpha, depth, meta = rasterize(*inputs, vm, K, W, H, background=back, backend=backend,
+                                            render_mode=mode)
+        meta["means2d"].retain_grad()
+        (img * wgt).sum().backward()
+        res[mode] = (img.detach(), [t.grad for t in inputs] + [meta["means2d"].grad], alpha, depth)
+    full, rgb = res["RGB+ED"], res["RGB"]
+    assert rgb[2] is None and rgb[3] is None and full[2] is not None and full[3] is not None
+    assert torch.equal(rgb[0], full[0])
+    assert float(full[1][0].abs().sum()) > 0
+    for a, b in zip(full[1], rgb[1]):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="render_mode"):
+        rasterize(means, quats, scales, opac, cols, vm, K, W, H, render_mode="D")
+
+
 @pytest.mark.stability
 def test_expected_depth_node_equals_the_torch_formula():
     """render/depth.py: the C++ node and the torch formula give the same depth and gradients,
