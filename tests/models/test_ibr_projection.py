@@ -142,12 +142,9 @@ def test_views_of_different_sizes_each_keep_their_own(encoder):
         _ibr(encoder, views=([a[0], a[1]], [ca[0], cb[1]]))
 
 
-def test_rows_follow_growth_and_pruning(monkeypatch):
-    """Adding, pruning and reordering anchors: carried rows are reused, only new positions are
-    sampled, and the result is bit-identical to a fresh module's (which samples all at once)."""
-    ibr, cams = _ibr("pyramid")
-    X = _anchors(cams)
-    sampled = []
+def _count_sampling(monkeypatch, ibr) -> list[int]:
+    """The number of positions of each call of ``ibr._sample_rows`` from now on."""
+    sampled: list[int] = []
     real = ibr._sample_rows
 
     def counting(P):
@@ -155,6 +152,15 @@ def test_rows_follow_growth_and_pruning(monkeypatch):
         return real(P)
 
     monkeypatch.setattr(ibr, "_sample_rows", counting)
+    return sampled
+
+
+def test_rows_follow_growth_and_pruning(monkeypatch):
+    """Adding, pruning and reordering anchors: carried rows are reused, only new positions are
+    sampled, and the result is bit-identical to a fresh module's (which samples all at once)."""
+    ibr, cams = _ibr("pyramid")
+    X = _anchors(cams)
+    sampled = _count_sampling(monkeypatch, ibr)
     a = ibr(X)
     assert sampled == [X.shape[0]]
     assert torch.equal(ibr(X.clone()), a) and len(sampled) == 1  # same positions: no resampling
@@ -177,14 +183,7 @@ def test_rows_cache_sees_writes_into_the_same_tensor(monkeypatch):
     place (which bumps its version counter) must still resample what changed."""
     ibr, cams = _ibr("pyramid")
     X = _anchors(cams)
-    sampled = []
-    real = ibr._sample_rows
-
-    def counting(P):
-        sampled.append(P.shape[0])
-        return real(P)
-
-    monkeypatch.setattr(ibr, "_sample_rows", counting)
+    sampled = _count_sampling(monkeypatch, ibr)
     a = ibr(X)
     assert torch.equal(ibr(X), a) and sampled == [X.shape[0]]  # the same tensor: a hit
     with torch.no_grad():
