@@ -52,6 +52,7 @@ from ..models.spawn import true_indices
 from ..training.config import GrowthConfig
 from .base import Strategy
 from .ops import cat_rows, keep_rows
+from .stats import add_grad_norms
 
 log = logging.getLogger("dibrgs.strategy")
 
@@ -112,19 +113,15 @@ class AnchorStrategy(Strategy):
                width: int, height: int) -> None:
         """Accumulate opacity and gradient statistics of one rendered view (``visible``: the
         rasterizer's (N,) mask of Gaussians with a positive radius, its meta's ``"visible"``)."""
-        vis = dec.anchor_visible
+        # Integer positions and index_add_, not boolean masks (each a nonzero and a gather); the
+        # sums are the same, one addition a row.
+        aidx = true_indices(dec.anchor_visible)
         op = dec.neural_opacity.detach().clamp_min(0.0).view(-1, self.k).sum(1)
-        self.opacity_accum[vis] += op
-        self.anchor_denom[vis] += 1
-        if means2d_grad is None:
-            return
-        aidx = true_indices(vis)
-        gidx = (aidx[:, None] * self.k + torch.arange(self.k)).reshape(-1)[dec.selected]
-        seen = visible.reshape(-1)
-        g = means2d_grad.detach()[seen] * torch.tensor([width / 2.0, height / 2.0])
-        norm = torch.nan_to_num(g.norm(dim=1), nan=0.0, posinf=0.0)
-        self.offset_grad.index_add_(0, gidx[seen], norm)
-        self.offset_denom.index_add_(0, gidx[seen], torch.ones_like(norm))
+        self.opacity_accum.index_add_(0, aidx, op)
+        self.anchor_denom.index_add_(0, aidx, torch.ones_like(op))
+        if means2d_grad is not None:
+            add_grad_norms(self.offset_grad, self.offset_denom, means2d_grad, visible, width, height,
+                           aidx, dec.selected, self.k)
 
     # -- growth and pruning ----------------------------------------------------
     @torch.no_grad()

@@ -27,6 +27,7 @@ from ..render.projection import quat_to_rotmat
 from ..training.config import GS3DConfig
 from .base import Strategy
 from .ops import cat_rows, keep_rows, swap_param
+from .stats import add_grad_norms
 
 log = logging.getLogger("dibrgs.gs3d")
 
@@ -55,13 +56,11 @@ class DensifyStrategy(Strategy):
 
     @torch.no_grad()
     def update(self, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int, height: int) -> None:
-        seen = radii.reshape(-1) > 0
-        self.max_radii[seen] = torch.maximum(self.max_radii[seen], radii.reshape(-1)[seen].float())
-        if means2d_grad is None:
-            return
-        g = means2d_grad.detach()[seen] * torch.tensor([width / 2.0, height / 2.0])
-        self.grad_accum[seen] += torch.nan_to_num(g.norm(dim=1), nan=0.0, posinf=0.0)
-        self.denom[seen] += 1
+        # The radii are >= 0 and 0 where unseen: the running maximum needs no mask.
+        r = radii.reshape(-1)
+        torch.maximum(self.max_radii, r.to(self.max_radii.dtype), out=self.max_radii)
+        if means2d_grad is not None:
+            add_grad_norms(self.grad_accum, self.denom, means2d_grad, r > 0, width, height)
 
     def step_post_backward(self, model: Gaussians3D, optimizer: torch.optim.Optimizer, step: int,
                            info: dict[str, Any] | None) -> dict[str, int]:
