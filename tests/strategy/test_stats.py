@@ -90,5 +90,8 @@ def test_mismatched_counts_are_an_error():
     try:
         with pytest.raises(RuntimeError, match="selected offsets"):
             add_grad_norms(acc, den, grad[:-1], visible[:-1], 32, 32, aidx, selected, 10)
+        with pytest.raises(RuntimeError, match="outside acc"):
+            add_grad_norms(acc[:-10], den[:-10], grad, visible, 32, 32, aidx + 40 - int(aidx.max()) - 1, selected, 10)
     finally:
         set_backend(None)
+    assert not acc.any() and not den.any()  # nothing added before the errors

@@ -1030,17 +1030,24 @@ void grad_norm_stats(torch::Tensor acc, torch::Tensor denom, torch::Tensor grad,
   const bool* pv = vis.data_ptr<bool>();
   const int64_t* pa = anchors ? ai.data_ptr<int64_t>() : nullptr;
   const bool* ps = anchors ? sel.data_ptr<bool>() : nullptr;
-  const int64_t P = anchors ? sel.numel() : G, n = acc.numel();
+  const int64_t P = anchors ? sel.numel() : G, n = acc.numel(), M = ai.numel();
+  // Checked before anything is added: an error leaves the sums as they were.
+  if (anchors) {
+    const int64_t ns = std::count(ps, ps + P, true);
+    TORCH_CHECK(ns == G, "grad_norm_stats: ", ns, " selected offsets for ", G, " rasterized Gaussians");
+    TORCH_CHECK(M == 0 || (*std::min_element(pa, pa + M) >= 0 && (*std::max_element(pa, pa + M) + 1) * k <= n),
+                "grad_norm_stats: an anchor's slots outside acc");
+  } else {
+    TORCH_CHECK(G <= n, "grad_norm_stats: more Gaussians than slots");
+  }
   float* pacc = acc.data_ptr<float>();
   float* pden = denom.data_ptr<float>();
   const float fx = static_cast<float>(sx), fy = static_cast<float>(sy);
   int64_t i = 0;  // the rasterized Gaussian of slot p
   for (int64_t p = 0; p < P; ++p) {
     if (anchors && !ps[p]) continue;
-    TORCH_CHECK(i < G, "grad_norm_stats: more selected offsets than rasterized Gaussians");
     if (pv[i]) {
       const int64_t slot = anchors ? pa[p / k] * k + p % k : i;
-      TORCH_CHECK(slot >= 0 && slot < n, "grad_norm_stats: a slot outside acc");
       const float gx = pg[2 * i] * fx, gy = pg[2 * i + 1] * fy;
       float v = std::sqrt(std::fma(gy, gy, gx * gx));
       if (std::isnan(v) || std::isinf(v)) v = 0.0f;
@@ -1049,7 +1056,6 @@ void grad_norm_stats(torch::Tensor acc, torch::Tensor denom, torch::Tensor grad,
     }
     ++i;
   }
-  TORCH_CHECK(i == G, "grad_norm_stats: ", i, " selected offsets for ", G, " rasterized Gaussians");
 }
 
 // The IBR projection P (project_rows.h) of the rows of rows (N, K) that mask (N,) bool selects (all
