@@ -195,3 +195,26 @@ def test_growth_respects_the_anchor_ceiling():
     r = s.adjust(m, opt)
     assert r.added == 5 and m.num_anchors == 55 and s.capped > 0
     check_optimizer_state(m, opt)
+
+
+def test_new_cells_match_row_wise_unique():
+    """Growth's cell bookkeeping (packed one-dimensional keys, or rows when the cells span more
+    than 62 bits) gives torch's row-wise unique: the same cells in the same order, the same inverse
+    and the same new cells, so growth adds the same anchors in the same order."""
+    from dibrgs_core.strategy.anchor import _new_cells
+
+    g = torch.Generator().manual_seed(0)
+    seen = set()
+    for trial in range(60):
+        n, m = int(torch.randint(1, 300, (1,), generator=g)), int(torch.randint(1, 200, (1,), generator=g))
+        scale = [3, 50, 10**6, 10**15][trial % 4]  # the last overflows the packed keys
+        cand = torch.randint(-scale, scale, (n, 3), generator=g)
+        cand = torch.cat([cand, cand[: n // 2]])  # repeated cells
+        existing = torch.cat([torch.randint(-scale, scale, (m, 3), generator=g), cand[: n // 3]])
+        cells, inv, new = _new_cells(cand, existing)
+        want, want_inv = torch.unique(cand, dim=0, return_inverse=True)
+        assert torch.equal(cells, want) and torch.equal(inv, want_inv)
+        taken = {tuple(r) for r in existing.tolist()}
+        assert new.tolist() == [tuple(r) not in taken for r in want.tolist()]
+        seen.update(new.tolist())
+    assert seen == {True, False}  # both new and occupied cells were met
