@@ -78,10 +78,10 @@ def _new_cells(cand: torch.Tensor, existing: torch.Tensor) -> tuple[torch.Tensor
     int64 key each (the same order) make them one-dimensional, unless the cells span more than
     62 bits (a stray point far out), where the rows are compared as rows."""
     both = torch.cat([cand, existing])
-    lo, hi = both.min(0).values, both.max(0).values
-    span = hi - lo + 1
-    if float(span.double().prod()) < 2.0 ** 62:
-        sy, sz = int(span[1]), int(span[2])
+    lo, hi = both.min(0).values.tolist(), both.max(0).values.tolist()
+    span = [h - l + 1 for h, l in zip(hi, lo)]  # Python integers: exact at any coordinates
+    if span[0] * span[1] * span[2] < 2 ** 62:
+        sy, sz = span[1], span[2]
 
         def key(c: torch.Tensor) -> torch.Tensor:
             return ((c[:, 0] - lo[0]) * sy + (c[:, 1] - lo[1])) * sz + (c[:, 2] - lo[2])

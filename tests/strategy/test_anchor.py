@@ -207,7 +207,7 @@ def test_new_cells_match_row_wise_unique():
     seen = set()
     for trial in range(60):
         n, m = int(torch.randint(1, 300, (1,), generator=g)), int(torch.randint(1, 200, (1,), generator=g))
-        scale = [3, 50, 10**6, 10**15][trial % 4]  # the last overflows the packed keys
+        scale = [3, 50, 10**6, 10**15, 2**62][trial % 5]  # the last two overflow the packed keys
         cand = torch.randint(-scale, scale, (n, 3), generator=g)
         cand = torch.cat([cand, cand[: n // 2]])  # repeated cells
         existing = torch.cat([torch.randint(-scale, scale, (m, 3), generator=g), cand[: n // 3]])
