@@ -99,9 +99,10 @@ def anchor_voxel_size(points: np.ndarray, cfg: ModelConfig, scale: float,
 class Decoded:
     """Neural Gaussians decoded for one camera (activated values, rasterizer-ready).
 
-    ``anchor_visible`` (N,) marks the anchors inside the frustum; ``neural_opacity``
-    (M*k,) the raw Tanh opacities of those anchors' Gaussians and ``selected``
-    (M*k,) the ones kept (opacity > 0), i.e. the rows of ``means`` etc.
+    ``anchor_visible`` (N,) marks the anchors inside the frustum and ``anchor_index``
+    (M,) int64 is their positions, increasing; ``neural_opacity`` (M*k,) the raw Tanh
+    opacities of those anchors' Gaussians and ``selected`` (M*k,) the ones kept
+    (opacity > 0), i.e. the rows of ``means`` etc.
     """
 
     means: torch.Tensor
@@ -110,6 +111,7 @@ class Decoded:
     opacities: torch.Tensor
     colors: torch.Tensor
     anchor_visible: torch.Tensor
+    anchor_index: torch.Tensor
     neural_opacity: torch.Tensor
     selected: torch.Tensor
 
@@ -245,7 +247,8 @@ class NeuralGaussians(nn.Module):
         neural_opacity = opacity.reshape(-1)  # for the strategy's statistics, outside the loss's graph
         g = spawn(opacity, color, cov, anchor, log_s, offset)
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
-                       anchor_visible=visible, neural_opacity=neural_opacity, selected=g.selected)
+                       anchor_visible=visible, anchor_index=idx, neural_opacity=neural_opacity,
+                       selected=g.selected)
 
     # -- the model protocol ------------------------------------------------------
     def gaussians(self, cam: CameraTensors) -> Gaussians:

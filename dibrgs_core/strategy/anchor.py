@@ -140,9 +140,9 @@ class AnchorStrategy(Strategy):
                width: int, height: int) -> None:
         """Accumulate opacity and gradient statistics of one rendered view (``visible``: the
         rasterizer's (N,) mask of Gaussians with a positive radius, its meta's ``"visible"``)."""
-        # Integer positions and index_add_, not boolean masks (each a nonzero and a gather); the
-        # sums are the same, one addition a row.
-        aidx = true_indices(dec.anchor_visible)
+        # Integer positions (the decoder's own) and index_add_, not boolean masks (each a nonzero
+        # and a gather); the sums are the same, one addition a row.
+        aidx = dec.anchor_index
         op = dec.neural_opacity.detach().clamp_min(0.0).view(-1, self.k).sum(1)
         self.opacity_accum.index_add_(0, aidx, op)
         self.anchor_denom.index_add_(0, aidx, torch.ones_like(op))
