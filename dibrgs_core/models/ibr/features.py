@@ -270,10 +270,10 @@ class IBRFeatures(nn.Module):
         memory, layout and version counter, which every in-place write bumps), is a hit
         without comparing its bits (a comparison of the whole tensor each training step).
         """
-        seen = self._rows_of
-        if (self._rows is not None and seen is not None and anchors.data_ptr() == seen[0].data_ptr()
-                and anchors._version == seen[1] and anchors.shape == seen[0].shape
-                and anchors.stride() == seen[0].stride() and anchors.dtype == seen[0].dtype):
+        seen = self._rows_of  # set with self._rows, never without
+        if (seen is not None and anchors.data_ptr() == seen[0].data_ptr() and anchors._version == seen[1]
+                and anchors.shape == seen[0].shape and anchors.stride() == seen[0].stride()
+                and anchors.dtype == seen[0].dtype):
             return self._rows[1], self._rows[2]
         X = anchors.detach().to(dtype=torch.float32, device=self.K.device).contiguous()
         bits = X.view(torch.int32)
