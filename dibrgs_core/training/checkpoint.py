@@ -99,7 +99,8 @@ def _read(path: Path, what: str, todo: str) -> dict[str, Any]:
     except OSError:
         raise
     except Exception as e:  # torch raises many types for truncated or foreign files
-        raise InputError(path, f"unreadable {what} ({type(e).__name__}: {str(e).splitlines()[0][:200]}); "
+        first = (str(e).splitlines() or [""])[0][:200]  # some carry no message (a MemoryError)
+        raise InputError(path, f"unreadable {what} ({type(e).__name__}{': ' + first if first else ''}); "
                                f"{todo}") from None
     if not isinstance(st, dict):
         raise InputError(path, f"not a DIBR-GS {what} (a {type(st).__name__}); {todo}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -537,13 +538,16 @@ def test_a_fresh_run_replaces_the_earlier_runs_outputs(scene24, finished_run, tm
 # =============================================================================================
 # D. The operating system says no: one line naming the path and what to do, exit 1 (2 for input)
 # =============================================================================================
-@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "foreign"])
+@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "corrupt_no_message", "foreign"])
 def test_unreadable_checkpoint(scene24, finished_run, tmp_path, what):
     work = copy_run(finished_run, tmp_path / "w")
     ck = work / CHECKPOINT
     data = ck.read_bytes()
+    # These bytes make torch.load raise a MemoryError without a message (about one random 4 KiB file
+    # in 300 does; the error line then failed to format and came out as an internal error).
+    no_message = random.Random(454).randbytes(4096)
     ck.write_bytes({"empty": b"", "truncated": data[: len(data) // 2], "corrupt": os.urandom(4096),
-                    "foreign": b""}[what])
+                    "corrupt_no_message": no_message, "foreign": b""}[what])
     if what == "foreign":
         torch.save([1, 2, 3], ck)
     before = ck.read_bytes()
