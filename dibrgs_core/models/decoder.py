@@ -35,7 +35,16 @@ Fusion = tuple[nn.Linear, nn.Linear]  # (E_ref, E_mod)
 
 def head_activation(head: nn.Module) -> int | None:
     """decoder.h's code of a head's activation, or None when ``head`` is not a head as above."""
-    layers = list(head.children()) if isinstance(head, nn.Sequential) else []
+    return _activation(_layers_of(head))
+
+
+def _layers_of(head: nn.Module) -> tuple[nn.Module, ...]:
+    # Iterating a Sequential reads its layers as they are; children() and indexing each cost a
+    # few microseconds of Python a call, a dozen calls a step.
+    return tuple(head) if isinstance(head, nn.Sequential) else ()
+
+
+def _activation(layers: tuple[nn.Module, ...]) -> int | None:
     if not (3 <= len(layers) <= 4 and isinstance(layers[0], nn.Linear) and isinstance(layers[1], nn.ReLU)
             and isinstance(layers[2], nn.Linear) and layers[0].bias is not None and layers[2].bias is not None):
         return None
@@ -72,14 +81,15 @@ def decode(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dis
         heads: decoder heads as in the module docstring, fed ``F + 4`` inputs.
         backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
     """
-    acts = [head_activation(h) for h in heads]
+    layers = [_layers_of(h) for h in heads]
+    acts = [_activation(ls) for ls in layers]
     fusion = None if ibr is None else fusion
     # The C++ node gives the camera centre no gradient: a centre that wants one takes the torch path.
     if (heads and feat.dim() == 2 and feat.dtype in (torch.float32, torch.float64) and None not in acts
             and not centre.requires_grad and uses_fast(backend, feat)):
         params: list[Tensor] = []
-        for h in heads:
-            params += [h[0].weight, h[0].bias, h[2].weight, h[2].bias]
+        for ls in layers:
+            params += [ls[0].weight, ls[0].bias, ls[2].weight, ls[2].bias]
         if fusion is not None:
             params += [fusion[0].weight, fusion[0].bias, fusion[1].weight, fusion[1].bias]
         tensors = [feat, anchor, centre] + ([ibr] if fusion is not None else []) + params

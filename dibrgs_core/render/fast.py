@@ -296,8 +296,9 @@ class _Project(torch.autograd.Function):
         n = means.shape[0]
         g_m2 = means.new_zeros(n, 2) if g_m2 is None else g_m2.contiguous()
         g_con = means.new_zeros(n, 3) if g_con is None else g_con.contiguous()
-        # The depths' gradient is a column of the compositing's feature gradient: read with its stride.
-        g_dep = means.new_zeros(n) if g_dep is None else g_dep
+        # The depths' gradient is a column of the compositing's feature gradient: read with its
+        # stride. None (colours alone rendered) is one zero read N times (stride 0), not N zeros.
+        g_dep = means.new_zeros(1).expand(n) if g_dep is None else g_dep
         gm, gq, gs = extension().project_backward(means, quats, scales, K, viewmat, *ctx.args, g_m2, g_con, g_dep)
         return gm, gq, gs, None, None, None, None, None, None
 

@@ -64,20 +64,17 @@ class _Tensors:
             beta1, beta2 = group["betas"]
             row = (group["lr"], float(beta1), float(beta2), group["eps"], group["weight_decay"],
                    float(bool(group.get("decoupled_weight_decay", False))))
-            for p in group["params"]:
-                g = p.grad
-                if g is None:
-                    continue
-                st = state.get(p)
-                if not st:  # torch's own lazy state initialisation, for the whole group
-                    opt._init_group(group, [], [], [], [], [], [])
-                    st = state[p]
-                self.params.append(p)
-                self.grads.append(g)
-                self.exp_avgs.append(st["exp_avg"])
-                self.exp_avg_sqs.append(st["exp_avg_sq"])
-                self.steps.append(st["step"])
-                self.hyper.extend(row)
+            ps = [p for p in group["params"] if p.grad is not None]
+            sts = [state.get(p) for p in ps]
+            if not all(sts):  # torch's own lazy state initialisation, for the whole group
+                opt._init_group(group, [], [], [], [], [], [])
+                sts = [state[p] for p in ps]
+            self.params += ps
+            self.grads += [p.grad for p in ps]
+            self.exp_avgs += [st["exp_avg"] for st in sts]
+            self.exp_avg_sqs += [st["exp_avg_sq"] for st in sts]
+            self.steps += [st["step"] for st in sts]
+            self.hyper += row * len(ps)
         return True
 
     def _truncate(self, n: int) -> None:

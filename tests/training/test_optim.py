@@ -101,6 +101,29 @@ def test_the_step_runs_in_the_extension_when_the_rasterizer_does(monkeypatch):
         assert torch.allclose(p, q, rtol=1e-5, atol=1e-6)
 
 
+def test_a_group_whose_tensors_get_gradients_at_different_steps_follows_torch():
+    """Several tensors a group (the decoders' layers), some without a gradient at first: the state
+    is made for the whole group when one needs it, and a tensor without a gradient is left as it is."""
+    torch.manual_seed(2)
+    base = [torch.randn(s) for s in SHAPES[3:7]]
+    pairs = []
+    for cls in (torch.optim.Adam, Adam):
+        ps = [b.clone().requires_grad_() for b in base]
+        pairs.append((ps, cls([{"params": ps[:3], "lr": 1e-2}, {"params": ps[3:], "lr": 3e-3}], lr=0.0)))
+    gen = torch.Generator().manual_seed(5)
+    for it in range(6):
+        grads = [torch.randn(b.shape, generator=gen) for b in base]
+        for ps, opt in pairs:
+            for i, (p, g) in enumerate(zip(ps, grads)):
+                p.grad = g.clone() if it >= 2 or i != 1 else None  # the second tensor waits two steps
+            opt.step()
+    (a, ta), (b, ours) = pairs
+    for p, q in zip(a, b):
+        assert torch.allclose(p, q, rtol=1e-5, atol=1e-6)
+        assert float(ta.state[p]["step"]) == float(ours.state[q]["step"])
+    assert float(ours.state[b[1]]["step"]) == 4.0 and float(ours.state[b[0]]["step"]) == 6.0
+
+
 def test_other_dtypes_and_non_contiguous_tensors_take_torchs_step():
     p64 = torch.randn(5, dtype=torch.float64, requires_grad=True)
     pt = torch.randn(4, 3).t().contiguous().t().requires_grad_()  # non-contiguous

@@ -69,6 +69,27 @@ void for_blocks(int64_t nb, F&& fn) {
   });
 }
 
+// Uninitialised storage of n objects, constructed in place by their users.
+template <typename T>
+class RawArray {
+  static_assert(std::is_trivially_copyable<T>::value && std::is_trivially_destructible<T>::value,
+                "RawArray holds trivial types only");
+  T* p_;
+
+ public:
+  explicit RawArray(int64_t n) : p_(static_cast<T*>(::operator new(sizeof(T) * std::max<int64_t>(n, 1)))) {}
+  RawArray(RawArray&& o) noexcept : p_(o.p_) { o.p_ = nullptr; }
+  ~RawArray() { ::operator delete(p_); }
+  RawArray(const RawArray&) = delete;
+  RawArray& operator=(const RawArray&) = delete;
+  RawArray& operator=(RawArray&& o) noexcept {
+    std::swap(p_, o.p_);
+    return *this;
+  }
+  T& operator[](int64_t i) { return p_[i]; }
+  T* data() { return p_; }
+};
+
 // Stable LSD radix sort of the n (key, idx) pairs at key, idx by key (bytes that all keys
 // share skipped; the histograms of all bytes from one pass); k2, i2: scratch of n each. The
 // result ends in key, idx.
@@ -105,10 +126,9 @@ void radix_sort(K* key, int32_t* idx, int64_t n, K* k2, int32_t* i2) {
 // halves are sorted side by side and merged, each thread writing its own part of the output
 // (a parallel radix pass would have both threads writing into every bucket: false sharing).
 template <typename K>
-void sort_by_key(std::vector<K>& key, std::vector<int32_t>& idx) {
-  const int64_t n = static_cast<int64_t>(key.size());
-  std::vector<K> k2(n);
-  std::vector<int32_t> i2(n);
+void sort_by_key(RawArray<K>& key, RawArray<int32_t>& idx, int64_t n) {
+  RawArray<K> k2(n);
+  RawArray<int32_t> i2(n);
   const int64_t T = at::get_num_threads();
   if (T < 2 || n < 8192) {
     radix_sort(key.data(), idx.data(), n, k2.data(), i2.data());
@@ -149,29 +169,9 @@ void sort_by_key(std::vector<K>& key, std::vector<int32_t>& idx) {
       }
     }
   });
-  key.swap(k2);
-  idx.swap(i2);
+  key = std::move(k2);
+  idx = std::move(i2);
 }
-
-// Uninitialised storage of n objects, constructed in place by their users.
-template <typename T>
-class RawArray {
-  static_assert(std::is_trivially_copyable<T>::value && std::is_trivially_destructible<T>::value,
-                "RawArray holds trivial types only");
-  T* p_;
-
- public:
-  explicit RawArray(int64_t n) : p_(static_cast<T*>(::operator new(sizeof(T) * std::max<int64_t>(n, 1)))) {}
-  RawArray(RawArray&& o) noexcept : p_(o.p_) { o.p_ = nullptr; }
-  ~RawArray() { ::operator delete(p_); }
-  RawArray(const RawArray&) = delete;
-  RawArray& operator=(const RawArray&) = delete;
-  RawArray& operator=(RawArray&& o) noexcept {
-    std::swap(p_, o.p_);
-    return *this;
-  }
-  T& operator[](int64_t i) { return p_[i]; }
-};
 
 // Order-preserving maps of a float / double to an unsigned integer.
 inline uint32_t depth_key(float d) {
@@ -227,10 +227,12 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
 // half in the other core's cache, this was most of the binning's serial part).
 template <typename S, typename R, typename D>
 RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
-                                  int64_t tx, int64_t ty, int64_t& nout, std::vector<int64_t>& area) {
+                                  int64_t tx, int64_t ty, int64_t& nout, RawArray<int64_t>& area) {
   typedef typename std::conditional<sizeof(D) == 4, uint32_t, uint64_t>::type K;
+  // Scratch left uninitialised: every entry is written before it is read (zeroing them was
+  // serial memsets of the calling thread, about 25 us a 256x256 step).
   RawArray<Bin> bins(N);
-  std::vector<uint8_t> alive(N);
+  RawArray<uint8_t> alive(N);
   const int64_t nb = block_count(N, 1024);
   std::vector<int64_t> first(nb + 1, 0);
   for_blocks(nb, [&](int64_t blk) {
@@ -243,17 +245,18 @@ RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R
   });
   for (int64_t blk = 0; blk < nb; ++blk) first[blk + 1] += first[blk];
   const int64_t nlive = first[nb];
-  std::vector<K> key(nlive);
-  std::vector<int32_t> live(nlive);
+  RawArray<K> key(nlive);
+  RawArray<int32_t> live(nlive);
   for_blocks(nb, [&](int64_t blk) {
     int64_t j = first[blk];
     for (int64_t i = N * blk / nb, e = N * (blk + 1) / nb; i < e; ++i)
       if (alive[i]) key[j] = depth_key(dep[i]), live[j++] = static_cast<int32_t>(i);
   });
-  sort_by_key(key, live);
+  sort_by_key(key, live, nlive);
   nout = nlive;
   RawArray<Bin> order(nlive);
-  area.assign(nlive + 1, 0);
+  area = RawArray<int64_t>(nlive + 1);
+  area[0] = 0;
   at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
     for (int64_t j = b; j < e; ++j) {
       const Bin& g = *new (&order[j]) Bin(bins[live[j]]);
@@ -285,7 +288,7 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
   RawArray<Bin> order(0);
   int64_t nlive = 0;
-  std::vector<int64_t> work;  // the rectangles' tiles, then their running sum (below)
+  RawArray<int64_t> work(0);  // the rectangles' tiles, then their running sum (below)
   AT_DISPATCH_FLOATING_TYPES(sdt, "dibrgs_bin_tiles", [&] {
     const scalar_t *pm = m.data_ptr<scalar_t>(), *pc = con.data_ptr<scalar_t>(), *po = op.data_ptr<scalar_t>();
     auto by_radius = [&](const auto* pr) {
@@ -303,12 +306,12 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   // scatter them (a tile's entries: the chunks in order, each in depth order). The chunks hold
   // equal numbers of rectangle tiles, not of Gaussians: the nearest Gaussians, first in the
   // order, cover the most tiles. Per-chunk tile counts are bounded to about 2^20 entries.
-  std::partial_sum(work.begin(), work.end(), work.begin());
+  std::partial_sum(work.data(), work.data() + nlive + 1, work.data());
   const int64_t nchunk =
       std::max<int64_t>(1, std::min(block_count(nlive, 512), (int64_t(1) << 20) / std::max<int64_t>(ntiles, 1)));
   std::vector<int64_t> cut(nchunk + 1);
   for (int64_t c = 0; c <= nchunk; ++c)
-    cut[c] = std::lower_bound(work.begin(), work.end(), work[nlive] * c / nchunk) - work.begin();
+    cut[c] = std::lower_bound(work.data(), work.data() + nlive + 1, work[nlive] * c / nchunk) - work.data();
   cut[nchunk] = nlive;
   struct Hit {
     int32_t tile, id;
