@@ -219,26 +219,30 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
   return true;
 }
 
-// The live Gaussians' bins in increasing depth, ties by index (keys: 32-bit for float32
-// depths, the same order as their exact double values). Blocks of the Gaussians build their
-// bins and keys in parallel and compact them in index order; the sort is parallel too. nout:
-// the number of live Gaussians; area (nout + 1): area[j + 1] the tiles of bin j's rectangle
-// (area[0] = 0), written with the bins (read back serially from the bins, their 64-byte records
-// half in the other core's cache, this was most of the binning's serial part).
+// The Gaussians' bins (indexed by Gaussian) and the live ones in increasing depth, ties by index
+// (keys: 32-bit for float32 depths, the same order as their exact double values). Blocks of the
+// Gaussians build their bins, keys and rectangles' tile counts in parallel and compact them in
+// index order; the sort is parallel too. live (nout): the live Gaussians in depth order; area
+// (nout + 1): area[j + 1] the tiles of live[j]'s rectangle (area[0] = 0). The bins are read in
+// depth order where the tiles are listed, not copied into it first: on two threads that copy and
+// its reading back each moved about half of the records between the cores' caches.
 template <typename S, typename R, typename D>
 RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
-                                  int64_t tx, int64_t ty, int64_t& nout, RawArray<int64_t>& area) {
+                                  int64_t tx, int64_t ty, int64_t& nout, RawArray<int32_t>& live,
+                                  RawArray<int64_t>& area) {
   typedef typename std::conditional<sizeof(D) == 4, uint32_t, uint64_t>::type K;
   // Scratch left uninitialised: every entry is written before it is read (zeroing them was
   // serial memsets of the calling thread, about 25 us a 256x256 step).
   RawArray<Bin> bins(N);
   RawArray<uint8_t> alive(N);
+  RawArray<int64_t> tiles(N);  // of each live Gaussian's rectangle
   const int64_t nb = block_count(N, 1024);
   std::vector<int64_t> first(nb + 1, 0);
   for_blocks(nb, [&](int64_t blk) {
     int64_t n = 0;
     for (int64_t i = N * blk / nb, e = N * (blk + 1) / nb; i < e; ++i) {
       alive[i] = make_bin(pm, pc, po, pr, i, tx, ty, &bins[i]);
+      if (alive[i]) tiles[i] = int64_t(bins[i].x1 - bins[i].x0) * (bins[i].y1 - bins[i].y0);
       n += alive[i];
     }
     first[blk + 1] = n;
@@ -246,7 +250,7 @@ RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R
   for (int64_t blk = 0; blk < nb; ++blk) first[blk + 1] += first[blk];
   const int64_t nlive = first[nb];
   RawArray<K> key(nlive);
-  RawArray<int32_t> live(nlive);
+  live = RawArray<int32_t>(nlive);
   for_blocks(nb, [&](int64_t blk) {
     int64_t j = first[blk];
     for (int64_t i = N * blk / nb, e = N * (blk + 1) / nb; i < e; ++i)
@@ -254,16 +258,12 @@ RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R
   });
   sort_by_key(key, live, nlive);
   nout = nlive;
-  RawArray<Bin> order(nlive);
   area = RawArray<int64_t>(nlive + 1);
   area[0] = 0;
   at::parallel_for(0, nlive, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t j = b; j < e; ++j) {
-      const Bin& g = *new (&order[j]) Bin(bins[live[j]]);
-      area[j + 1] = int64_t(g.x1 - g.x0) * (g.y1 - g.y0);
-    }
+    for (int64_t j = b; j < e; ++j) area[j + 1] = tiles[live[j]];
   });
-  return order;
+  return bins;
 }
 
 }  // namespace
@@ -286,15 +286,16 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
   const auto dep = depths.to(depths.scalar_type() == torch::kFloat32 ? torch::kFloat32 : torch::kFloat64).contiguous();
   const int64_t N = m.size(0);
   const int64_t tx = (W + TILE - 1) / TILE, ty = (H + TILE - 1) / TILE, ntiles = tx * ty;
-  RawArray<Bin> order(0);
+  RawArray<Bin> bins(0);
+  RawArray<int32_t> live(0);  // the live Gaussians in depth order
   int64_t nlive = 0;
   RawArray<int64_t> work(0);  // the rectangles' tiles, then their running sum (below)
   AT_DISPATCH_FLOATING_TYPES(sdt, "dibrgs_bin_tiles", [&] {
     const scalar_t *pm = m.data_ptr<scalar_t>(), *pc = con.data_ptr<scalar_t>(), *po = op.data_ptr<scalar_t>();
     auto by_radius = [&](const auto* pr) {
-      order = dep.scalar_type() == torch::kFloat32
-                  ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive, work)
-                  : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive, work);
+      bins = dep.scalar_type() == torch::kFloat32
+                 ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive, live, work)
+                 : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive, live, work);
     };
     if (rad.scalar_type() == torch::kInt32)
       by_radius(rad.data_ptr<int32_t>());
@@ -326,7 +327,8 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     std::vector<int64_t> cnt(ntiles, 0);
     ht.reserve(work[cut[c + 1]] - work[cut[c]]);
     for (int64_t j = cut[c]; j < cut[c + 1]; ++j) {
-      const Bin& g = order[j];
+      if (j + 8 < cut[c + 1]) __builtin_prefetch(&bins[live[j + 8]]);  // the depth order is random in memory
+      const Bin& g = bins[live[j]];
       for (int32_t y = g.y0; y < g.y1; ++y)
         for (int32_t x = g.x0; x < g.x1; ++x) {
           const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
