@@ -540,7 +540,9 @@ void reduce_gradients(const T* buf, const int32_t* pg, int64_t M, int64_t N, int
       const int64_t g0 = N * t / nt, g1 = N * (t + 1) / nt;
       std::fill(&acc[g0 * G], &acc[0] + g1 * G, T(0));
       for (int64_t k = 0; k < M; ++k) {
-        if (k + 16 < M) __builtin_prefetch(&acc[0] + pg[k + 16] * G, 1);
+        // Only its own rows: a prefetch for writing of the other thread's rows took their cache
+        // lines away from the core that was adding into them.
+        if (k + 16 < M && pg[k + 16] >= g0 && pg[k + 16] < g1) __builtin_prefetch(&acc[0] + pg[k + 16] * G, 1);
         const int64_t g = pg[k];
         if (g < g0 || g >= g1) continue;
         const T* b = buf + k * G;
