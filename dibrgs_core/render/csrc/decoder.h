@@ -135,7 +135,8 @@ void add_bias(T* y, const T* b, int64_t n, int64_t C, bool relu) {
   }
 }
 
-// gz (n, O) = g * act'(out) and its column sums added to db2 (O).
+// gz (n, O) = g * act'(out) and its column sums added to db2 (O). Without an activation gz is g
+// itself: the caller passes gz == g (out unread), and only the sums are taken.
 template <typename T>
 void output_grad(const T* g, const T* out, T* gz, T* db2, int64_t n, int64_t O, Act act) {
   for (int64_t r = 0; r < n; ++r) {
@@ -145,7 +146,7 @@ void output_grad(const T* g, const T* out, T* gz, T* db2, int64_t n, int64_t O, 
       for (int64_t o = 0; o < O; ++o) zr[o] = gr[o] * (T(1) - yr[o] * yr[o]);
     else if (act == SIGMOID)
       for (int64_t o = 0; o < O; ++o) zr[o] = gr[o] * yr[o] * (T(1) - yr[o]);
-    else
+    else if (zr != gr)
       for (int64_t o = 0; o < O; ++o) zr[o] = gr[o];
     for (int64_t o = 0; o < O; ++o) db2[o] += zr[o];
   }
