@@ -192,12 +192,7 @@ def rasterize(
     # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.
     blend = background is not None and (background.requires_grad or any(background.reshape(-1).tolist()))
     if render_mode == "RGB" and not blend:
-        if use_fast:
-            image = fast.composite_fast(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width,
-                                        height, (C,))[0]
-        else:
-            image = composite_reference(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width,
-                                        height)
+        image = composite(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, backend)
         alpha = depth_acc = None
     elif use_fast:
         # The compositing's features are the colours, each Gaussian's depth and a one (for the
