@@ -241,3 +241,30 @@ def test_projection_does_not_depend_on_threads():
     for nt in (2, 3):
         for i, (a, b) in enumerate(zip(runs[1], runs[nt])):
             assert torch.equal(a, b), (nt, i)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_projection_backward_without_a_depth_gradient_reads_zeros(dtype):
+    """A colours-only render passes no depth gradient (None) to the projection's backward: the
+    gradients equal those from a depth gradient of zeros, bit for bit, and differ from a nonzero
+    one (the depth gradient is read at all)."""
+    from dibrgs_core.render import fast
+
+    mod = fast.extension()
+    g = torch.Generator().manual_seed(11)
+    n = 1001
+    means = (torch.randn(n, 3, generator=g) * torch.tensor([2.0, 1.5, 1.0]) + torch.tensor([0.0, 0.0, 6.0])).to(dtype)
+    quats = torch.randn(n, 4, generator=g).to(dtype)
+    scales = (torch.rand(n, 3, generator=g) * 0.3 + 0.01).to(dtype)
+    K = torch.tensor([[120.0, 0.0, 80.0], [0.0, 120.0, 60.0], [0.0, 0.0, 1.0]])
+    w2c = torch.eye(4)
+    gm2, gcon = torch.randn(n, 2, generator=g).to(dtype), torch.randn(n, 3, generator=g).to(dtype)
+    args = (means, quats, scales, K, w2c, 160, 120, 0.01, 1e10, gm2, gcon)
+    without = mod.project_backward(*args, None)
+    zeros = mod.project_backward(*args, torch.zeros(n, dtype=dtype))
+    some = mod.project_backward(*args, torch.randn(n, generator=g).to(dtype))
+    for a, b in zip(without, zeros):
+        assert torch.equal(a, b)
+    assert not torch.equal(without[0], some[0])
+    with pytest.raises(RuntimeError, match="depths"):
+        mod.project_backward(*args, torch.zeros(n + 1, dtype=dtype))

@@ -327,7 +327,11 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     std::vector<int64_t> cnt(ntiles, 0);
     ht.reserve(work[cut[c + 1]] - work[cut[c]]);
     for (int64_t j = cut[c]; j < cut[c + 1]; ++j) {
-      if (j + 8 < cut[c + 1]) __builtin_prefetch(&bins[live[j + 8]]);  // the depth order is random in memory
+      if (j + 8 < cut[c + 1]) {  // the depth order is random in memory; a bin may span two lines
+        const char* ahead = reinterpret_cast<const char*>(&bins[live[j + 8]]);
+        __builtin_prefetch(ahead);
+        __builtin_prefetch(ahead + sizeof(Bin) - 1);
+      }
       const Bin& g = bins[live[j]];
       for (int32_t y = g.y0; y < g.y1; ++y)
         for (int32_t x = g.x0; x < g.x1; ++x) {
@@ -680,25 +684,31 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
 }
 
 // Backward projection: gradients (means (N, 3), quats (N, 4), scales (N, 3)) from those of
-// means2d (N, 2) and conics (N, 3), contiguous, and depths (N,), any stride.
+// means2d (N, 2) and conics (N, 3), contiguous, and depths (N,), any stride, or None (zero: a
+// colours-only render; a zero tensor made in Python was the first operator after the
+// compositing's backward, tens of microseconds on the serial path).
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                             torch::Tensor K, torch::Tensor w2c, int64_t W, int64_t H, double near,
-                                            double far,
-                                            torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_dep) {
+                                            double far, torch::Tensor g_m2, torch::Tensor g_con,
+                                            c10::optional<torch::Tensor> g_dep_opt) {
   const int64_t N = means.size(0);
+  torch::Tensor g_dep = g_dep_opt.has_value() ? *g_dep_opt : torch::Tensor();
   TORCH_CHECK(g_m2.is_contiguous() && g_m2.numel() == 2 * N && g_con.is_contiguous() && g_con.numel() == 3 * N &&
-                  g_dep.dim() == 1 && g_dep.size(0) == N,
+                  (!g_dep.defined() || (g_dep.dim() == 1 && g_dep.size(0) == N)),
               "project_backward: gradients must be means2d (N, 2) and conics (N, 3) contiguous, depths (N,)");
   for (const auto* g : {&g_m2, &g_con, &g_dep})
-    TORCH_CHECK(g->scalar_type() == means.scalar_type(), "project_backward: gradients in the means' dtype");
+    TORCH_CHECK(!g->defined() || g->scalar_type() == means.scalar_type(),
+                "project_backward: gradients in the means' dtype");
   auto gm = torch::empty_like(means);
   auto gq = torch::empty_like(quats);
   auto gs = torch::empty_like(scales);
-  const int64_t ds = g_dep.stride(0);
+  const int64_t ds = g_dep.defined() ? g_dep.stride(0) : 0;  // stride 0: one zero read N times
   const dibrgs::proj::Cam cm(camera_params(K, w2c).data(), W, H);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "dibrgs_project_backward", [&] {
+    const scalar_t zero = 0;
     const scalar_t *pm = means.data_ptr<scalar_t>(), *pq = quats.data_ptr<scalar_t>(), *ps = scales.data_ptr<scalar_t>();
-    const scalar_t *gm2 = g_m2.data_ptr<scalar_t>(), *gc = g_con.data_ptr<scalar_t>(), *gd = g_dep.data_ptr<scalar_t>();
+    const scalar_t *gm2 = g_m2.data_ptr<scalar_t>(), *gc = g_con.data_ptr<scalar_t>();
+    const scalar_t* gd = g_dep.defined() ? g_dep.data_ptr<scalar_t>() : &zero;
     scalar_t *om = gm.data_ptr<scalar_t>(), *oq = gq.data_ptr<scalar_t>(), *os = gs.data_ptr<scalar_t>();
     over_gaussians(N, [&](int64_t i, auto vec) {
       typedef typename std::conditional<decltype(vec)::value, dibrgs::VD, double>::type D;
