@@ -81,26 +81,37 @@ def decode(feat: Tensor, ibr: Tensor | None, anchor: Tensor, centre: Tensor, dis
         heads: decoder heads as in the module docstring, fed ``F + 4`` inputs.
         backend: the rasterizer's backend choice (None: :func:`dibrgs_core.render.get_backend`).
     """
-    layers = [_layers_of(h) for h in heads]
-    acts = [_activation(ls) for ls in layers]
     fusion = None if ibr is None else fusion
+    node = node_parameters(heads, fusion)
     # The C++ node gives the camera centre no gradient: a centre that wants one takes the torch path.
-    if (heads and feat.dim() == 2 and feat.dtype in (torch.float32, torch.float64) and None not in acts
+    if (node is not None and feat.dim() == 2 and feat.dtype in (torch.float32, torch.float64)
             and not centre.requires_grad and uses_fast(backend, feat)):
-        params: list[Tensor] = []
-        for ls in layers:
-            params += [ls[0].weight, ls[0].bias, ls[2].weight, ls[2].bias]
-        if fusion is not None:
-            params += [fusion[0].weight, fusion[0].bias, fusion[1].weight, fusion[1].bias]
+        acts, params = node
         tensors = [feat, anchor, centre] + ([ibr] if fusion is not None else []) + params
         if all(t.dtype == feat.dtype for t in tensors):
-            return list(_DecodeFast.apply((tuple(acts), fusion is not None, float(dist_scale)), *tensors))
+            return list(_DecodeFast.apply((acts, fusion is not None, float(dist_scale)), *tensors))
     return decode_reference(feat, ibr, anchor, centre, dist_scale, fusion, heads)
 
 
-def _layers(params: Sequence[Tensor], n: int) -> tuple[list[Tensor], ...]:
-    """W1, b1, W2, b2 of the ``n`` heads and the fusion's [Wref, bref, Wmod, bmod] (or []) from the
-    node's parameter list (per head W1, b1, W2, b2, then the fusion's)."""
+def node_parameters(heads: Sequence[nn.Module], fusion: Fusion | None) -> tuple[tuple[int, ...], list[Tensor]] | None:
+    """decoder.h's activation code of each head and the C++ path's parameter list (per head W1,
+    b1, W2, b2, then the fusion's Wref, bref, Wmod, bmod when ``fusion`` is given); None when there
+    is no head or a head is not of the module docstring's form."""
+    layers = [_layers_of(h) for h in heads]
+    acts = tuple(_activation(ls) for ls in layers)
+    if not heads or None in acts:
+        return None
+    params: list[Tensor] = []
+    for ls in layers:
+        params += [ls[0].weight, ls[0].bias, ls[2].weight, ls[2].bias]
+    if fusion is not None:
+        params += [fusion[0].weight, fusion[0].bias, fusion[1].weight, fusion[1].bias]
+    return acts, params  # type: ignore[return-value]
+
+
+def split_parameters(params: Sequence[Tensor], n: int) -> tuple[list[Tensor], ...]:
+    """W1, b1, W2, b2 of the ``n`` heads and the fusion's [Wref, bref, Wmod, bmod] (or []) from
+    :func:`node_parameters`' list."""
     return (*(list(params[i:4 * n:4]) for i in range(4)), list(params[4 * n:]))
 
 
@@ -113,7 +124,7 @@ class _DecodeFast(torch.autograd.Function):
         n = len(acts)
         ibr = rest[0] if fused else feat.new_empty(0)
         params = rest[1:] if fused else rest
-        W1, b1, W2, b2, fusion = _layers(params, n)
+        W1, b1, W2, b2, fusion = split_parameters(params, n)
         res = fast.extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2,
                                                list(acts))
         outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
@@ -128,7 +139,7 @@ class _DecodeFast(torch.autograd.Function):
         n = len(acts)
         ibr, x, dist, gate, ref, *rest = ctx.saved_tensors
         hidden, outs, params = rest[:n], rest[n:2 * n], rest[2 * n:]
-        W1, b1, W2, b2, fusion = _layers(params, n)
+        W1, b1, W2, b2, fusion = split_parameters(params, n)
         want_dibr = fused and ctx.needs_input_grad[4]
         grads = [torch.zeros_like(o) if g is None else g for g, o in zip(gouts, outs)]
         res = fast.extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),

@@ -53,6 +53,7 @@ from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .decoder import decode as decode_heads, fuse
 from .spawn import activate_scaling, spawn, take_rows, true_indices
+from .visible import Visible, decode_visible
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -241,13 +242,18 @@ class NeuralGaussians(nn.Module):
         if visible is None:
             visible = self.visible_anchors(K, w2c, width, height)
         idx = true_indices(visible)
-        anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
-        opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
-                                           (self.mlp_opacity, self.mlp_cov, self.mlp_color))
-        neural_opacity = opacity.reshape(-1)  # for the strategy's statistics, outside the loss's graph
-        g = spawn(opacity, color, cov, anchor, log_s, offset)
+        heads = (self.mlp_opacity, self.mlp_cov, self.mlp_color)
+        # One autograd node on the C++ path (models/visible.py), else the three steps.
+        g = decode_visible(self.anchor, self.anchor_feat, self.scaling, self.offset, idx, ibr_feats, cam_center,
+                           self.dist_scale, self._fusion(), heads)
+        if g is None:
+            anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
+            opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
+                                               heads)
+            g = Visible(*spawn(opacity, color, cov, anchor, log_s, offset),
+                        neural_opacity=opacity.reshape(-1))  # the strategy's statistics read it
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
-                       anchor_visible=visible, anchor_index=idx, neural_opacity=neural_opacity,
+                       anchor_visible=visible, anchor_index=idx, neural_opacity=g.neural_opacity,
                        selected=g.selected)
 
     # -- the model protocol ------------------------------------------------------

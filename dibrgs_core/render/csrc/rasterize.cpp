@@ -1451,6 +1451,57 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
   return res;
 }
 
+// The neural Gaussians of the visible anchors (models/visible.py) in one call each way: the rows
+// idx (strictly increasing) of the model's per-anchor tensors srcs = {anchor (N, 3), feat (N, F),
+// scaling (N, 6), offset (N, k, 3)} (take_rows_forward), the decoder (decoder_forward; three
+// heads: opacity (M, k), covariance (M, 7 k), colour (M, 3 k)) and the spawning (spawn_forward).
+// The same kernels as the three calls, one autograd node instead of three: between a step's large
+// kernels the Python and autograd around each node ran on cold caches, on one thread. Returns
+// {means, quats, scales, opacities, colors, selected, start, the rows' scaling (M, 6) and offset
+// (M, k, 3), then decoder_forward's results}.
+std::vector<torch::Tensor> visible_forward(std::vector<torch::Tensor> srcs, torch::Tensor idx, torch::Tensor ibr,
+                                           std::vector<torch::Tensor> fusion, torch::Tensor centre, double dist_scale,
+                                           std::vector<torch::Tensor> W1, std::vector<torch::Tensor> b1,
+                                           std::vector<torch::Tensor> W2, std::vector<torch::Tensor> b2,
+                                           std::vector<int64_t> acts) {
+  TORCH_CHECK(srcs.size() == 4 && W1.size() == 3,
+              "visible_forward: srcs are anchor, feat, scaling, offset; the heads opacity, covariance, colour");
+  const auto taken = take_rows_forward(srcs, idx);
+  const auto& rows = std::get<0>(taken);
+  TORCH_CHECK(std::get<1>(taken), "visible_forward: idx must be strictly increasing");
+  auto dec = decoder_forward(rows[1], ibr, fusion, rows[0], centre, dist_scale, W1, b1, W2, b2, acts);
+  auto sp = spawn_forward(dec[0], dec[2], dec[1], rows[0], rows[2], rows[3]);  // nop, colour, covariance
+  std::vector<torch::Tensor> res{sp[0], sp[1], sp[2], sp[3], sp[4], sp[6], sp[5], rows[2], rows[3]};
+  res.insert(res.end(), dec.begin(), dec.end());
+  return res;
+}
+
+// Gradients of visible_forward: from those of the Gaussians (gmeans .. gcolors) and what the
+// forward returned for this (start, the rows' scaling and offset, decoder_forward's results),
+// {[anchor (N, 3) when want_anchor], feat (N, F), scaling (N, 6), offset (N, k, 3), then
+// decoder_backward's from dibr on}.
+std::vector<torch::Tensor> visible_backward(torch::Tensor gmeans, torch::Tensor gquats, torch::Tensor gscales,
+                                            torch::Tensor gopac, torch::Tensor gcolors, torch::Tensor start,
+                                            torch::Tensor log_scal, torch::Tensor offset, torch::Tensor idx, int64_t N,
+                                            torch::Tensor ibr, std::vector<torch::Tensor> fusion, torch::Tensor x,
+                                            torch::Tensor dist, torch::Tensor gate, torch::Tensor ref,
+                                            std::vector<torch::Tensor> hidden, std::vector<torch::Tensor> out,
+                                            double dist_scale, std::vector<torch::Tensor> W1,
+                                            std::vector<torch::Tensor> b1, std::vector<torch::Tensor> W2,
+                                            std::vector<torch::Tensor> b2, std::vector<int64_t> acts, bool want_dibr,
+                                            bool want_anchor) {
+  TORCH_CHECK(out.size() == 3, "visible_backward: the heads are opacity, covariance, colour");
+  // {dnop, dcolor, dcov, danchor, dlog_scal, doffset}
+  const auto sb = spawn_backward(gmeans, gquats, gscales, gopac, gcolors, out[0], out[1], log_scal, offset, start);
+  const auto db = decoder_backward({sb[0], sb[2], sb[1]}, ibr, fusion, x, dist, gate, ref, hidden, out, dist_scale,
+                                   W1, b1, W2, b2, acts, want_dibr);
+  std::vector<torch::Tensor> upstream{db[0], sb[4], sb[5]};
+  if (want_anchor) upstream.insert(upstream.begin(), sb[3] + db[1]);
+  auto res = take_rows_backward(upstream, idx, N);
+  res.insert(res.end(), db.begin() + 2, db.end());
+  return res;
+}
+
 // Whether none of the n floating-point values at p (of U's width) has all exponent bits
 // (mask) set, i.e. is an infinity or a NaN. Integer tests vectorise (a float sum would not).
 template <typename U>
@@ -1548,5 +1599,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_rows_backward", below_autograd(&project_rows_backward),
         "gradients of project_rows_forward's weights and biases");
   m.def("take_rows_backward", below_autograd(&take_rows_backward), "gradient of take_rows_forward");
+  m.def("visible_forward", below_autograd(&visible_forward),
+        "rows of the visible anchors, their decoder and their neural Gaussians");
+  m.def("visible_backward", below_autograd(&visible_backward), "gradients of visible_forward");
   m.def("zbuffer_quads", below_autograd(&zbuffer_quads), "depth map of planar quads (a height field's mesh)");
 }
