@@ -218,6 +218,16 @@ def available(required: bool = False) -> bool:
         return False
 
 
+def ready(t: Tensor, dtype: torch.dtype, detach: bool = False) -> Tensor:
+    """``t`` in ``dtype`` and contiguous (detached too with ``detach``); ``t`` itself when it
+    already is. The tests are attribute reads, where ``t.detach().to(dtype).contiguous()``
+    dispatches three operators that change nothing, a dozen of them between a step's kernels,
+    where the caches are cold."""
+    if t.dtype == dtype and t.is_contiguous() and not (detach and t.requires_grad):
+        return t
+    return (t.detach() if detach else t).to(dtype).contiguous()
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, depth, offsets, gids, masks,  # type: ignore[override]
@@ -243,7 +253,7 @@ class _Composite(torch.autograd.Function):
         # A group without gradient is an empty tensor, read as zeros (made only then: the first
         # operator after a compositing costs tens of microseconds on the serial path).
         gm, gc, go, gf = extension().backward(rec, offsets, gids, masks,
-                                              [rec.new_empty(0) if g is None else g.contiguous() for g in gouts],
+                                              [rec.new_empty(0) if g is None else ready(g, g.dtype) for g in gouts],
                                               ctx.groups, tfin, ncon, width, height)
         c = ctx.split
         gfeat, gdepth = (gf, None) if c is None else (gf[:, :c], gf[:, c])
@@ -271,12 +281,10 @@ def composite_fast(
     ``feats``' columns + 2)."""
     mod = extension()
     dt = feats.dtype
-    m2 = means2d.to(dt).contiguous()
-    con = conics.to(dt).contiguous()
-    op = opacities.to(dt).contiguous()
-    fe = feats.contiguous()
-    dep = depths.to(dt).contiguous() if depth_alpha else None
-    offsets, gids, masks = mod.bin_tiles(m2.detach(), con.detach(), op.detach(), depths.detach(), radii, width, height)
+    m2, con, op, fe = ready(means2d, dt), ready(conics, dt), ready(opacities, dt), ready(feats, dt)
+    dep = ready(depths, dt) if depth_alpha else None
+    # The binning reads values only (no autograd below the extension's calls): nothing to detach.
+    offsets, gids, masks = mod.bin_tiles(m2, con, op, depths, radii, width, height)
     return _Composite.apply(m2, con, op, fe, dep, offsets, gids, masks, width, height, tuple(groups))
 
 
@@ -295,8 +303,8 @@ class _Project(torch.autograd.Function):
     def backward(ctx, g_m2, g_con, g_dep, _g_rad, _g_vis):  # type: ignore[override]
         means, quats, scales, K, viewmat = ctx.saved_tensors
         n = means.shape[0]
-        g_m2 = means.new_zeros(n, 2) if g_m2 is None else g_m2.contiguous()
-        g_con = means.new_zeros(n, 3) if g_con is None else g_con.contiguous()
+        g_m2 = means.new_zeros(n, 2) if g_m2 is None else ready(g_m2, g_m2.dtype)
+        g_con = means.new_zeros(n, 3) if g_con is None else ready(g_con, g_con.dtype)
         # The depths' gradient is a column of the compositing's feature gradient: read with its
         # stride. None (colours alone rendered) reads as zeros in the extension.
         gm, gq, gs = extension().project_backward(means, quats, scales, K, viewmat, *ctx.args, g_m2, g_con, g_dep)
@@ -324,7 +332,8 @@ def project_fast(
         raise ValueError(f"near plane must be positive, got {near}")
     dt = means.dtype
     m2, con, dep, rad, vis = _Project.apply(
-        means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(), K.detach(), viewmat.detach(),
+        ready(means, dt), ready(quats, dt), ready(scales, dt), K.detach() if K.requires_grad else K,
+        viewmat.detach() if viewmat.requires_grad else viewmat,
         width, height, float(near), float(far),
     )
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=vis)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .fast import extension
+from .fast import extension, ready
 
 
 class _SSIMMap(torch.autograd.Function):
@@ -31,7 +31,7 @@ def ssim_map_fast(x: Tensor, y: Tensor, window: Tensor) -> Tensor:
     length; borders replicated): the maths of :func:`dibrgs_core.training.losses.ssim_map`, in one
     pass over the image instead of about thirty torch operators. Differentiable in ``x`` only."""
     dt = x.dtype
-    return _SSIMMap.apply(x.contiguous(), y.detach().to(dt).contiguous(), window.detach().to(dt).contiguous())
+    return _SSIMMap.apply(ready(x, dt), ready(y, dt, detach=True), ready(window, dt, detach=True))
 
 
 class _Photometric(torch.autograd.Function):
@@ -57,5 +57,5 @@ def photometric_fast(x: Tensor, y: Tensor, window: Tensor, wl: Tensor, ws: Tenso
     kernels, a millisecond of dispatch a step on either thread count. Differentiable in ``x``
     only."""
     dt = x.dtype
-    return _Photometric.apply(x.contiguous(), y.detach().to(dt).contiguous(), window.detach().to(dt).contiguous(),
-                              wl.detach().to(dt).contiguous(), ws.detach().to(dt).contiguous(), float(lam))
+    return _Photometric.apply(ready(x, dt), ready(y, dt, detach=True), ready(window, dt, detach=True),
+                              ready(wl, dt, detach=True), ready(ws, dt, detach=True), float(lam))

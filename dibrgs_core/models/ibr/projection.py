@@ -73,8 +73,8 @@ def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[t
     grad = torch.is_grad_enabled() and any(p.requires_grad for p in (*weights, *biases))
     if uses_fast(None, rows):
         sel = rows.new_empty(0, dtype=torch.bool) if mask is None else mask
-        if grad:
-            return _ProjectRowsFast.apply(rows.detach(), sel, *weights, *biases)
+        if grad:  # the rows are sampled features, without gradient: detached only if they had one
+            return _ProjectRowsFast.apply(rows.detach() if rows.requires_grad else rows, sel, *weights, *biases)
         with torch.no_grad():
             return fast.extension().project_rows_forward(rows, sel, list(weights), list(biases))[0]
     rows = rows if mask is None else rows[mask]
