@@ -175,7 +175,7 @@ class NeuralGaussians(nn.Module):
         elif isinstance(source, torch.Tensor):
             self._ibr = lambda vis: source[vis]
         else:
-            self._ibr = lambda vis: source(self.anchor.detach(), vis)
+            self._ibr = lambda vis: source(self.anchor.detach() if self.anchor.requires_grad else self.anchor, vis)
 
     @property
     def num_anchors(self) -> int:
@@ -210,9 +210,9 @@ class NeuralGaussians(nn.Module):
         """
         near = self.near if near is None else near
         if uses_fast(None, self.anchor):
-            return fast.extension().anchor_visibility(self.anchor.detach(), self.offset.detach(),
-                                                      self.scaling.detach(), K, w2c, int(width), int(height),
-                                                      float(near))
+            # The extension reads the values (no autograd below its calls): nothing to detach.
+            return fast.extension().anchor_visibility(self.anchor, self.offset, self.scaling, K, w2c, int(width),
+                                                      int(height), float(near))
         with torch.no_grad():
             x = self.anchor @ w2c[:3, :3].T + w2c[:3, 3]
             z = x[:, 2]

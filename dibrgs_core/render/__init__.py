@@ -190,7 +190,8 @@ def rasterize(
     else:
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far)
     # The (C,) values read as a list, not a reduction: one operator of dispatch a step for a black background.
-    blend = background is not None and (background.requires_grad or any(background.reshape(-1).tolist()))
+    blend = background is not None and (background.requires_grad or any(
+        (background if background.dim() == 1 else background.reshape(-1)).tolist()))
     if render_mode == "RGB" and not blend:
         image = composite(proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, backend)
         alpha = depth_acc = None

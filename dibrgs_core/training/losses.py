@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from ..render import fast, uses_fast
+from ..render.fast import ready
 from ..render.ssim import photometric_fast, ssim_map_fast
 
 _C1 = 0.01 ** 2
@@ -167,7 +168,7 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.2,
     """
     if pred.shape != gt.shape:
         raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
-    gt = gt.to(pred.dtype)
+    gt = gt if gt.dtype == pred.dtype else gt.to(pred.dtype)
     H, W = pred.shape[0], pred.shape[1]
     C = pred.shape[2] if pred.dim() == 3 else 1
     fast = pred.dim() in (2, 3) and _kernel_applies(pred, gt)
@@ -232,7 +233,7 @@ def mean_volume(scales: torch.Tensor, unit: float, weight: float = 1.0) -> torch
     if scales.shape[0] == 0:
         return scales.sum() * 0.0
     if scales.dtype in (torch.float32, torch.float64) and uses_fast(None, scales):
-        return _MeanVolume.apply(scales.contiguous(), float(unit), float(weight))
+        return _MeanVolume.apply(ready(scales, scales.dtype), float(unit), float(weight))
     s = scales / unit
     v = (s[:, 0] * s[:, 1] * s[:, 2]).mean()
     return v if weight == 1.0 else weight * v
