@@ -53,7 +53,7 @@ from .base import CameraTensors, Gaussians
 from .config import ModelConfig
 from .decoder import decode as decode_heads, fuse
 from .spawn import activate_scaling, spawn, take_rows, true_indices
-from .visible import Visible, decode_visible
+from .visible import decode_visible
 
 log = logging.getLogger("dibrgs.neural_gaussians")
 
@@ -244,16 +244,17 @@ class NeuralGaussians(nn.Module):
         idx = true_indices(visible)
         heads = (self.mlp_opacity, self.mlp_cov, self.mlp_color)
         # One autograd node on the C++ path (models/visible.py), else the three steps.
-        g = decode_visible(self.anchor, self.anchor_feat, self.scaling, self.offset, idx, ibr_feats, cam_center,
-                           self.dist_scale, self._fusion(), heads)
-        if g is None:
+        fused = decode_visible(self.anchor, self.anchor_feat, self.scaling, self.offset, idx, ibr_feats,
+                               cam_center, self.dist_scale, self._fusion(), heads)
+        if fused is None:
             anchor, feat, log_s, offset = take_rows((self.anchor, self.anchor_feat, self.scaling, self.offset), idx)
             opacity, cov, color = decode_heads(feat, ibr_feats, anchor, cam_center, self.dist_scale, self._fusion(),
                                                heads)
-            g = Visible(*spawn(opacity, color, cov, anchor, log_s, offset),
-                        neural_opacity=opacity.reshape(-1))  # the strategy's statistics read it
+            # The opacities in full feed the strategy's statistics, outside the loss's graph.
+            fused = spawn(opacity, color, cov, anchor, log_s, offset), opacity.reshape(-1)
+        g, neural_opacity = fused
         return Decoded(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=g.colors,
-                       anchor_visible=visible, anchor_index=idx, neural_opacity=g.neural_opacity,
+                       anchor_visible=visible, anchor_index=idx, neural_opacity=neural_opacity,
                        selected=g.selected)
 
     # -- the model protocol ------------------------------------------------------

@@ -13,31 +13,18 @@ the same values, bit for bit, as the three nodes.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from ..render import fast, uses_fast
 from .decoder import Fusion, node_parameters, split_parameters
-
-
-class Visible(NamedTuple):
-    """The Gaussians spawned from the visible anchors (as :class:`.spawn.Spawned`) and the opacity
-    head's output ``neural_opacity`` (M*k,), outside the graph (the strategy's statistics)."""
-
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    colors: Tensor
-    selected: Tensor
-    neural_opacity: Tensor
+from .spawn import Spawned
 
 
 def decode_visible(anchor: Tensor, feat: Tensor, scaling: Tensor, offset: Tensor, idx: Tensor, ibr: Tensor | None,
                    centre: Tensor, dist_scale: float, fusion: Fusion | None, heads: Sequence[nn.Module]
-                   ) -> Visible | None:
+                   ) -> tuple[Spawned, Tensor] | None:
     """Rows ``idx`` of the model's tensors through the decoder and the spawning, in one node.
 
     Args:
@@ -48,9 +35,10 @@ def decode_visible(anchor: Tensor, feat: Tensor, scaling: Tensor, offset: Tensor
         dist_scale, fusion, heads: as :func:`.decoder.decode` (heads: opacity, covariance,
             colour).
 
-    Returns None where the C++ path does not apply (another device or backend, a head not of
-    the decoder's form, mixed dtypes, a camera centre that wants a gradient): the caller then
-    takes the three steps one by one.
+    Returns the spawned Gaussians and the opacity head's output (M*k,), outside the graph (the
+    strategy's statistics); None where the C++ path does not apply (another device or backend, a
+    head not of the decoder's form, mixed dtypes, a camera centre that wants a gradient): the
+    caller then takes the three steps one by one.
     """
     fusion = None if ibr is None else fusion
     node = node_parameters(heads, fusion)
@@ -62,7 +50,7 @@ def decode_visible(anchor: Tensor, feat: Tensor, scaling: Tensor, offset: Tensor
     if feat.dtype not in (torch.float32, torch.float64) or any(t.dtype != feat.dtype for t in tensors):
         return None
     out = _VisibleFast.apply((acts, fusion is not None, float(dist_scale)), idx, *tensors)
-    return Visible(*out[:6], out[6].reshape(-1))
+    return Spawned(*out[:6]), out[6].reshape(-1)
 
 
 class _VisibleFast(torch.autograd.Function):

@@ -40,9 +40,10 @@ def _run(fused_node: bool, heads, fusion, tensors, visible, ibr, anchor_grad: bo
     idx = true_indices(visible)
     fus = fusion if with_fusion else None
     if fused_node:
-        g = decode_visible(*tensors, idx, ibr, centre, 80.0, fus, heads)
-        assert g is not None and type(g.means.grad_fn).__name__ == "_VisibleFastBackward"
-        nop = g.neural_opacity
+        fused = decode_visible(*tensors, idx, ibr, centre, 80.0, fus, heads)
+        assert fused is not None
+        g, nop = fused
+        assert type(g.means.grad_fn).__name__ == "_VisibleFastBackward"
     else:
         anchor, feat, log_s, offset = take_rows(tensors, idx)
         opacity, cov, color = decode(feat, ibr, anchor, centre, 80.0, fus, heads)
