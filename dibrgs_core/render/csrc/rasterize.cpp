@@ -185,12 +185,12 @@ inline uint64_t depth_key(double d) {
   return (u >> 63) ? ~u : (u | (uint64_t(1) << 63));
 }
 
-// What the tile emission needs of a Gaussian, in one cache line: gathered in depth order, so
-// that the emission reads memory sequentially.
+// What the tile emission needs of a Gaussian (kept at the Gaussian's index: bins[i] is Gaussian
+// i's, read in depth order through the live list).
 struct Bin {
   double mx, my;
   dibrgs::Chords ch;
-  int32_t x0, x1, y0, y1, id;
+  int32_t x0, x1, y0, y1;
 };
 
 // The tile rectangle and chords of Gaussian i (screen-space inputs of type S, radius of type R);
@@ -215,7 +215,7 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
   const int32_t y0 = clampt(std::max(std::floor((my - r) / TILE), std::floor((my - ey) / TILE)), ty);
   const int32_t y1 = clampt(std::min(std::ceil((my + r) / TILE), std::floor((my + ey) / TILE) + 1), ty);
   if (x1 <= x0 || y1 <= y0) return false;
-  new (out) Bin{mx, my, dibrgs::Chords(a, b, c, t), x0, x1, y0, y1, static_cast<int32_t>(i)};
+  new (out) Bin{mx, my, dibrgs::Chords(a, b, c, t), x0, x1, y0, y1};
   return true;
 }
 
@@ -227,7 +227,7 @@ inline bool make_bin(const S* pm, const S* pc, const S* po, const R* pr, int64_t
 // depth order where the tiles are listed, not copied into it first: on two threads that copy and
 // its reading back each moved about half of the records between the cores' caches.
 template <typename S, typename R, typename D>
-RawArray<Bin> bins_in_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
+RawArray<Bin> bins_and_depth_order(const S* pm, const S* pc, const S* po, const R* pr, const D* dep, int64_t N,
                                   int64_t tx, int64_t ty, int64_t& nout, RawArray<int32_t>& live,
                                   RawArray<int64_t>& area) {
   typedef typename std::conditional<sizeof(D) == 4, uint32_t, uint64_t>::type K;
@@ -294,8 +294,8 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
     const scalar_t *pm = m.data_ptr<scalar_t>(), *pc = con.data_ptr<scalar_t>(), *po = op.data_ptr<scalar_t>();
     auto by_radius = [&](const auto* pr) {
       bins = dep.scalar_type() == torch::kFloat32
-                 ? bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive, live, work)
-                 : bins_in_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive, live, work);
+                 ? bins_and_depth_order(pm, pc, po, pr, dep.data_ptr<float>(), N, tx, ty, nlive, live, work)
+                 : bins_and_depth_order(pm, pc, po, pr, dep.data_ptr<double>(), N, tx, ty, nlive, live, work);
     };
     if (rad.scalar_type() == torch::kInt32)
       by_radius(rad.data_ptr<int32_t>());
@@ -332,14 +332,15 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor conics
         __builtin_prefetch(ahead);
         __builtin_prefetch(ahead + sizeof(Bin) - 1);
       }
-      const Bin& g = bins[live[j]];
+      const int32_t id = live[j];
+      const Bin& g = bins[id];
       for (int32_t y = g.y0; y < g.y1; ++y)
         for (int32_t x = g.x0; x < g.x1; ++x) {
           const float mxr = static_cast<float>(g.mx - x * TILE), myr = static_cast<float>(g.my - y * TILE);
           const uint64_t mk = dbl ? dibrgs::segment_mask<double>(g.ch, mxr, myr)
                                   : dibrgs::segment_mask<float>(g.ch, mxr, myr);
           if (mk == 0) continue;  // no pixel of this tile can reach alpha >= 1/255
-          ht.push_back(Hit{static_cast<int32_t>(y * tx + x), g.id, mk});
+          ht.push_back(Hit{static_cast<int32_t>(y * tx + x), id, mk});
           ++cnt[y * tx + x];
         }
     }
