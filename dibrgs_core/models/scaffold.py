@@ -175,7 +175,7 @@ class NeuralGaussians(nn.Module):
         elif isinstance(source, torch.Tensor):
             self._ibr = lambda vis: source[vis]
         else:
-            self._ibr = lambda vis: source(self.anchor.detach() if self.anchor.requires_grad else self.anchor, vis)
+            self._ibr = lambda vis: source(fast.ready(self.anchor, self.anchor.dtype, detach=True), vis)
 
     @property
     def num_anchors(self) -> int:

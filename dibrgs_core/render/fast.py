@@ -332,8 +332,8 @@ def project_fast(
         raise ValueError(f"near plane must be positive, got {near}")
     dt = means.dtype
     m2, con, dep, rad, vis = _Project.apply(
-        ready(means, dt), ready(quats, dt), ready(scales, dt), K.detach() if K.requires_grad else K,
-        viewmat.detach() if viewmat.requires_grad else viewmat,
+        ready(means, dt), ready(quats, dt), ready(scales, dt), ready(K, K.dtype, detach=True),
+        ready(viewmat, viewmat.dtype, detach=True),
         width, height, float(near), float(far),
     )
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad, visible=vis)

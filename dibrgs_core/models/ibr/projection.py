@@ -74,7 +74,7 @@ def project_rows(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[t
     if uses_fast(None, rows):
         sel = rows.new_empty(0, dtype=torch.bool) if mask is None else mask
         if grad:  # the rows are sampled features, without gradient: detached only if they had one
-            return _ProjectRowsFast.apply(rows.detach() if rows.requires_grad else rows, sel, *weights, *biases)
+            return _ProjectRowsFast.apply(fast.ready(rows, rows.dtype, detach=True), sel, *weights, *biases)
         with torch.no_grad():
             return fast.extension().project_rows_forward(rows, sel, list(weights), list(biases))[0]
     rows = rows if mask is None else rows[mask]
