@@ -115,6 +115,23 @@ def split_parameters(params: Sequence[Tensor], n: int) -> tuple[list[Tensor], ..
     return (*(list(params[i:4 * n:4]) for i in range(4)), list(params[4 * n:]))
 
 
+def node_inputs(fused: bool, n: int, rest: Sequence[Tensor], like: Tensor
+                ) -> tuple[Tensor, list[Tensor], tuple[list[Tensor], ...]]:
+    """A C++ decoder node's trailing inputs ``[ibr], *params`` (``n`` heads' parameters in
+    :func:`node_parameters`' order) as the extension takes them: the IBR features (an empty tensor
+    like ``like`` without fusion), the parameters and their :func:`split_parameters` split."""
+    ibr = rest[0] if fused else like.new_empty(0)
+    params = list(rest[1:] if fused else rest)
+    return ibr, params, split_parameters(params, n)
+
+
+def node_input_grads(fused: bool, dibr: Tensor | None, grads: Sequence[Tensor]) -> list[Tensor | None]:
+    """The gradients of a node's trailing inputs ``[ibr], *params`` from ``dibr`` (None when not
+    wanted) and the extension's weight gradients (the fusion's four first, then the heads')."""
+    fusion_grads, head_grads = (grads[:4], grads[4:]) if fused else ([], grads)
+    return [*([dibr] if fused else []), *head_grads, *fusion_grads]
+
+
 class _DecodeFast(torch.autograd.Function):
     """Inputs: feat, anchor, centre, [ibr], per head W1, b1, W2, b2, [Wref, bref, Wmod, bmod]."""
 
@@ -122,9 +139,7 @@ class _DecodeFast(torch.autograd.Function):
     def forward(ctx, spec, feat, anchor, centre, *rest):  # type: ignore[override]
         acts, fused, dist_scale = spec
         n = len(acts)
-        ibr = rest[0] if fused else feat.new_empty(0)
-        params = rest[1:] if fused else rest
-        W1, b1, W2, b2, fusion = split_parameters(params, n)
+        ibr, params, (W1, b1, W2, b2, fusion) = node_inputs(fused, n, rest, feat)
         res = fast.extension().decoder_forward(feat, ibr, fusion, anchor, centre, dist_scale, W1, b1, W2, b2,
                                                list(acts))
         outs, (x, dist, gate, ref), hidden = res[:n], res[n:n + 4], res[n + 4:]
@@ -145,6 +160,4 @@ class _DecodeFast(torch.autograd.Function):
         res = fast.extension().decoder_backward(grads, ibr, fusion, x, dist, gate, ref, list(hidden), list(outs),
                                                 dist_scale, W1, b1, W2, b2, list(acts), want_dibr)
         dfeat, danchor, dibr = res[:3]
-        fusion_grads, head_grads = (res[3:7], res[7:]) if fused else ([], res[3:])
-        return (None, dfeat, danchor, None, *([dibr if want_dibr else None] if fused else []),
-                *head_grads, *fusion_grads)
+        return (None, dfeat, danchor, None, *node_input_grads(fused, dibr if want_dibr else None, res[3:]))

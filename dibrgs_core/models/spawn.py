@@ -59,7 +59,7 @@ def spawn(nop: Tensor, color: Tensor, cov: Tensor, anchor: Tensor, log_scal: Ten
     if uses_fast(backend, anchor):
         dt = anchor.dtype
         means, quats, scales, opac, colors, selected = _SpawnFast.apply(
-            *(t.to(dt).contiguous() for t in (nop, color, cov, anchor, log_scal, offset)))
+            *(fast.ready(t, dt) for t in (nop, color, cov, anchor, log_scal, offset)))
         return Spawned(means, quats, scales, opac, colors, selected)
     return spawn_reference(nop.reshape(-1), color, cov, anchor, activate_scaling(log_scal), offset)
 

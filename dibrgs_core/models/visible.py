@@ -18,7 +18,13 @@ import torch
 from torch import Tensor, nn
 
 from ..render import fast, uses_fast
-from .decoder import Fusion, node_parameters, split_parameters
+from .decoder import (
+    Fusion,
+    node_input_grads,
+    node_inputs,
+    node_parameters,
+    split_parameters,
+)
 from .spawn import Spawned
 
 
@@ -61,9 +67,7 @@ class _VisibleFast(torch.autograd.Function):
     def forward(ctx, spec, idx, anchor, feat, scaling, offset, centre, *rest):  # type: ignore[override]
         acts, fused, dist_scale = spec
         n = len(acts)
-        ibr = rest[0] if fused else feat.new_empty(0)
-        params = rest[1:] if fused else rest
-        W1, b1, W2, b2, fusion = split_parameters(params, n)
+        ibr, params, (W1, b1, W2, b2, fusion) = node_inputs(fused, n, rest, feat)
         res = fast.extension().visible_forward([anchor, feat, scaling, offset], idx, ibr, fusion, centre, dist_scale,
                                                W1, b1, W2, b2, list(acts))
         means, quats, scales, opac, colors, selected, start, log_s, offs = res[:9]
@@ -90,8 +94,6 @@ class _VisibleFast(torch.autograd.Function):
                                                 b2, list(acts), want_dibr, want_anchor)
         danchor = res.pop(0) if want_anchor else None
         dfeat, dscaling, doffset, dibr = res[:4]
-        fusion_grads, head_grads = (res[4:8], res[8:]) if fused else ([], res[4:])
         want = ctx.needs_input_grad
         return (None, None, danchor, dfeat if want[3] else None, dscaling if want[4] else None,
-                doffset if want[5] else None, None, *([dibr if want_dibr else None] if fused else []),
-                *head_grads, *fusion_grads)
+                doffset if want[5] else None, None, *node_input_grads(fused, dibr if want_dibr else None, res[4:]))
