@@ -804,7 +804,7 @@ torch::Tensor photometric_backward(torch::Tensor gl, torch::Tensor x, torch::Ten
 torch::Tensor expected_depth_forward(torch::Tensor acc, torch::Tensor alpha) {
   TORCH_CHECK(acc.sizes() == alpha.sizes() && acc.scalar_type() == alpha.scalar_type() && acc.device().is_cpu(),
               "expected_depth_forward: depth_acc and alpha must be CPU tensors of one shape and dtype");
-  acc = acc.detach().contiguous(), alpha = alpha.detach().contiguous();
+  acc = acc.contiguous(), alpha = alpha.contiguous();
   auto out = torch::empty_like(acc);
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "dibrgs_expected_depth", [&] {
     const scalar_t *a = acc.data_ptr<scalar_t>(), *w = alpha.data_ptr<scalar_t>();
@@ -817,7 +817,7 @@ torch::Tensor expected_depth_forward(torch::Tensor acc, torch::Tensor alpha) {
 }
 
 std::vector<torch::Tensor> expected_depth_backward(torch::Tensor g, torch::Tensor acc, torch::Tensor alpha) {
-  g = g.contiguous().to(acc.scalar_type()), acc = acc.detach().contiguous(), alpha = alpha.detach().contiguous();
+  g = g.contiguous().to(acc.scalar_type()), acc = acc.contiguous(), alpha = alpha.contiguous();
   TORCH_CHECK(g.sizes() == acc.sizes(), "expected_depth_backward: the gradient must match the depth");
   auto ga = torch::empty_like(acc), gw = torch::empty_like(acc);
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "dibrgs_expected_depth_backward", [&] {
@@ -844,7 +844,7 @@ std::vector<torch::Tensor> expected_depth_backward(torch::Tensor g, torch::Tenso
 torch::Tensor volume_forward(torch::Tensor s, double unit, double weight) {
   TORCH_CHECK(s.dim() == 2 && s.size(1) == 3 && s.device().is_cpu(), "volume_forward: scales must be (N, 3) on the CPU");
   TORCH_CHECK(unit > 0.0 && std::isfinite(unit), "volume_forward: unit must be positive and finite");
-  s = s.detach().contiguous();
+  s = s.contiguous();
   const int64_t n = s.size(0);
   double total = 0.0;
   AT_DISPATCH_FLOATING_TYPES(s.scalar_type(), "dibrgs_volume_forward", [&] {
@@ -855,7 +855,7 @@ torch::Tensor volume_forward(torch::Tensor s, double unit, double weight) {
 
 // Gradient of volume_forward with respect to the scales, times g (its 0-d gradient).
 torch::Tensor volume_backward(torch::Tensor g, torch::Tensor s, double unit, double weight) {
-  s = s.detach().contiguous();
+  s = s.contiguous();
   const int64_t n = s.size(0);
   auto ds = torch::empty_like(s);
   if (n == 0) return ds;
@@ -1218,9 +1218,10 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
 
 namespace {
 
-// The decoder's layers from the bindings' lists (detached: the blocks run on threads whose
-// autograd mode is not the caller's; contiguous: the biases are read as arrays), checked against
-// feat (M, F) and ibr (M, C).
+// The decoder's layers from the bindings' lists (contiguous: the biases are read as arrays),
+// checked against feat (M, F) and ibr (M, C). Not detached: the bindings and every block of
+// decoder::for_blocks run below autograd, where a parameter is read like any tensor (the 50
+// detaches a step cost about as much as the decoder's serial part, on cold caches).
 dibrgs::decoder::Weights decoder_weights(const torch::Tensor& feat, const torch::Tensor& ibr,
                                          const std::vector<torch::Tensor>& fusion, const std::vector<torch::Tensor>& W1,
                                          const std::vector<torch::Tensor>& b1, const std::vector<torch::Tensor>& W2,
@@ -1234,7 +1235,7 @@ dibrgs::decoder::Weights decoder_weights(const torch::Tensor& feat, const torch:
   auto check = [&](const torch::Tensor& t, torch::IntArrayRef shape, const char* what) {
     TORCH_CHECK(t.sizes() == shape && t.scalar_type() == dt && t.device().is_cpu(), "decoder: ", what,
                 " must be ", shape, " of the features' dtype, got ", t.sizes());
-    return t.detach().contiguous();
+    return t.contiguous();
   };
   dibrgs::decoder::Weights w;
   if (!fusion.empty()) {
@@ -1267,15 +1268,15 @@ std::vector<torch::Tensor> decoder_forward(torch::Tensor feat, torch::Tensor ibr
                                            std::vector<torch::Tensor> W2, std::vector<torch::Tensor> b2,
                                            std::vector<int64_t> acts) {
   TORCH_CHECK(feat.dim() == 2 && feat.device().is_cpu(), "decoder_forward: feat must be (M, F) on the CPU");
-  feat = feat.detach().contiguous();
+  feat = feat.contiguous();
   const int64_t M = feat.size(0), F = feat.size(1), D = F + 4;
   const auto dt = feat.scalar_type();
   TORCH_CHECK(anchor.sizes() == torch::IntArrayRef({M, 3}) && centre.numel() == 3 && anchor.scalar_type() == dt &&
                   centre.scalar_type() == dt,
               "decoder_forward: anchor must be (M, 3) and centre (3), of the features' dtype");
-  anchor = anchor.detach().contiguous(), centre = centre.detach().contiguous();
+  anchor = anchor.contiguous(), centre = centre.contiguous();
   const auto w = decoder_weights(feat, ibr, fusion, W1, b1, W2, b2, acts);
-  if (w.fusion()) ibr = ibr.detach().contiguous();
+  if (w.fusion()) ibr = ibr.contiguous();
   const size_t nh = w.W1.size();
   const auto o = feat.options();
   dibrgs::decoder::Saved sv;
@@ -1339,7 +1340,6 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
                                             std::vector<torch::Tensor> W1, std::vector<torch::Tensor> b1,
                                             std::vector<torch::Tensor> W2, std::vector<torch::Tensor> b2,
                                             std::vector<int64_t> acts, bool want_dibr) {
-  x = x.detach();
   const int64_t M = x.size(0), D = x.size(1), F = D - 4;
   const auto feat_like = x.narrow(1, 0, F);
   const auto w = decoder_weights(feat_like, ibr, fusion, W1, b1, W2, b2, acts);
@@ -1349,11 +1349,10 @@ std::vector<torch::Tensor> decoder_backward(std::vector<torch::Tensor> gout, tor
   const auto dt = x.scalar_type();
   const auto o = x.options();
   for (size_t h = 0; h < nh; ++h) {
-    hidden[h] = hidden[h].detach(), out[h] = out[h].detach();
-    gout[h] = gout[h].detach().to(dt).contiguous();
+    gout[h] = gout[h].to(dt).contiguous();
     TORCH_CHECK(gout[h].sizes() == out[h].sizes(), "decoder_backward: gradient ", h, " must match its output");
   }
-  if (w.fusion()) ibr = ibr.detach().contiguous(), gate = gate.detach(), ref = ref.detach();
+  if (w.fusion()) ibr = ibr.contiguous();
   const int64_t C = w.fusion() ? ibr.size(1) : 0, nb = dibrgs::decoder::blocks(M);
   auto dx = torch::empty({M, D}, o), dfeat = torch::empty({M, F}, o), danchor = torch::empty({M, 3}, o);
   auto dibr = torch::empty({w.fusion() && want_dibr ? M : 0, C}, o);
