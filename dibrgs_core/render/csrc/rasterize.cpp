@@ -1218,10 +1218,9 @@ std::vector<torch::Tensor> spawn_backward(torch::Tensor gmeans, torch::Tensor gq
 
 namespace {
 
-// The decoder's layers from the bindings' lists (contiguous: the biases are read as arrays),
-// checked against feat (M, F) and ibr (M, C). Not detached: the bindings and every block of
-// decoder::for_blocks run below autograd, where a parameter is read like any tensor (with each
-// detached, this took 29-35 us of the calling thread a call, on cold caches).
+// The decoder's layers from the bindings' lists (contiguous: the biases are read as arrays; not
+// detached, see below_autograd; decoder::for_blocks sets the same guard on its threads), checked
+// against feat (M, F) and ibr (M, C).
 dibrgs::decoder::Weights decoder_weights(const torch::Tensor& feat, const torch::Tensor& ibr,
                                          const std::vector<torch::Tensor>& fusion, const std::vector<torch::Tensor>& W1,
                                          const std::vector<torch::Tensor>& b1, const std::vector<torch::Tensor>& W2,
@@ -1558,7 +1557,9 @@ torch::Tensor zbuffer_quads(torch::Tensor quads, torch::Tensor M, torch::Tensor 
 
 // The bindings run below autograd: each function is the forward or backward of an autograd node
 // defined in Python, so the ATen operators it calls (allocations, views, products) need none of
-// autograd's bookkeeping (about a microsecond an operator, hundreds a step in the decoder alone).
+// autograd's bookkeeping (about a microsecond an operator, hundreds a step in the decoder alone),
+// and its inputs are read as they are, never detached (each detach makes a tensor object: the
+// decoder's sixteen weights, detached, took 29-35 us of the calling thread a call).
 template <typename R, typename... A>
 auto below_autograd(R (*f)(A...)) {
   return [f](A... a) -> R {
