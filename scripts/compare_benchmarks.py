@@ -5,7 +5,11 @@ run's error-against-time curve levelled off.
     python scripts/compare_benchmarks.py BEFORE AFTER [--labels before after] [--md T.md] [--png C.png]
 
 BEFORE and AFTER are benchmark work folders (``scripts/benchmark.py --work``): their
-``results/runs/*.json``. Runs present in both are compared: held-out PSNR (dB), training
+``results/runs/*.json``; or folders of ``dibrgs train --out`` run folders (a real scene's
+runs with two versions of the code, say), paired by scene folder name and method; or two run
+folders, compared with each other whatever they ran. A run folder's metrics come from
+``metrics.json`` when ``dibrgs eval`` wrote one, else PSNR and SSIM from the curve's last point.
+Runs present in both are compared: held-out PSNR (dB), training
 seconds, plateau seconds (:func:`dibrgs_core.bench.runner.plateau_seconds`: the training second
 from which held-out PSNR stays within 0.5 dB of its final value) and, where the result records
 it (``wall_seconds``), the whole run's wall time (set-up, training, evaluation). The PNG draws
@@ -16,6 +20,7 @@ plateau seconds).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,17 +29,51 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dibrgs_core.bench.pages import curve_figure, draw_curve, load_results  # noqa: E402
-from dibrgs_core.bench.runner import RunSpec  # noqa: E402
+from dibrgs_core.bench.runner import RunSpec, folder_result  # noqa: E402
 from dibrgs_core.common.fileio import write_text  # noqa: E402
 
 
+def is_run_folder(path: Path) -> bool:
+    """Whether ``path`` is a ``dibrgs train`` run folder (its config and curve), not a benchmark's."""
+    return (path / "config.json").is_file() and (path / "curve.csv").is_file()
+
+
+def run_folder(path: Path) -> tuple[str, dict[str, Any]]:
+    """(``<scene>__<method>``, result) of a trained run folder; the scene named by its folder."""
+    try:
+        cfg = json.loads((path / "config.json").read_text())
+        scene, method, preset = Path(cfg["scene"]).name, cfg["config"]["method"], cfg["config"]["preset"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise SystemExit(f"compare_benchmarks.py: error: {path / 'config.json'} is not a run's config ({e!r})")
+    return f"{scene}__{method}", folder_result(path, scene, method, preset)
+
+
+def results_in(folder: Path) -> dict[str, dict[str, Any]]:
+    """Results by run key: a benchmark folder's ``results/runs``, else the run folders directly in
+    ``folder`` (or ``folder`` itself when it is one)."""
+    if is_run_folder(folder):
+        return dict([run_folder(folder)])
+    if (folder / "results" / "runs").is_dir():
+        return {RunSpec(**r["spec"]).key: r for r in load_results(folder / "results")}
+    subs = sorted(p for p in folder.iterdir() if is_run_folder(p)) if folder.is_dir() else []
+    return dict(run_folder(p) for p in subs)
+
+
 def paired(before: Path, after: Path) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
-    """(run key, before result, after result) for the runs both folders finished, by key."""
-    a = {RunSpec(**r["spec"]).key: r for r in load_results(before / "results")}
-    b = {RunSpec(**r["spec"]).key: r for r in load_results(after / "results")}
+    """(run key, before result, after result) for the runs both folders finished, by key; two run
+    folders make one pair whatever their keys (``A / B`` when they differ)."""
+    a, b = results_in(before), results_in(after)
     if not a or not b:
-        raise SystemExit(f"compare_benchmarks.py: error: no finished runs in {before if not a else after}/results/runs")
-    return [(k, a[k], b[k]) for k in sorted(set(a) & set(b))]
+        raise SystemExit(f"compare_benchmarks.py: error: no finished runs in {before if not a else after} "
+                         "(neither results/runs nor run folders)")
+    if is_run_folder(before) and is_run_folder(after):
+        (ka, ra), (kb, rb) = next(iter(a.items())), next(iter(b.items()))
+        return [(ka if ka == kb else f"{ka} / {kb}", ra, rb)]
+    common = sorted(set(a) & set(b))
+    if not common:
+        raise SystemExit(f"compare_benchmarks.py: error: {before} and {after} have no run in common "
+                         f"({', '.join(sorted(a))} against {', '.join(sorted(b))})")
+    return [(k, a[k], b[k]) for k in common]
 
 
 def table(pairs: list[tuple[str, dict, dict]], labels: tuple[str, str]) -> str:

@@ -167,19 +167,30 @@ def run_one(spec: RunSpec, work_root: str | Path, lpips: str | None = None, thre
     if lpips:
         ev += ["--lpips", lpips]
     _dibrgs(ev, logf)
-    metrics = json.loads((work / "metrics.json").read_text())
+    return {"spec": asdict(spec), **folder_result(work, spec.scene, spec.method, spec.preset),
+            "host": platform.node()}
+
+
+def folder_result(work: Path, scene: str, method: str, preset: str) -> dict[str, Any]:
+    """The result row and curve of a trained run folder ``work`` (``dibrgs train --out``).
+
+    The row's metrics come from ``metrics.json`` (``dibrgs eval``); a folder that was not evaluated
+    takes PSNR and SSIM from its curve's last point (the mean over every held-out view, as the
+    training curve scores them) and leaves the rest undefined (None)."""
     curve = read_curve(work / "curve.csv")
+    mpath = work / "metrics.json"
+    metrics = json.loads(mpath.read_text()) if mpath.exists() else (
+        {"psnr": curve[-1]["psnr"], "ssim": curve[-1]["ssim"]} if curve else {})
     final_on_point_views = _final_on_point_views(work)
-    peak = metrics.get("peak_memory_mib")
-    row = {"scene": spec.scene, "method": spec.method, "psnr": metrics.get("psnr"),
+    row = {"scene": scene, "method": method, "psnr": metrics.get("psnr"),
            "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"), "avge": metrics.get("avge"),
            "fps": metrics.get("fps"), "train_seconds": metrics.get("train_seconds",
                                                                      curve[-1]["seconds"] if curve else None),
            "plateau_seconds": plateau_seconds(curve, final_on_point_views),
            "gaussians": metrics.get("gaussians"), "anchors": metrics.get("anchors"),
-           "peak_memory_mib": peak, "iterations": metrics.get("iterations"), "preset": spec.preset}
-    return {"spec": asdict(spec), "row": row, "curve": curve, "final_psnr_on_point_views": final_on_point_views,
-            "host": platform.node()}
+           "peak_memory_mib": metrics.get("peak_memory_mib"), "iterations": metrics.get("iterations"),
+           "preset": preset}
+    return {"row": row, "curve": curve, "final_psnr_on_point_views": final_on_point_views}
 
 
 def read_curve(path: Path) -> list[dict[str, float]]:

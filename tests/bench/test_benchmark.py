@@ -114,6 +114,43 @@ def test_compare_benchmarks_script_pairs_runs_and_draws_them(tmp_path):
     assert empty.returncode != 0 and "no finished runs in" in empty.stderr and "nothing" in empty.stderr
 
 
+def test_compare_benchmarks_script_compares_run_folders(finished_run, tmp_path):
+    """``dibrgs train`` run folders pair by scene and method, given as folders of run folders or
+    as two run folders: PSNR from ``metrics.json`` where ``dibrgs eval`` wrote one, else the
+    curve's last point (every held-out view); folders with no run in common are refused in one
+    line."""
+    import shutil
+
+    from run_synth import dibrgs
+
+    evaluated, plain = tmp_path / "a" / "run", tmp_path / "b" / "run"
+    shutil.copytree(finished_run, evaluated)
+    shutil.copytree(finished_run, plain)
+    rc, err = dibrgs("eval", evaluated, "--threads", "1")
+    assert rc == 0, err
+    metrics = json.loads((evaluated / "metrics.json").read_text())
+    curve = bm.read_curve(plain / "curve.csv")
+    assert len(curve) >= 2 and not (plain / "metrics.json").exists()
+    plateau = bm.plateau_seconds(curve, bm._final_on_point_views(plain))
+    script = str(REPO / "scripts" / "compare_benchmarks.py")
+    for i, (x, y) in enumerate([(evaluated.parent, plain.parent), (evaluated, plain)]):
+        md, png = tmp_path / f"cmp{i}.md", tmp_path / f"cmp{i}.png"
+        out = subprocess.run([sys.executable, script, str(x), str(y), "--md", str(md), "--png", str(png)],
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        rows = [ln.split(" | ") for ln in md.read_text().splitlines() if ln.startswith("| s24__")]
+        assert len(rows) == 1 and rows[0][0] == "| s24__dibrgs"
+        assert rows[0][1] == f"{metrics['psnr']:.2f}" and rows[0][2] == f"{curve[-1]['psnr']:.2f}"
+        assert rows[0][5] == rows[0][6] == f"{plateau:.0f}"
+        assert png.stat().st_size > 1000
+    bench = tmp_path / "bench"
+    _result(bench, "city256", "dibrgs", [(0, 8.0), (30, 17.0)])
+    apart = subprocess.run([sys.executable, script, str(bench), str(plain.parent)], capture_output=True, text=True,
+                           timeout=300)
+    assert apart.returncode != 0 and "have no run in common (city256__dibrgs against s24__dibrgs)" in apart.stderr
+    assert len(apart.stderr.strip().splitlines()) == 1
+
+
 def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_path):
     """run_local with jobs=2: the runs overlap in time, a failing run is reported once the
     others are done, and the finished ones are saved (so a restart only redoes the failure)."""
