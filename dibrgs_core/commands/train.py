@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="; ".join(f"{k}: {v}" for k, v in PRESET_SUMMARY.items()))
     p.add_argument("--method", default="dibrgs", choices=choices(MethodName))
     p.add_argument("--iterations", type=positive_int, default=None, help="override the preset's iteration count")
+    p.add_argument("--curve-every", type=nonnegative_float, default=None, metavar="S",
+                   help="training seconds between error-against-time curve points (default: the preset's, "
+                        "10 for cpu, 60 for paper; 0: after every iteration); --resume may change it")
     p.add_argument("--resolution-scale", type=resolution_scale, default=None,
                    help="resize the images by this factor, in (0, 4] (default: the preset's pixel budget, "
                         "cpu: long side at most 512 px; else full resolution)")
@@ -82,6 +85,8 @@ def config_from_args(args: argparse.Namespace):
     cfg.method = args.method
     if args.iterations is not None:
         cfg.iterations = args.iterations
+    if args.curve_every is not None:
+        cfg.curve_every_s = args.curve_every
     if args.resolution_scale is not None:
         cfg.resolution_scale = args.resolution_scale
     if args.seed is not None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,12 @@ from .frames import Frame
 from .losses import psnr, ssim
 
 CURVE_COLUMNS = ["seconds", "iteration", "psnr", "ssim"]
+
+
+def next_curve_time(seconds: float, every: float) -> float:
+    """Training second of the curve point after one at ``seconds``: the next multiple of ``every``
+    (``every`` 0: right away, a point after every iteration)."""
+    return (math.floor(seconds / every) + 1) * every if every > 0 else 0.0
 
 
 def curve_views(n: int, max_views: int | None) -> list[int]:

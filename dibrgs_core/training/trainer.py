@@ -51,7 +51,7 @@ from ..data.split import require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig, resolve_resolution
-from .curve import curve_decision, curve_views, heldout_scores, plot_curve, write_curve
+from .curve import curve_decision, curve_views, heldout_scores, next_curve_time, plot_curve, write_curve
 from .frames import Frame, has_data, views_to_frames
 from .guard import all_finite, make_finite, stop_on_signals
 from .losses import photometric_loss
@@ -199,7 +199,7 @@ class Trainer:
             "version": 2, "iteration": it, "config": self.cfg.to_dict(), "method": self.method.state(),
             "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
             "view_stack": list(self.view_stack), "pseudo_stack": list(self.pseudo_stack),
-            "elapsed": self.elapsed, "next_curve_at": self.next_curve_at, "curve": self.curve,
+            "elapsed": self.elapsed, "curve": self.curve,
             "skipped": self.skipped, "report": self.report.to_dict(),
         })
 
@@ -208,8 +208,10 @@ class Trainer:
         torch.set_rng_state(ck["rng"]["torch"])
         self.rng.bit_generator.state = ck["rng"]["numpy"]
         self.view_stack, self.pseudo_stack = list(ck["view_stack"]), list(ck["pseudo_stack"])
-        self.elapsed, self.next_curve_at = float(ck["elapsed"]), float(ck["next_curve_at"])
+        self.elapsed = float(ck["elapsed"])
         self.curve, self.skipped = list(ck["curve"]), int(ck["skipped"])
+        # From the last point at this run's interval, which a resumed run may have changed.
+        self.next_curve_at = next_curve_time(self.curve[-1]["seconds"] if self.curve else 0.0, self.cfg.curve_every_s)
         if g := ck["report"]["values"].get("growth"):
             self.report.values["growth"] = g
         return int(ck["iteration"])
@@ -309,7 +311,7 @@ class Trainer:
                                                                      cfg.curve_max_views))
         if curve and start_it == 0 and not self.curve:
             self._curve_point(0)
-            self.next_curve_at = cfg.curve_every_s
+            self.next_curve_at = next_curve_time(0.0, cfg.curve_every_s)
         last_ckpt = time.monotonic()
         ema = None
         it = start_it
@@ -360,9 +362,7 @@ class Trainer:
                                 "elapsed_s": self.elapsed})
                 if curve and self.elapsed >= self.next_curve_at and it < T:
                     self._curve_point(it)
-                    # the next multiple of the interval (0: a point after every iteration)
-                    every = cfg.curve_every_s
-                    self.next_curve_at = (math.floor(self.elapsed / every) + 1) * every if every > 0 else 0.0
+                    self.next_curve_at = next_curve_time(self.elapsed, cfg.curve_every_s)
                 if time.monotonic() - last_ckpt >= cfg.checkpoint_every_s:
                     self._save_checkpoint(it)
                     last_ckpt = time.monotonic()

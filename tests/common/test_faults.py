@@ -490,6 +490,23 @@ def test_resume_with_more_iterations_goes_on(scene24, finished_run, tmp_path, ca
     assert "resuming with changed iterations: 6 -> 8" in (work / "train.log").read_text()
 
 
+def test_resume_may_change_the_curve_interval(scene24, finished_run, tmp_path):
+    """``--curve-every`` on ``--resume`` is a safe change, listed in the report, and the next
+    point follows the new interval at once (0: a point after every iteration), not the point the
+    old interval had scheduled."""
+    from dibrgs_core.bench.runner import read_curve
+
+    work = copy_run(finished_run, tmp_path / "w")
+    before = [p["iteration"] for p in read_curve(work / "curve.csv")]
+    assert before[-1] == 6 and 7 not in before
+    rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "9", "--resume", "--curve-every", "0")
+    assert rc == 0, err
+    assert [p["iteration"] for p in read_curve(work / "curve.csv")] == before + [7, 8, 9]
+    rep = strict_json(work / "report.json")["values"]
+    assert ["curve_every_s", 10.0, 0.0] in rep["resume_changes"] and "forced_config" not in rep
+    assert _config(work)["config"]["curve_every_s"] == 0.0
+
+
 def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
     work = copy_run(finished_run, tmp_path / "w")
     rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--seed", "3", "--resume",
