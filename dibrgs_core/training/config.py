@@ -251,7 +251,7 @@ def preset(name: PresetName) -> TrainConfig:
       padded pseudo-view pixels (colour copied from the nearest warped pixel, no
       view saw them) at half the loss weight of warped ones; a curve point every
       10 s (a run of one or two minutes had two to four points at 30 s; a point's four
-      held-out views take 35-90 ms on two threads at 256x256 and 512x288, under 1 % of the
+      held-out views take 32-92 ms on two threads at 256x256 and 512x288, under 1 % of the
       run's wall time, outside the training clock); images downscaled to a long side of
       512 px unless a resolution scale is given (a 4000x3000 photo would cost 45x the
       pixels of a 512x512 generated view).
