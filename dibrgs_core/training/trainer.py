@@ -186,6 +186,7 @@ class Trainer:
         ps, ss = heldout_scores(self.method.model, [self.test_frames[i] for i in idx], self.bg)
         p, s = float(ps.mean()), float(ss.mean())
         self.curve.append({"seconds": round(self.elapsed, 3), "iteration": it, "psnr": p, "ssim": s})
+        self.curve_final = final
         write_curve(self.work / "curve.csv", self.curve)
         c = self.report.values.setdefault("curve", {"views_per_point": len(sub), "eval_seconds": 0.0})
         c["eval_seconds"] += time.perf_counter() - t0  # this process's points
@@ -210,6 +211,8 @@ class Trainer:
         self.view_stack, self.pseudo_stack = list(ck["view_stack"]), list(ck["pseudo_stack"])
         self.elapsed = float(ck["elapsed"])
         self.curve, self.skipped = list(ck["curve"]), int(ck["skipped"])
+        # Only a finished leg's report has views_final: its last point scored every held-out view.
+        self.curve_final = "views_final" in ck["report"]["values"].get("curve", {})
         # From the last point at this run's interval, which a resumed run may have changed.
         self.next_curve_at = next_curve_time(self.curve[-1]["seconds"] if self.curve else 0.0, self.cfg.curve_every_s)
         if g := ck["report"]["values"].get("growth"):
@@ -295,6 +298,7 @@ class Trainer:
         self.pseudo_stack: list[int] = []
         self.elapsed = 0.0
         self.curve: list[dict[str, float]] = []
+        self.curve_final = False  # whether the last point scored every held-out view
         self.next_curve_at = 0.0
         self.skipped = 0
         start_it = 0
@@ -312,6 +316,15 @@ class Trainer:
         if curve and start_it == 0 and not self.curve:
             self._curve_point(0)
             self.next_curve_at = next_curve_time(0.0, cfg.curve_every_s)
+        if (curve and self.curve_final and start_it < T and self.curve[-1]["iteration"] == start_it
+                and len(curve_views(len(self.test_frames), cfg.curve_max_views)) < len(self.test_frames)):
+            # A finished run goes on: its last point, scored on every held-out view, is scored again
+            # on the points' subset (the model it scored is the one just loaded), so that the points
+            # before the new end all compare.
+            self.curve.pop()
+            self._curve_point(start_it)
+            log.info("curve: the finished run's last point scored again on the %d held-out views the points use",
+                     self.report.values["curve"]["views_per_point"])
         last_ckpt = time.monotonic()
         ema = None
         it = start_it

@@ -507,6 +507,27 @@ def test_resume_may_change_the_curve_interval(scene24, finished_run, tmp_path):
     assert _config(work)["config"]["curve_every_s"] == 0.0
 
 
+def test_a_finished_runs_last_point_is_scored_again_on_the_points_views(scene24, finished_run, tmp_path, caplog):
+    """A finished run's last curve point scores every held-out view, the others a subset. When the
+    run goes on, that point becomes an ordinary one: scored again on the subset, which the finished
+    run's report gives as ``final_psnr_on_point_views``, so that the earlier points all compare."""
+    from dibrgs_core.bench.runner import read_curve
+
+    work = copy_run(finished_run, tmp_path / "w")
+    old = read_curve(work / "curve.csv")
+    rep = strict_json(work / "report.json")["values"]["curve"]
+    assert rep["views_final"] > rep["views_per_point"]
+    assert old[-1]["iteration"] == 6 and abs(old[-1]["psnr"] - rep["final_psnr_on_point_views"]) > 1e-4
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--resume", "--curve-every", "0")
+    assert rc == 0, err
+    new = read_curve(work / "curve.csv")
+    assert [p["iteration"] for p in new] == [p["iteration"] for p in old] + [7, 8]
+    assert new[:len(old) - 1] == old[:-1] and new[len(old) - 1]["seconds"] == old[-1]["seconds"]
+    assert new[len(old) - 1]["psnr"] == pytest.approx(rep["final_psnr_on_point_views"], abs=1e-4)
+    assert "scored again on the 4 held-out views" in caplog.text
+
+
 def test_force_config_accepts_and_records(scene24, finished_run, tmp_path):
     work = copy_run(finished_run, tmp_path / "w")
     rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "8", "--seed", "3", "--resume",
