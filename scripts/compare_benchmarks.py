@@ -6,8 +6,9 @@ run's error-against-time curve levelled off.
 
 BEFORE and AFTER are benchmark work folders (``scripts/benchmark.py --work``): their
 ``results/runs/*.json``; or folders of ``dibrgs train --out`` run folders (a real scene's
-runs with two versions of the code, say), paired by scene folder name and method; or two run
-folders, compared with each other whatever they ran. A run folder's metrics come from
+runs with two versions of the code, say), paired by scene folder name and method (a
+benchmark's runs against run folders by the benchmark's scene folders, ``city256_levir_s0``);
+or two run folders, compared with each other whatever they ran. A run folder's metrics come from
 ``metrics.json`` when ``dibrgs eval`` wrote one, else PSNR and SSIM from the curve's last point.
 Runs present in both are compared: held-out PSNR (dB), training
 seconds, plateau seconds (:func:`dibrgs_core.bench.runner.plateau_seconds`: the training second
@@ -29,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dibrgs_core.bench.pages import curve_figure, draw_curve, load_results  # noqa: E402
-from dibrgs_core.bench.runner import RunSpec, folder_result  # noqa: E402
+from dibrgs_core.bench.runner import RunSpec, folder_result, scene_path  # noqa: E402
 from dibrgs_core.common.fileio import write_text  # noqa: E402
 
 
@@ -59,6 +60,16 @@ def results_in(folder: Path) -> dict[str, dict[str, Any]]:
     return dict(run_folder(p) for p in subs)
 
 
+def by_scene_folder(results: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``results`` with a benchmark's runs keyed as run folders are (``<scene folder>__<method>``:
+    ``city256_levir_s0__dibrgs`` for ``city256__dibrgs``), the others as they were."""
+    out = {}
+    for k, r in results.items():
+        spec = RunSpec(**r["spec"]) if "spec" in r else None
+        out[f"{scene_path(spec, '').name}__{spec.method}" if spec else k] = r
+    return out
+
+
 def paired(before: Path, after: Path) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
     """(run key, before result, after result) for the runs both folders finished, by key; two run
     folders make one pair whatever their keys (``A / B`` when they differ)."""
@@ -70,6 +81,9 @@ def paired(before: Path, after: Path) -> list[tuple[str, dict[str, Any], dict[st
         (ka, ra), (kb, rb) = next(iter(a.items())), next(iter(b.items()))
         return [(ka if ka == kb else f"{ka} / {kb}", ra, rb)]
     common = sorted(set(a) & set(b))
+    if not common:  # a benchmark's runs against run folders: the benchmark's named by their scene folders
+        a, b = by_scene_folder(a), by_scene_folder(b)
+        common = sorted(set(a) & set(b))
     if not common:
         raise SystemExit(f"compare_benchmarks.py: error: {before} and {after} have no run in common "
                          f"({', '.join(sorted(a))} against {', '.join(sorted(b))})")

@@ -147,8 +147,18 @@ def test_compare_benchmarks_script_compares_run_folders(finished_run, tmp_path):
     _result(bench, "city256", "dibrgs", [(0, 8.0), (30, 17.0)])
     apart = subprocess.run([sys.executable, script, str(bench), str(plain.parent)], capture_output=True, text=True,
                            timeout=300, check=False)
-    assert apart.returncode != 0 and "have no run in common (city256__dibrgs against s24__dibrgs)" in apart.stderr
+    assert apart.returncode != 0 and "have no run in common (city256_levir_s0__dibrgs against s24__dibrgs)" in apart.stderr
     assert len(apart.stderr.strip().splitlines()) == 1
+    # A run folder of the benchmark's generated scene (as `dibrgs train` on its scenes/ folder) pairs with it.
+    cfg = json.loads((plain / "config.json").read_text())
+    cfg["scene"] = str(bench / "scenes" / bm.scene_path(bm.RunSpec("city", 256, "dibrgs"), "").name)
+    (plain / "config.json").write_text(json.dumps(cfg))
+    md = tmp_path / "mixed.md"
+    mixed = subprocess.run([sys.executable, script, str(bench), str(plain.parent), "--md", str(md)],
+                           capture_output=True, text=True, timeout=300, check=False)
+    assert mixed.returncode == 0, mixed.stderr
+    rows = [ln.split(" | ") for ln in md.read_text().splitlines() if ln.startswith("| city")]
+    assert [r[0] for r in rows] == ["| city256_levir_s0__dibrgs"] and rows[0][2] == f"{curve[-1]['psnr']:.2f}"
 
 
 def test_local_jobs_run_side_by_side_and_a_failure_does_not_lose_the_others(tmp_path):
