@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -19,11 +21,14 @@ import numpy as np
 import torch
 
 from ..common.fileio import atomic_path, write_text
+from ..common.report import Report
 from ..models.base import render_model
 from .frames import Frame
 from .losses import psnr, ssim
 
 CURVE_COLUMNS = ["seconds", "iteration", "psnr", "ssim"]
+
+log = logging.getLogger("dibrgs.train")
 
 
 def next_curve_time(seconds: float, every: float) -> float:
@@ -67,6 +72,58 @@ def evaluate_heldout(model: Any, frames: list[Frame], background: torch.Tensor,
         return float("nan"), float("nan")
     ps, ss = heldout_scores(model, frames, background)
     return float(ps.mean()), float(ss.mean())
+
+
+class CurveLog:
+    """A run's curve points, each written to ``curve.csv`` as it is scored: ``every_s`` training
+    seconds on :func:`curve_views`' subset of ``frames``, the last point (:meth:`end`) on all of
+    them with the subset's mean beside it in ``report``. The caller keeps scoring off its
+    training clock."""
+
+    def __init__(self, path: Path, frames: list[Frame], background: torch.Tensor, every_s: float,
+                 max_views: int | None, report: Report) -> None:
+        self.path, self.frames, self.background, self.every_s, self.report = path, frames, background, every_s, report
+        self.subset = curve_views(len(frames), max_views)
+        self.points: list[dict[str, float]] = []
+        self.final = False  # whether the last point scored every held-out view
+        self.next_at = 0.0  # training second of the next point
+
+    def restore(self, points: list[dict[str, float]], final: bool) -> None:
+        """A checkpoint's points; ``final``: its last one scored every view (a finished leg)."""
+        self.points, self.final = list(points), final
+        # From the last point at this run's interval, which a resumed run may have changed.
+        self.next_at = next_curve_time(self.points[-1]["seconds"] if self.points else 0.0, self.every_s)
+
+    def add(self, model: Any, it: int, seconds: float, final: bool = False) -> None:
+        """Score ``model`` at iteration ``it``, ``seconds`` of training: the subset, every view when ``final``."""
+        t0 = time.perf_counter()
+        idx = list(range(len(self.frames))) if final else self.subset
+        ps, ss = heldout_scores(model, [self.frames[i] for i in idx], self.background)
+        p, s = float(ps.mean()), float(ss.mean())
+        self.points.append({"seconds": round(seconds, 3), "iteration": it, "psnr": p, "ssim": s})
+        self.final, self.next_at = final, next_curve_time(seconds, self.every_s)
+        write_curve(self.path, self.points)
+        c = self.report.values.setdefault("curve", {"views_per_point": len(self.subset), "eval_seconds": 0.0})
+        c["eval_seconds"] += time.perf_counter() - t0  # this process's points
+        if final:
+            c.update(views_final=len(idx), final_psnr_on_point_views=float(ps[self.subset].mean()))
+        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", seconds, it, p, s, len(idx))
+
+    def go_on(self, model: Any, it: int) -> None:
+        """A run resumed at ``it`` goes on: a finished leg's last point, which scored every view, is
+        scored again on the subset (``model`` is the one it scored), so that the points before the
+        new end compare."""
+        if self.final and self.points and self.points[-1]["iteration"] == it and len(self.subset) < len(self.frames):
+            seconds = self.points.pop()["seconds"]
+            self.add(model, it, seconds)
+            log.info("curve: the finished run's last point scored again on the %d held-out views the points use",
+                     len(self.subset))
+
+    def end(self, model: Any, it: int, seconds: float) -> None:
+        """The last point, on every view (in place of a subset point at the same iteration)."""
+        if self.points and self.points[-1]["iteration"] == it:
+            self.points.pop()
+        self.add(model, it, seconds, final=True)
 
 
 def write_curve(path: Path, rows: list[dict[str, float]]) -> None:

@@ -51,7 +51,7 @@ from ..data.split import require_train_views
 from ..models.base import render_model
 from .checkpoint import CHECKPOINT, MODEL, load_checkpoint, save_model, save_torch
 from .config import TrainConfig, resolve_resolution
-from .curve import curve_decision, curve_views, heldout_scores, next_curve_time, plot_curve, write_curve
+from .curve import CurveLog, curve_decision, plot_curve
 from .frames import Frame, has_data, views_to_frames
 from .guard import all_finite, make_finite, stop_on_signals
 from .losses import photometric_loss
@@ -175,32 +175,13 @@ class Trainer:
         self.method, self.pseudo_frames = built.method, built.pseudo_frames
         return ckpt
 
-    # -- the curve -------------------------------------------------------------------
-    def _curve_point(self, it: int, final: bool = False) -> None:
-        """A curve point: the configured subset of held-out views, all of them when ``final``
-        (the subset's mean is reported beside it). Called outside the training clock, and only
-        when the split holds views out."""
-        t0 = time.perf_counter()
-        sub = curve_views(len(self.test_frames), self.cfg.curve_max_views)
-        idx = list(range(len(self.test_frames))) if final else sub
-        ps, ss = heldout_scores(self.method.model, [self.test_frames[i] for i in idx], self.bg)
-        p, s = float(ps.mean()), float(ss.mean())
-        self.curve.append({"seconds": round(self.elapsed, 3), "iteration": it, "psnr": p, "ssim": s})
-        self.curve_final = final
-        write_curve(self.work / "curve.csv", self.curve)
-        c = self.report.values.setdefault("curve", {"views_per_point": len(sub), "eval_seconds": 0.0})
-        c["eval_seconds"] += time.perf_counter() - t0  # this process's points
-        if final:
-            c.update(views_final=len(idx), final_psnr_on_point_views=float(ps[sub].mean()))
-        log.info("curve: %.1f s, it %d, held-out PSNR %.2f dB, SSIM %.4f (%d views)", self.elapsed, it, p, s, len(idx))
-
     # -- checkpoints ---------------------------------------------------------------
     def _save_checkpoint(self, it: int) -> None:
         save_torch(self.work / CHECKPOINT, {
             "version": 2, "iteration": it, "config": self.cfg.to_dict(), "method": self.method.state(),
             "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
             "view_stack": list(self.view_stack), "pseudo_stack": list(self.pseudo_stack),
-            "elapsed": self.elapsed, "curve": self.curve,
+            "elapsed": self.elapsed, "curve": self.curve.points,
             "skipped": self.skipped, "report": self.report.to_dict(),
         })
 
@@ -210,11 +191,9 @@ class Trainer:
         self.rng.bit_generator.state = ck["rng"]["numpy"]
         self.view_stack, self.pseudo_stack = list(ck["view_stack"]), list(ck["pseudo_stack"])
         self.elapsed = float(ck["elapsed"])
-        self.curve, self.skipped = list(ck["curve"]), int(ck["skipped"])
         # Only a finished leg's report has views_final: its last point scored every held-out view.
-        self.curve_final = "views_final" in ck["report"]["values"].get("curve", {})
-        # From the last point at this run's interval, which a resumed run may have changed.
-        self.next_curve_at = next_curve_time(self.curve[-1]["seconds"] if self.curve else 0.0, self.cfg.curve_every_s)
+        self.curve.restore(ck["curve"], "views_final" in ck["report"]["values"].get("curve", {}))
+        self.skipped = int(ck["skipped"])
         if g := ck["report"]["values"].get("growth"):
             self.report.values["growth"] = g
         return int(ck["iteration"])
@@ -297,9 +276,8 @@ class Trainer:
         self.view_stack: list[int] = []
         self.pseudo_stack: list[int] = []
         self.elapsed = 0.0
-        self.curve: list[dict[str, float]] = []
-        self.curve_final = False  # whether the last point scored every held-out view
-        self.next_curve_at = 0.0
+        self.curve = CurveLog(self.work / "curve.csv", self.test_frames, self.bg, cfg.curve_every_s,
+                              cfg.curve_max_views, self.report)
         self.skipped = 0
         start_it = 0
         if ckpt is not None:
@@ -313,18 +291,10 @@ class Trainer:
         self.report.save(self.work / "report.json")
         curve = self.report.decide("train", "curve", *curve_decision(len(self.test_frames), cfg.curve_every_s,
                                                                      cfg.curve_max_views))
-        if curve and start_it == 0 and not self.curve:
-            self._curve_point(0)
-            self.next_curve_at = next_curve_time(0.0, cfg.curve_every_s)
-        if (curve and self.curve_final and start_it < T and self.curve[-1]["iteration"] == start_it
-                and len(curve_views(len(self.test_frames), cfg.curve_max_views)) < len(self.test_frames)):
-            # A finished run goes on: its last point, scored on every held-out view, is scored again
-            # on the points' subset (the model it scored is the one just loaded), so that the points
-            # before the new end all compare.
-            self.curve.pop()
-            self._curve_point(start_it)
-            log.info("curve: the finished run's last point scored again on the %d held-out views the points use",
-                     self.report.values["curve"]["views_per_point"])
+        if curve and start_it == 0 and not self.curve.points:
+            self.curve.add(model, 0, 0.0)
+        elif curve and start_it < T:
+            self.curve.go_on(model, start_it)
         last_ckpt = time.monotonic()
         ema = None
         it = start_it
@@ -373,17 +343,14 @@ class Trainer:
                     rate = self.elapsed / max(it - start_it, 1)
                     self._emit({"iteration": it, "total": T, "loss": ema, "eta_s": rate * (T - it),
                                 "elapsed_s": self.elapsed})
-                if curve and self.elapsed >= self.next_curve_at and it < T:
-                    self._curve_point(it)
-                    self.next_curve_at = next_curve_time(self.elapsed, cfg.curve_every_s)
+                if curve and self.elapsed >= self.curve.next_at and it < T:
+                    self.curve.add(model, it, self.elapsed)
                 if time.monotonic() - last_ckpt >= cfg.checkpoint_every_s:
                     self._save_checkpoint(it)
                     last_ckpt = time.monotonic()
         bar.close()
         if status == "done" and curve:
-            if self.curve and self.curve[-1]["iteration"] == it:
-                self.curve.pop()  # the last point evaluates every held-out view
-            self._curve_point(it, final=True)
+            self.curve.end(model, it, self.elapsed)
         self._save_checkpoint(it)
         self.report.values["sizes"] = model.sizes()
         self.report.values["skipped_steps"] = self.skipped
@@ -395,7 +362,7 @@ class Trainer:
         if status == "done":
             self.save_model()
             with contextlib.suppress(Exception):
-                plot_curve(self.work / "curve.png", self.curve, f"{cfg.method} ({cfg.preset} preset)")
+                plot_curve(self.work / "curve.png", self.curve.points, f"{cfg.method} ({cfg.preset} preset)")
             self._emit({"done": True, "work": str(self.work), "iteration": it, "elapsed_s": self.elapsed})
         else:
             log.info("stopped at iteration %d; `--resume` continues from %s", it, self.work / CHECKPOINT)

@@ -15,7 +15,6 @@ import torch
 from threads import torch_threads
 
 from dibrgs_core.training import curve as curve_module
-from dibrgs_core.training import trainer as trainer_module
 from dibrgs_core.training.config import preset
 from dibrgs_core.training.curve import curve_views, evaluate_heldout
 from dibrgs_core.render import set_backend
@@ -140,7 +139,7 @@ def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_ca
     assert curve_views(17, 4) == [0, 5, 11, 16] and curve_views(3, 4) == [0, 1, 2]
     assert curve_views(17, None) == list(range(17))
     seen: list[int] = []
-    real_scores, real_render = trainer_module.heldout_scores, curve_module.render_model
+    real_scores, real_render = curve_module.heldout_scores, curve_module.render_model
 
     def recording(model, frames, bg):
         seen.append(len(frames))
@@ -152,7 +151,7 @@ def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_ca
         assert not out[0].requires_grad
         return out
 
-    monkeypatch.setattr(trainer_module, "heldout_scores", recording)
+    monkeypatch.setattr(curve_module, "heldout_scores", recording)
     monkeypatch.setattr(curve_module, "render_model", render_without_autograd)
     cfg = _cfg(5)
     cfg.curve_every_s = 0.0  # a point after every iteration
