@@ -184,3 +184,44 @@ def test_optimisers_step_together_in_one_call_as_each_alone(monkeypatch):
     calls.clear()
     step_together([opt for _, opt in together])
     assert seen == [together[1][1]] and calls == [4, 4]
+
+
+def test_a_group_option_the_loop_lacks_and_a_closure_take_torchs_step(monkeypatch):
+    """An optimiser with an ``amsgrad`` group steps wholly by torch's Adam (none of its tensors in
+    the extension's call, the other optimiser's still there), and a step with a closure returns
+    the closure's loss: the values of torch's Adam either way."""
+
+    def make(cls):
+        torch.manual_seed(3)
+        a = [torch.randn(s).requires_grad_() for s in SHAPES[:3]]
+        b = [torch.randn(s).requires_grad_() for s in SHAPES[3:]]
+        return a, cls([{"params": a[:1], "lr": 1e-2}, {"params": a[1:], "lr": 2e-2, "amsgrad": True}], lr=0.0), \
+            b, cls(b, lr=3e-3)
+
+    ta, topt_a, tb, topt_b = make(torch.optim.Adam)
+    oa, oopt_a, ob, oopt_b = make(Adam)
+    calls = spy_on_adam_step(monkeypatch)
+    for it in range(4):
+        gen = torch.Generator().manual_seed(it)
+        grads = [torch.randn(p.shape, generator=gen) for p in ta + tb]
+        for ps in (ta + tb, oa + ob):
+            for p, g in zip(ps, grads):
+                p.grad = g.clone()
+        topt_a.step()
+        topt_b.step()
+        step_together([oopt_a, oopt_b])
+    assert calls == [len(ob)] * 4  # the amsgrad optimiser never in the one loop
+    for p, q in zip(ta + tb, oa + ob):
+        assert torch.allclose(p, q, rtol=1e-5, atol=1e-6), float((p - q).abs().max())
+    assert "max_exp_avg_sq" in oopt_a.state[oa[1]]
+
+    def closure(ps):
+        def f():
+            for p in ps:
+                p.grad = torch.full_like(p, 0.5)
+            return torch.tensor(7.0)
+        return f
+
+    assert float(topt_b.step(closure(tb))) == 7.0 and float(oopt_b.step(closure(ob))) == 7.0
+    for p, q in zip(tb, ob):
+        assert torch.allclose(p, q, rtol=1e-5, atol=1e-6)
