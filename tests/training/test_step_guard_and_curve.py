@@ -18,7 +18,7 @@ from dibrgs_core.training import curve as curve_module
 from dibrgs_core.training.config import preset
 from dibrgs_core.training.curve import curve_views, evaluate_heldout
 from dibrgs_core.render import set_backend
-from dibrgs_core.training.guard import all_finite
+from dibrgs_core.training.guard import all_finite, make_finite
 from dibrgs_core.training.trainer import Trainer
 
 torch.set_num_threads(1)
@@ -76,6 +76,19 @@ def test_all_finite(backend):
         assert not all_finite([torch.ones(3), h])
     finally:
         set_backend(None)
+
+
+def test_make_finite_mends_only_the_tensors_that_need_it():
+    """After a step whose arithmetic overflowed: NaN becomes 0 and infinities +-1e6 in place, the
+    finite tensors are left as they were (the same values and version), and it says so."""
+    good = torch.randn(40000)
+    bad = torch.ones(2, 3)
+    bad[0, 1], bad[1, 0], bad[1, 2] = math.nan, math.inf, -math.inf
+    keep, version = good.clone(), good._version
+    assert make_finite([good, bad])
+    assert torch.equal(bad, torch.tensor([[1.0, 0.0, 1.0], [1e6, 1.0, -1e6]]))
+    assert torch.equal(good, keep) and good._version == version
+    assert not make_finite([good, bad]) and torch.equal(good, keep)
 
 
 class PoisonedTrainer(Trainer):
