@@ -115,6 +115,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     missing = [k for k in ("iteration", "config", "method", "rng", "report") if k not in ck]
     if missing:
         raise InputError(path, f"not a DIBR-GS checkpoint (no {', '.join(missing)}); {todo}")
+    if not isinstance(ck["iteration"], int) or isinstance(ck["iteration"], bool) or ck["iteration"] < 0:
+        raise InputError(path, f"checkpoint iteration {ck['iteration']!r} is not a count of iterations; {todo}")
     try:
         TrainConfig.from_dict(ck["config"])
     except (ValueError, TypeError) as e:

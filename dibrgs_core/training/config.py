@@ -20,7 +20,9 @@ This module imports only the standard library (and the standard-library-only mod
 """
 from __future__ import annotations
 
-import dataclasses
+import numbers
+import types
+import typing
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -204,25 +206,73 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "TrainConfig":
-        """The configuration ``to_dict`` gave (JSON lists back to tuples); ``ValueError`` names
-        any key, top-level or nested, that no field has."""
+        """The configuration ``to_dict`` gave (JSON lists back to tuples, whole numbers where a
+        float goes to floats); ``ValueError`` names any key, top-level or nested, that no field
+        has or whose value is not of the field's type (a damaged or hand-edited file)."""
         sub = {"model": ModelConfig, "growth": GrowthConfig, "lr": LRConfig,
                "pseudo": PseudoConfig, "gs3d": GS3DConfig, "colour": ColourConfig}
         kw: dict[str, Any] = {}
-        names = {f.name for f in dataclasses.fields(TrainConfig)}
+        hints = typing.get_type_hints(TrainConfig)
         for k, v in d.items():
-            if k not in names:
+            if k not in hints:
                 raise ValueError(f"unknown config key {k!r}")
             if k in sub:
-                fields = {f.name for f in dataclasses.fields(sub[k])}
-                unknown = sorted(set(v) - fields)
+                if not isinstance(v, dict):
+                    raise ValueError(f"config key {k!r}: {v!r} is not a table of {sub[k].__name__}'s fields")
+                sub_hints = typing.get_type_hints(sub[k])
+                unknown = sorted(set(v) - set(sub_hints))
                 if unknown:
                     raise ValueError(f"unknown config key{'s' if len(unknown) > 1 else ''} "
                                      + ", ".join(f"{k}.{u}" for u in unknown))
-                kw[k] = sub[k](**{kk: tuple(vv) if isinstance(vv, list) else vv for kk, vv in v.items()})
+                kw[k] = sub[k](**{kk: _typed(f"{k}.{kk}", sub_hints[kk], vv) for kk, vv in v.items()})
             else:
-                kw[k] = tuple(v) if isinstance(v, list) else v
+                kw[k] = _typed(k, hints[k], v)
         return TrainConfig(**kw)
+
+
+def _typed(key: str, hint: Any, v: Any) -> Any:
+    """``v`` as a field of type ``hint`` holds it (a list as a tuple, an int as a float where a
+    float goes); ``ValueError`` naming ``key`` when it is not of that type."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):  # X | None
+        if v is None and type(None) in args:
+            return None
+        for a in args:
+            if a is not type(None):
+                try:
+                    return _typed(key, a, v)
+                except ValueError:
+                    pass
+    elif origin is typing.Literal:
+        if isinstance(v, str) and v in args:
+            return v
+    elif origin is tuple:
+        if isinstance(v, (list, tuple)) and len(v) == len(args):
+            return tuple(_typed(key, a, x) for a, x in zip(args, v))
+    elif hint is float:  # numbers.Real: numpy's scalars too (a value computed with numpy)
+        if isinstance(v, numbers.Real) and not isinstance(v, bool):
+            return float(v)
+    elif hint is int:
+        if isinstance(v, numbers.Integral) and not isinstance(v, bool):
+            return int(v)
+    elif hint in (bool, str):
+        if isinstance(v, hint):
+            return v
+    else:  # pragma: no cover - a field of a type this function does not know yet
+        raise TypeError(f"config key {key!r}: no check for {hint!r}")
+    raise ValueError(f"config key {key!r}: {v!r} is not {_describe(hint)}")
+
+
+def _describe(hint: Any) -> str:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):
+        return " or ".join(_describe(a) for a in args)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(map(str, args))
+    if origin is tuple:
+        return f"a list of {len(args)} numbers"
+    return {type(None): "null", float: "a number", int: "a whole number", bool: "true or false",
+            str: "a text"}.get(hint, str(hint))
 
 
 PRESETS: tuple[str, ...] = choices(PresetName)

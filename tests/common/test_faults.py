@@ -576,7 +576,8 @@ def test_a_fresh_run_replaces_the_earlier_runs_outputs(scene24, finished_run, tm
 # =============================================================================================
 # D. The operating system says no: one line naming the path and what to do, exit 1 (2 for input)
 # =============================================================================================
-@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "corrupt_no_message", "foreign"])
+@pytest.mark.parametrize("what", ["empty", "truncated", "corrupt", "corrupt_no_message", "foreign", "keys_missing",
+                                  "config_damaged", "iteration_damaged"])
 def test_unreadable_checkpoint(scene24, finished_run, tmp_path, what):
     work = copy_run(finished_run, tmp_path / "w")
     ck = work / CHECKPOINT
@@ -585,9 +586,18 @@ def test_unreadable_checkpoint(scene24, finished_run, tmp_path, what):
     # in 300 does; the error line then failed to format and came out as an internal error).
     no_message = random.Random(454).randbytes(4096)
     ck.write_bytes({"empty": b"", "truncated": data[: len(data) // 2], "corrupt": os.urandom(4096),
-                    "corrupt_no_message": no_message, "foreign": b""}[what])
+                    "corrupt_no_message": no_message}.get(what, b""))
     if what == "foreign":
         torch.save([1, 2, 3], ck)
+    elif what in ("keys_missing", "config_damaged", "iteration_damaged"):  # a dict, but not what a run wrote
+        st = torch.load(finished_run / CHECKPOINT, weights_only=False)
+        if what == "keys_missing":
+            del st["rng"], st["report"]
+        elif what == "config_damaged":
+            st["config"]["iterations"] = "many"
+        else:
+            st["iteration"] = "6"
+        torch.save(st, ck)
     before = ck.read_bytes()
     rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "6", "--resume")
     line = one_line(err)
@@ -606,6 +616,17 @@ def test_unreadable_model_file(finished_run, tmp_path, what):
         line = one_line(err)
         assert rc == 2 and str(m) in line and ("empty" in line or "unreadable trained model" in line), err
     assert not (tmp_path / "g.ply").exists() and not (work / "metrics.json").exists()
+
+
+def test_a_model_file_of_another_kind(finished_run, tmp_path):
+    """A readable model.pt without what a run writes (another tool's dict): one line naming the file."""
+    work = copy_run(finished_run, tmp_path / "w")
+    m = work / MODEL
+    torch.save({"method": "dibrgs", "weights": [1, 2]}, m)
+    rc, err = dibrgs("eval", work, "--threads", "1")
+    line = one_line(err)
+    assert rc == 2 and str(m) in line and "cannot read the trained model (KeyError" in line, err
+    assert not (work / "metrics.json").exists()
 
 
 

@@ -1,6 +1,7 @@
 """Training configuration: the paper's schedule, fractions of training, presets and their round trip."""
 from __future__ import annotations
 
+import re
 
 import pytest
 
@@ -28,6 +29,32 @@ def test_paper_schedule_matches_the_paper_and_scales_with_length():
         TrainConfig.from_dict({"nope": 1})
     with pytest.raises(ValueError):
         preset("gpu")
+
+
+@pytest.mark.parametrize("key,value,says", [
+    ("iterations", "many", "'iterations': 'many' is not a whole number"),
+    ("iterations", True, "'iterations': True is not a whole number"),
+    ("resolution_scale", "x", "'resolution_scale': 'x' is not a number or null"),
+    ("method", "nerf", "'method': 'nerf' is not one of dibrgs, 3dgs"),
+    ("lr.offset", [0.01], "'lr.offset': [0.01] is not a list of 2 numbers"),
+    ("pseudo.mode", "maybe", "'pseudo.mode': 'maybe' is not one of auto, on, off"),
+    ("model", 3, "'model': 3 is not a table of ModelConfig's fields"),
+    ("dense_init", "yes", "'dense_init': 'yes' is not true or false"),
+])
+def test_a_value_of_the_wrong_type_is_named(key, value, says):
+    """A damaged or hand-edited config (a checkpoint's, a model file's): the key and what it should
+    be, not a failure far away in training; whole numbers where a float goes and JSON's lists are
+    read as the fields hold them."""
+    d = preset("cpu").to_dict()
+    top, _, sub = key.partition(".")
+    (d[top] if sub else d)[sub or top] = value
+    with pytest.raises(ValueError, match="config key " + re.escape(says)):
+        TrainConfig.from_dict(d)
+    d = preset("cpu").to_dict()
+    d["lambda_volume"], d["lr"]["offset"], d["max_long_side"] = 1, [1, 0.5], None
+    cfg = TrainConfig.from_dict(d)
+    assert cfg.lambda_volume == 1.0 and isinstance(cfg.lambda_volume, float)
+    assert cfg.lr.offset == (1.0, 0.5) and cfg.max_long_side is None
 
 
 def test_expon_lr_endpoints_and_monotone():
