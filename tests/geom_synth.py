@@ -218,3 +218,22 @@ def nadir(x: float, y: float = 0.0, height: float = 100.0, size: int = 64, name:
     K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
     w2c = look_at(np.array([x, y, height]), np.array([x, y, 0.0]), np.array([0, 1.0, 0]))
     return Camera(K=K, w2c=w2c, width=size, height=size, name=name)
+
+
+def save_tiny_depth_anything(path: Path) -> Path:
+    """A Depth Anything V2 model of a few thousand randomly initialised weights and its image
+    processor, saved with transformers' ``save_pretrained`` to ``path`` (the layout of a local
+    download, read back through the pipeline's own loader); returns ``path``."""
+    import torch
+    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config, DPTImageProcessor
+
+    backbone = Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
+                            patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],
+                            reshape_hidden_states=False)
+    cfg = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32, neck_hidden_sizes=[8, 16, 32, 32],
+                              fusion_hidden_size=16, head_hidden_size=8, patch_size=14)
+    torch.manual_seed(0)
+    DepthAnythingForDepthEstimation(cfg).save_pretrained(path)
+    DPTImageProcessor(size={"height": 56, "width": 56}, keep_aspect_ratio=True, ensure_multiple_of=14,
+                      do_rescale=True, do_normalize=True).save_pretrained(path)
+    return path

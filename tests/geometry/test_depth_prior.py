@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from geom_synth import make_synthetic_scene
+from geom_synth import make_synthetic_scene, save_tiny_depth_anything
 
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.geometry.config import MvsConfig
@@ -27,22 +27,7 @@ def scene128():
 
 
 def test_depth_anything_tiny_model_roundtrip(tmp_path):
-    from transformers import (
-        DepthAnythingConfig,
-        DepthAnythingForDepthEstimation,
-        Dinov2Config,
-        DPTImageProcessor,
-    )
-
-    backbone = Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
-                            patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],
-                            reshape_hidden_states=False)
-    cfg = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32, neck_hidden_sizes=[8, 16, 32, 32],
-                              fusion_hidden_size=16, head_hidden_size=8, patch_size=14)
-    torch.manual_seed(0)
-    DepthAnythingForDepthEstimation(cfg).save_pretrained(tmp_path)
-    DPTImageProcessor(size={"height": 56, "width": 56}, keep_aspect_ratio=True, ensure_multiple_of=14,
-                      do_rescale=True, do_normalize=True).save_pretrained(tmp_path)
+    save_tiny_depth_anything(tmp_path)
     model, proc = load_depth_anything(tmp_path)
     img = np.random.default_rng(0).random((40, 50, 3)).astype(np.float32)
     disp = predict_disparity(model, proc, img)
