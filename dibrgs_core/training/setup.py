@@ -24,6 +24,7 @@ from ..camera.pinhole import Camera
 from ..common.fileio import atomic_path
 from ..common.report import Report
 from ..common.digest import Digest
+from ..common.errors import InputError
 from ..data.scene import Scene, View, views_digest
 from .config import TrainConfig
 from .frames import Frame, frame_valid
@@ -199,6 +200,9 @@ def build_dibrgs(ctx: SetupContext) -> Setup:
     else:
         points, _ = sfm_points(ctx)
         points = np.asarray(points, np.float32).astype(np.float64).reshape(-1, 3)
+        if not len(points):
+            raise InputError(None, "--no-dense-init: SfM triangulated no points in the training views, so the "
+                                   "ablation has no anchors to start from; train without --no-dense-init")
         rep.decide("train", "dense_init", False, f"ablation --no-dense-init: anchors from {len(points)} SfM points")
     hm = res.height_map
     if cfg.height == "off":
