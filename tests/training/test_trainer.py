@@ -353,3 +353,24 @@ def test_pseudo_view_flags_reach_the_config():
         with pytest.raises(SystemExit) as e:
             p.parse_args(["train", "S", "--out", "W", "--pseudo-consistency", bad])
         assert e.value.code == 2
+
+
+@pytest.mark.parametrize("change,says", [
+    (lambda c: setattr(c, "method", "nerf"), "unknown method 'nerf' (dibrgs or 3dgs)"),
+    (lambda c: setattr(c, "iterations", 0), "--iterations must be a positive integer, got 0"),
+    (lambda c: setattr(c, "iterations", 2.5), "--iterations must be a positive integer, got 2.5"),
+    (lambda c: setattr(c, "resolution_scale", 0.0), "--resolution-scale must be in (0, 4], got 0.0"),
+], ids=["method", "iterations-0", "iterations-float", "scale-0"])
+def test_the_library_checks_a_configuration_before_it_touches_anything(tmp_path, change, says):
+    """Called as a library (the add-on, a user's script), not through the command's options: the
+    same one-line errors, before the scene is read or the run folder made."""
+    from dibrgs_core.common.errors import InputError
+
+    cfg = _cfg(1)
+    change(cfg)
+    with pytest.raises(InputError, match=re.escape(says)):
+        train(tmp_path / "no scene here", tmp_path / "w", cfg)
+    assert not (tmp_path / "w").exists()
+    (tmp_path / "f").write_text("a file")
+    with pytest.raises(InputError, match="is a file, not a folder"):
+        train(tmp_path / "no scene here", tmp_path / "f", _cfg(1))
