@@ -24,6 +24,7 @@ import pytest
 import torch
 
 from dibrgs_core.common.lock import LOCK_NAME
+from dibrgs_core.data.ply import read_ply
 from dibrgs_core.training.checkpoint import CHECKPOINT, MODEL
 
 from run_synth import QUICK, copy_run, dibrgs, dibrgs_subprocess
@@ -441,6 +442,29 @@ def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
     assert scene["train"] == ["001", "008", "015"] and scene["split_source"] == "default (LEVIR-NVS 3-view protocol)"
     assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
 
+
+
+@pytest.mark.parametrize("damage", ["report-not-json", "points-truncated", "height-map-garbage"])
+def test_a_damaged_geometry_cache_is_made_again(scene24, finished_run, tmp_path, caplog, damage):
+    """A run folder's ``init/`` damaged after the fact (a disk error, a hand edit): ``train`` says
+    so and initialises again, instead of failing or training on half a cloud."""
+    work = copy_run(finished_run, tmp_path / "w")
+    init = work / "init"
+    good = read_ply(init / "points.ply")[0]
+    if damage == "report-not-json":
+        (init / "init_report.json").write_text("{not json")
+    elif damage == "points-truncated":
+        ply = init / "points.ply"
+        ply.write_bytes(ply.read_bytes()[: ply.stat().st_size // 2])
+    else:
+        assert (init / "height_map.npz").exists()
+        (init / "height_map.npz").write_bytes(b"PK not a zip")
+    with caplog.at_level("INFO", logger="dibrgs"):
+        rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "2", "--no-pseudo")
+    assert rc == 0, err
+    assert "initialising again" in caplog.text and "reusing the geometry initialisation" not in caplog.text
+    strict_json(init / "init_report.json")
+    assert np.array_equal(read_ply(init / "points.ply")[0], good)
 
 RESUME_REFUSED = [
     ("preset", ["--preset", "cpu"], "preset: 'test' -> 'cpu'"),
