@@ -177,6 +177,13 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     if not frames:
         raise InputError(root, "the run's split has no held-out views to evaluate"
                          + (" (those it has hold no pixel of data)" if empty else ""))
+    no_lpips = "no LPIPS weights given (--lpips); LPIPS and AVGE are not computed"
+    small = min(min(f.image.shape[:2]) for f in frames)
+    if lp is not None and small < lp.min_side:
+        no_lpips = (f"the held-out images' shortest side is {small} px, under the {lp.min_side} px LPIPS-"
+                    f"{lp.net_name} has features for; LPIPS and AVGE are not computed")
+        log.warning("%s", no_lpips)
+        lp = None
     per_view: dict[str, dict[str, Any]] = {}
     undefined: dict[str, str] = {}
     renders = []
@@ -231,7 +238,7 @@ def evaluate(work: str | Path, lpips_weights: str | Path | None = None, lpips_ba
     else:
         metrics["lpips"] = None
         metrics["avge"] = None
-        metrics["lpips_unavailable"] = "no LPIPS weights given (--lpips); LPIPS and AVGE are not computed"
+        metrics["lpips_unavailable"] = no_lpips
     rep_path = work / "report.json"
     if rep_path.exists():
         import json

@@ -32,6 +32,11 @@ _ALEX_SLICES = [(0, 2), (2, 5), (5, 8), (8, 10), (10, 12)]
 _ALEX_CH = [64, 192, 384, 256, 256]
 
 
+#: The shortest image side each backbone's five slices have features for: AlexNet's stride-4
+#: convolution and two 3x3 poolings leave nothing of 30 pixels, VGG's four 2x2 poolings nothing of 15.
+MIN_SIDE = {"alex": 31, "vgg": 16}
+
+
 def _vgg_features() -> nn.Sequential:
     layers: list[nn.Module] = []
     c = 3
@@ -80,6 +85,7 @@ class LPIPS(nn.Module):
                 s.add_module(str(i), feats[i])
             setattr(self.net, f"slice{k}", s)
         self.n_slices = len(slices)
+        self.net_name, self.min_side = net, MIN_SIDE[net]
         for k, c in enumerate(chans):
             setattr(self, f"lin{k}", _Lin(c))
         self.scaling_layer = nn.Module()

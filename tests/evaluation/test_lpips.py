@@ -38,3 +38,40 @@ def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
         load_lpips(tmp_path / "missing.pth")
     # AVGE is the geometric mean of MSE, sqrt(1-SSIM) and LPIPS.
     assert avge(20.0, 0.75, 0.1) == pytest.approx((0.01 * 0.5 * 0.1) ** (1 / 3))
+
+
+def test_eval_scores_lpips_and_avge_with_local_weights(finished_run, tmp_path):
+    """``dibrgs eval --lpips FILE`` (weights of the lpips package's layout, here random ones saved
+    to a file): every held-out view gets an LPIPS, the run's is their mean and AVGE combines it with
+    PSNR and SSIM. With AlexNet's weights the run's 24-pixel images are too small for its features
+    (31 at least): LPIPS and AVGE are left out, and the metrics and the log say why, instead of an
+    internal error from inside the network."""
+    import json
+
+    from run_synth import copy_run, dibrgs
+
+    from dibrgs_core.evaluation.evaluate import avge
+    from dibrgs_core.evaluation.lpips import LPIPS
+
+    def evaluate(net: str) -> dict:
+        torch.manual_seed(0)
+        lp = LPIPS(net)
+        with torch.no_grad():
+            for k in range(5):
+                getattr(lp, f"lin{k}").model[1].weight.abs_()
+        torch.save(lp.state_dict(), tmp_path / f"lpips_{net}.pth")
+        work = copy_run(finished_run, tmp_path / net)
+        rc, err = dibrgs("eval", work, "--lpips", tmp_path / f"lpips_{net}.pth", "--threads", "1", "--fps-repeats", "1")
+        assert rc == 0, err
+        return json.loads((work / "metrics.json").read_text())
+
+    m = evaluate("vgg")
+    per_view = [r["lpips"] for r in m["per_view"].values()]
+    assert len(per_view) == m["views"] > 0 and all(0 < v < float("inf") for v in per_view)
+    assert m["lpips"] == pytest.approx(sum(per_view) / len(per_view))
+    assert m["avge"] == pytest.approx(avge(m["psnr"], m["ssim"], m["lpips"])) and 0 < m["avge"] < 1
+    assert "lpips_unavailable" not in m
+    scored = m
+    m = evaluate("alex")
+    assert m["lpips"] is None and m["avge"] is None and m["psnr"] == pytest.approx(scored["psnr"])
+    assert m["lpips_unavailable"].startswith("the held-out images' shortest side is 24 px, under the 31 px LPIPS-alex")
