@@ -77,3 +77,38 @@ def test_opacity_resets_leave_a_short_run_time_to_recover():
     st.step_post_backward(g, opt, 3000, None)
     assert float(torch.sigmoid(g.opacity.detach()).max()) <= 0.01 + 1e-6
     assert float(opt.state[g.opacity]["exp_avg"].abs().max()) == 0.0
+
+
+def test_after_the_first_reset_gaussians_too_large_on_screen_or_in_the_world_are_pruned():
+    """3DGS prunes, once its opacities have been reset (only runs of over 6,000 iterations, the
+    ``paper`` preset), the Gaussians larger than ``max_screen_size`` pixels in a view or a tenth of
+    the scene's extent; before the first reset, and for the Gaussians a densification has just
+    added (not yet seen on screen), neither applies."""
+    from dibrgs_core.models.gs3d import Gaussians3D
+    from dibrgs_core.strategy.densify import DensifyStrategy
+    from dibrgs_core.training.config import GS3DConfig
+    from dibrgs_core.training.methods import gs3d_optimizer
+
+    def densified(it_after_reset: int) -> Gaussians3D:
+        rng = np.random.default_rng(0)
+        g = Gaussians3D(rng.uniform(-5, 5, (100, 3)), rng.uniform(0, 1, (100, 3)), 1)
+        cfg = GS3DConfig()
+        opt = gs3d_optimizer(g, cfg, extent=10.0)
+        st = DensifyStrategy(g, cfg, 30000, extent=10.0)
+        with torch.no_grad():
+            g.log_scales[:] = math.log(0.05)     # within 1 % of the extent: clones where the gradient is large
+            g.log_scales[:5] = math.log(1.5)     # over a tenth of the extent
+            g.means[:, 0] = torch.arange(100.0)  # to tell the rows apart afterwards
+        st.max_radii[5:10] = cfg.max_screen_size + 10.0
+        st.max_radii[10:15] = cfg.max_screen_size - 1.0
+        st.grad_accum[20:25] = 1.0  # five clones, appended with no screen size yet
+        st.denom[:] = 1.0
+        st.densify_and_prune(st.reset_every + it_after_reset, g, opt)
+        return g
+
+    before = densified(0)
+    assert before.num_gaussians == 105
+    after = densified(100)
+    assert after.num_gaussians == 95
+    left = sorted(after.means[:, 0].tolist())
+    assert left == sorted(list(range(10, 100)) + list(range(20, 25)))  # rows 0-9 gone, the clones kept
