@@ -116,6 +116,26 @@ def test_the_no_dense_init_ablation_starts_from_the_sfm_points(tmp_path, capsys)
     assert err.startswith("dibrgs train: error: --no-dense-init: SfM triangulated no points"), err
 
 
+def test_resume_with_colour_transforms_continues_to_identical_parameters(synth, synth_init, tmp_path):
+    """With per-view colour transforms on, a run stopped and resumed restores the transforms and
+    their optimiser too: the same model and the same transforms as an uninterrupted run."""
+    def cfg():
+        c = _cfg(30)
+        c.colour.mode = "on"
+        return c
+
+    a = _with_caches(synth_init, tmp_path / "a")
+    train(synth, a, cfg())
+    b = _with_caches(synth_init, tmp_path / "b")
+    assert train(synth, b, cfg(), stop_after=13).status == "interrupted"
+    assert train(synth, b, cfg(), resume=True).status == "done"
+    pa, pb = _params(a), _params(b)
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
+    ta, tb = (json.loads((w / "report.json").read_text())["values"]["colour_transforms"] for w in (a, b))
+    assert ta == tb and len(ta) == 3
+
+
 def test_progress_json_lines_and_report(synth, synth_init, tmp_path):
     import io
 
