@@ -245,3 +245,27 @@ def test_resolve_encoder(tmp_path):
         resolve_encoder("dino", (r, tmp_path / "missing.pth"))
     with pytest.raises(InputError):
         resolve_encoder("clip", (None, None))
+
+
+@pytest.mark.slow
+def test_dino_encoder_from_weight_files_of_the_official_size(tmp_path):
+    """The paper's encoder as a user gets it: ``--dino-resnet`` / ``--dino-vit`` files of the full-size
+    ResNet-50 and ViT-B/8 (random weights here, in the official layouts: torchvision's with its fc
+    head, DINO's teacher checkpoint), built and loaded from the paths: the features are those of
+    the same networks handed over in memory."""
+    torch.manual_seed(3)
+    resnet, vit = dino_resnet50().eval(), dino_vitb8().eval()
+    torch.save(dict(resnet.state_dict(), **{"fc.weight": torch.zeros(2, 2048), "fc.bias": torch.zeros(2)}),
+               tmp_path / "dino_resnet50_pretrain.pth")
+    torch.save({"teacher": {f"backbone.{k}": t for k, t in vit.state_dict().items()}},
+               tmp_path / "dino_vitbase8_pretrain.pth")
+    images, cams = ring_views()
+    from_files = IBRFeatures("dino", images, cams, c_r=8, dino_resnet=tmp_path / "dino_resnet50_pretrain.pth",
+                             dino_vit=tmp_path / "dino_vitbase8_pretrain.pth")
+    in_memory = IBRFeatures("dino", images, cams, c_r=8, resnet=resnet, vit=vit)
+    # The backbones' feature levels, before the projection (random per instance).
+    a = {k: t for k, t in from_files.named_buffers() if k.startswith("feat_")}
+    b = {k: t for k, t in in_memory.named_buffers() if k.startswith("feat_")}
+    assert a.keys() == b.keys() and len(a) >= 2
+    for k in a:
+        assert torch.isfinite(a[k]).all() and a[k].abs().max() > 0 and torch.allclose(a[k], b[k], atol=1e-5), k
