@@ -444,6 +444,7 @@ def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
 
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["report-not-json", "points-truncated", "height-map-garbage"])
 def test_a_damaged_geometry_cache_is_made_again(scene24, finished_run, tmp_path, caplog, damage):
     """A run folder's ``init/`` damaged after the fact (a disk error, a hand edit): ``train`` says

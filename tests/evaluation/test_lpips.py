@@ -40,6 +40,7 @@ def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
     assert avge(20.0, 0.75, 0.1) == pytest.approx((0.01 * 0.5 * 0.1) ** (1 / 3))
 
 
+@pytest.mark.slow
 def test_eval_scores_lpips_and_avge_with_local_weights(finished_run, tmp_path):
     """``dibrgs eval --lpips FILE`` (weights of the lpips package's layout, here random ones saved
     to a file): every held-out view gets an LPIPS, the run's is their mean and AVGE combines it with

@@ -117,6 +117,7 @@ def test_horizontal_cameras_skip_overlap_and_height_map(tmp_path):
     assert np.isfinite(res.points).all()
 
 
+@pytest.mark.slow
 def test_a_depth_anything_prior_goes_through_the_alignment(tmp_path):
     """The learnt prior's path through the stage: ``auto`` with ``--depth-model`` picks Depth
     Anything (a tiny random model saved and loaded as a local download), whose relative disparity
