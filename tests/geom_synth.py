@@ -225,7 +225,12 @@ def save_tiny_depth_anything(path: Path) -> Path:
     processor, saved with transformers' ``save_pretrained`` to ``path`` (the layout of a local
     download, read back through the pipeline's own loader); returns ``path``."""
     import torch
-    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config, DPTImageProcessor
+    from transformers import (
+        DepthAnythingConfig,
+        DepthAnythingForDepthEstimation,
+        Dinov2Config,
+        DPTImageProcessor,
+    )
 
     backbone = Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
                             patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],

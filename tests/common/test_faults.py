@@ -443,7 +443,6 @@ def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
     assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
 
 
-
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", ["report-not-json", "points-truncated", "height-map-garbage"])
 def test_a_damaged_geometry_cache_is_made_again(scene24, finished_run, tmp_path, caplog, damage):
@@ -466,6 +465,7 @@ def test_a_damaged_geometry_cache_is_made_again(scene24, finished_run, tmp_path,
     assert "initialising again" in caplog.text and "reusing the geometry initialisation" not in caplog.text
     strict_json(init / "init_report.json")
     assert np.array_equal(read_ply(init / "points.ply")[0], good)
+
 
 RESUME_REFUSED = [
     ("preset", ["--preset", "cpu"], "preset: 'test' -> 'cpu'"),

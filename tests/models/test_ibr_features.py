@@ -267,5 +267,5 @@ def test_dino_encoder_from_weight_files_of_the_official_size(tmp_path):
     a = {k: t for k, t in from_files.named_buffers() if k.startswith("feat_")}
     b = {k: t for k, t in in_memory.named_buffers() if k.startswith("feat_")}
     assert a.keys() == b.keys() and len(a) >= 2
-    for k in a:
-        assert torch.isfinite(a[k]).all() and a[k].abs().max() > 0 and torch.allclose(a[k], b[k], atol=1e-5), k
+    for k, t in a.items():
+        assert torch.isfinite(t).all() and t.abs().max() > 0 and torch.allclose(t, b[k], atol=1e-5), k

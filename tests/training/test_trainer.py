@@ -382,8 +382,8 @@ def test_pseudo_view_flags_reach_the_config():
     (lambda c: setattr(c, "resolution_scale", 0.0), "--resolution-scale must be in (0, 4], got 0.0"),
 ], ids=["method", "iterations-0", "iterations-float", "scale-0"])
 def test_the_library_checks_a_configuration_before_it_touches_anything(tmp_path, change, says):
-    """Called as a library (the add-on, a user's script), not through the command's options: the
-    same one-line errors, before the scene is read or the run folder made."""
+    """Called as a library (a user's script), not through the command's options: the same one-line
+    errors, before the scene is read or the run folder made."""
     from dibrgs_core.common.errors import InputError
 
     cfg = _cfg(1)
@@ -391,6 +391,12 @@ def test_the_library_checks_a_configuration_before_it_touches_anything(tmp_path,
     with pytest.raises(InputError, match=re.escape(says)):
         train(tmp_path / "no scene here", tmp_path / "w", cfg)
     assert not (tmp_path / "w").exists()
+
+
+def test_the_library_refuses_a_file_as_the_run_folder(tmp_path):
+    from dibrgs_core.common.errors import InputError
+
     (tmp_path / "f").write_text("a file")
     with pytest.raises(InputError, match="is a file, not a folder"):
         train(tmp_path / "no scene here", tmp_path / "f", _cfg(1))
+    assert (tmp_path / "f").read_text() == "a file"
