@@ -964,6 +964,51 @@ def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
         assert str(ours.value) == str(lib.value), name
 
 
+def test_describe_rejects_bad_colmap_scenes_like_the_library(tmp_path):
+    """A COLMAP scene as users break it (a listed photo missing, a photo of another size than its
+    camera, no image folder, an image of a camera the model lacks): the add-on's reader stops with
+    the library's line."""
+    from PIL import Image
+
+    from dibrgs_core.data.load import read_any_scene
+
+    from paths import shared_file
+
+    brighton = shared_file("data/brighton_north")
+
+    def copy(name: str) -> Path:
+        root = tmp_path / name
+        shutil.copytree(brighton / "sparse", root / "sparse")
+        (root / "images").mkdir()
+        for f in (brighton / "images").iterdir():
+            (root / "images" / f.name).symlink_to(f)
+        return root
+
+    cases = {"photo_missing": copy("photo_missing"), "other_size": copy("other_size"),
+             "no_images": copy("no_images"), "camera_missing": copy("camera_missing")}
+    (cases["photo_missing"] / "images" / "DJI_0019.png").unlink()
+    (cases["other_size"] / "images" / "DJI_0019.png").unlink()
+    Image.new("RGB", (64, 48)).save(cases["other_size"] / "images" / "DJI_0019.png")
+    shutil.rmtree(cases["no_images"] / "images")
+    images_txt = cases["camera_missing"] / "sparse" / "0" / "images.txt"
+    lines = images_txt.read_text().splitlines()
+    first = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    f = lines[first].split()
+    lines[first] = " ".join(f[:8] + ["77"] + f[9:])  # CAMERA_ID of the first image
+    images_txt.write_text("\n".join(lines) + "\n")
+    for name, root in cases.items():
+        with pytest.raises(InputError) as lib:
+            read_any_scene(root, load_depth=False)
+        with pytest.raises(InputError) as ours:
+            describe.describe_scene(root)
+        if name == "camera_missing":  # pycolmap refuses the model as a whole; the add-on names the image
+            model = str(root / "sparse" / "0")
+            assert str(lib.value).startswith(model) and "77" in str(lib.value)
+            assert str(ours.value) == f"{model}: image DJI_0018.png refers to camera 77, which is not in the model"
+        else:
+            assert str(ours.value) == str(lib.value), name
+
+
 # ---------------------------------------------------------------------------
 # reports, height map mesh
 # ---------------------------------------------------------------------------
