@@ -20,6 +20,7 @@ This module imports only the standard library (and the standard-library-only mod
 """
 from __future__ import annotations
 
+import dataclasses
 import numbers
 import types
 import typing
@@ -209,22 +210,21 @@ class TrainConfig:
         """The configuration ``to_dict`` gave (JSON lists back to tuples, whole numbers where a
         float goes to floats); ``ValueError`` names any key, top-level or nested, that no field
         has or whose value is not of the field's type (a damaged or hand-edited file)."""
-        sub = {"model": ModelConfig, "growth": GrowthConfig, "lr": LRConfig,
-               "pseudo": PseudoConfig, "gs3d": GS3DConfig, "colour": ColourConfig}
         kw: dict[str, Any] = {}
         hints = typing.get_type_hints(TrainConfig)
         for k, v in d.items():
             if k not in hints:
                 raise ValueError(f"unknown config key {k!r}")
-            if k in sub:
+            sub = hints[k]
+            if dataclasses.is_dataclass(sub):  # a nested table: model, growth, lr, ...
                 if not isinstance(v, dict):
-                    raise ValueError(f"config key {k!r}: {v!r} is not a table of {sub[k].__name__}'s fields")
-                sub_hints = typing.get_type_hints(sub[k])
+                    raise ValueError(f"config key {k!r}: {v!r} is not a table of {sub.__name__}'s fields")
+                sub_hints = typing.get_type_hints(sub)
                 unknown = sorted(set(v) - set(sub_hints))
                 if unknown:
                     raise ValueError(f"unknown config key{'s' if len(unknown) > 1 else ''} "
                                      + ", ".join(f"{k}.{u}" for u in unknown))
-                kw[k] = sub[k](**{kk: _typed(f"{k}.{kk}", sub_hints[kk], vv) for kk, vv in v.items()})
+                kw[k] = sub(**{kk: _typed(f"{k}.{kk}", sub_hints[kk], vv) for kk, vv in v.items()})
             else:
                 kw[k] = _typed(k, hints[k], v)
         return TrainConfig(**kw)

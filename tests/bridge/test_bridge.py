@@ -942,9 +942,18 @@ def test_describe_matches_the_library_on_bundler_files(tiny_scene, tmp_path, mon
     assert len(desc["views"]) == 21 and all(v["undistorted"] for v in desc["views"])
 
 
-def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
+def _refusals(root: Path) -> tuple[str, str]:
+    """The library's and the add-on reader's InputError lines for the scene folder ``root``."""
     from dibrgs_core.data.load import read_any_scene
 
+    with pytest.raises(InputError) as lib:
+        read_any_scene(root, load_depth=False)
+    with pytest.raises(InputError) as ours:
+        describe.describe_scene(root)
+    return str(lib.value), str(ours.value)
+
+
+def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     cases = {}
     cases["empty"] = tmp_path / "empty"
     cases["empty"].mkdir()
@@ -957,11 +966,8 @@ def test_describe_rejects_bad_folders_like_the_library(tiny_scene, tmp_path):
     (no_cam / "Cams" / "004.txt").unlink()
     cases["no_cam"] = no_cam
     for name, root in cases.items():
-        with pytest.raises(InputError) as lib:
-            read_any_scene(root, load_depth=False)
-        with pytest.raises(InputError) as ours:
-            describe.describe_scene(root)
-        assert str(ours.value) == str(lib.value), name
+        lib, ours = _refusals(root)
+        assert ours == lib, name
 
 
 def test_describe_rejects_bad_colmap_scenes_like_the_library(tmp_path):
@@ -969,8 +975,6 @@ def test_describe_rejects_bad_colmap_scenes_like_the_library(tmp_path):
     camera, no image folder, an image of a camera the model lacks): the add-on's reader stops with
     the library's line."""
     from PIL import Image
-
-    from dibrgs_core.data.load import read_any_scene
 
     from paths import shared_file
 
@@ -997,16 +1001,13 @@ def test_describe_rejects_bad_colmap_scenes_like_the_library(tmp_path):
     lines[first] = " ".join(f[:8] + ["77"] + f[9:])  # CAMERA_ID of the first image
     images_txt.write_text("\n".join(lines) + "\n")
     for name, root in cases.items():
-        with pytest.raises(InputError) as lib:
-            read_any_scene(root, load_depth=False)
-        with pytest.raises(InputError) as ours:
-            describe.describe_scene(root)
+        lib, ours = _refusals(root)
         if name == "camera_missing":  # pycolmap refuses the model as a whole; the add-on names the image
             model = str(root / "sparse" / "0")
-            assert str(lib.value).startswith(model) and "77" in str(lib.value)
-            assert str(ours.value) == f"{model}: image DJI_0018.png refers to camera 77, which is not in the model"
+            assert lib.startswith(model) and "77" in lib
+            assert ours == f"{model}: image DJI_0018.png refers to camera 77, which is not in the model"
         else:
-            assert str(ours.value) == str(lib.value), name
+            assert ours == lib, name
 
 
 # ---------------------------------------------------------------------------

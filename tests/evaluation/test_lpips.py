@@ -6,17 +6,25 @@ import pytest
 import torch
 
 
+def _random_lpips(net: str):
+    """LPIPS of the ``net`` backbone with random weights (seeded), its heads made non-negative as
+    trained ones are."""
+    from dibrgs_core.evaluation.lpips import LPIPS
+
+    torch.manual_seed(0)
+    lp = LPIPS(net)
+    with torch.no_grad():
+        for k in range(5):
+            getattr(lp, f"lin{k}").model[1].weight.abs_()
+    return lp
+
 
 def test_lpips_loads_official_layout_and_is_a_distance(tmp_path):
     from dibrgs_core.common.errors import InputError
-    from dibrgs_core.evaluation.lpips import LPIPS, load_lpips
+    from dibrgs_core.evaluation.lpips import load_lpips
     from dibrgs_core.evaluation.evaluate import avge
 
-    torch.manual_seed(0)
-    net = LPIPS("alex")
-    with torch.no_grad():
-        for k in range(5):
-            getattr(net, f"lin{k}").model[1].weight.abs_()
+    net = _random_lpips("alex")
     full = tmp_path / "lpips_alex_full.pth"
     torch.save(net.state_dict(), full)
     assert "net.slice1.0.weight" in net.state_dict() and "lin4.model.1.weight" in net.state_dict()
@@ -52,15 +60,9 @@ def test_eval_scores_lpips_and_avge_with_local_weights(finished_run, tmp_path):
     from run_synth import copy_run, dibrgs
 
     from dibrgs_core.evaluation.evaluate import avge
-    from dibrgs_core.evaluation.lpips import LPIPS
 
     def evaluate(net: str) -> dict:
-        torch.manual_seed(0)
-        lp = LPIPS(net)
-        with torch.no_grad():
-            for k in range(5):
-                getattr(lp, f"lin{k}").model[1].weight.abs_()
-        torch.save(lp.state_dict(), tmp_path / f"lpips_{net}.pth")
+        torch.save(_random_lpips(net).state_dict(), tmp_path / f"lpips_{net}.pth")
         work = copy_run(finished_run, tmp_path / net)
         rc, err = dibrgs("eval", work, "--lpips", tmp_path / f"lpips_{net}.pth", "--threads", "1", "--fps-repeats", "1")
         assert rc == 0, err

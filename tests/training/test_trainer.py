@@ -62,16 +62,23 @@ def _assert_finite(work: Path) -> None:
         assert torch.isfinite(v).all(), f"{k} has non-finite values"
 
 
-def test_resume_continues_to_identical_parameters(synth, synth_init, tmp_path):
+@pytest.mark.parametrize("colour", ["off", "on"])
+def test_resume_continues_to_identical_parameters(synth, synth_init, tmp_path, colour):
     """A run stopped half-way (as by SIGTERM) and resumed ends with exactly the parameters of an
-    uninterrupted run: RNG states, optimiser moments, growth statistics and view orders are restored."""
+    uninterrupted run: RNG states, optimiser moments, growth statistics and view orders are restored;
+    with per-view colour transforms on, the transforms and their optimiser too."""
+    def cfg():
+        c = _cfg(60)
+        c.colour.mode = colour
+        return c
+
     a = _with_caches(synth_init, tmp_path / "a")
-    ra = train(synth, a, _cfg(60))
+    ra = train(synth, a, cfg())
     b = _with_caches(synth_init, tmp_path / "b")
-    rb1 = train(synth, b, _cfg(60), stop_after=27)
+    rb1 = train(synth, b, cfg(), stop_after=27)
     assert rb1.status == "interrupted" and rb1.iteration == 27
     assert (b / "checkpoint.pt").exists() and not (b / MODEL).exists()
-    rb2 = train(synth, b, _cfg(60), resume=True)
+    rb2 = train(synth, b, cfg(), resume=True)
     assert rb2.status == "done" and rb2.iteration == ra.iteration == 60
     pa, pb = _params(a), _params(b)
     assert pa.keys() == pb.keys()
@@ -80,6 +87,9 @@ def test_resume_continues_to_identical_parameters(synth, synth_init, tmp_path):
     # The curve continues across the interruption.
     rows = (b / "curve.csv").read_text().strip().splitlines()
     assert rows[0] == "seconds,iteration,psnr,ssim" and rows[1].split(",")[1] == "0" and rows[-1].split(",")[1] == "60"
+    if colour == "on":
+        ta, tb = (json.loads((w / "report.json").read_text())["values"]["colour_transforms"] for w in (a, b))
+        assert ta == tb and len(ta) == 3
 
 
 @pytest.mark.slow
@@ -114,26 +124,6 @@ def test_the_no_dense_init_ablation_starts_from_the_sfm_points(tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert rc == 2 and not (none / MODEL).exists()
     assert err.startswith("dibrgs train: error: --no-dense-init: SfM triangulated no points"), err
-
-
-def test_resume_with_colour_transforms_continues_to_identical_parameters(synth, synth_init, tmp_path):
-    """With per-view colour transforms on, a run stopped and resumed restores the transforms and
-    their optimiser too: the same model and the same transforms as an uninterrupted run."""
-    def cfg():
-        c = _cfg(30)
-        c.colour.mode = "on"
-        return c
-
-    a = _with_caches(synth_init, tmp_path / "a")
-    train(synth, a, cfg())
-    b = _with_caches(synth_init, tmp_path / "b")
-    assert train(synth, b, cfg(), stop_after=13).status == "interrupted"
-    assert train(synth, b, cfg(), resume=True).status == "done"
-    pa, pb = _params(a), _params(b)
-    for k in pa:
-        assert torch.equal(pa[k], pb[k]), k
-    ta, tb = (json.loads((w / "report.json").read_text())["values"]["colour_transforms"] for w in (a, b))
-    assert ta == tb and len(ta) == 3
 
 
 def test_progress_json_lines_and_report(synth, synth_init, tmp_path):
