@@ -55,7 +55,7 @@ from ..data.levir import check_sizes, paired_files, read_cams_file, read_track
 from ..data.load import LAYOUT_NAMES, not_a_folder, not_a_scene
 from ..data.scene import in_local_frame, validate_camera_arrays
 from ..data.split import make_split, view_ids
-from .colmap_model import ColmapCamera, read_model
+from .colmap_model import ColmapCamera, missing_camera, read_model
 from .imagesize import image_header
 
 
@@ -121,9 +121,10 @@ def _colmap(root: Path) -> tuple[dict[str, Camera], dict[str, tuple[Path, int, b
         ids = view_ids([im.name for im in imgs])
     except ValueError as e:
         raise InputError(model_dir, str(e)) from None
+    why = missing_camera(cams, imgs)
+    if why:
+        raise InputError(model_dir, why)
     for im in sorted(imgs, key=lambda i: i.name):
-        if im.camera_id not in cams:
-            raise InputError(model_dir, f"image {im.name} refers to camera {im.camera_id}, which is not in the model")
         cam = cams[im.camera_id]
         if im.camera_id not in pinholes:  # undistorted where the camera has distortion, as the library
             pinholes[im.camera_id] = cam.pinhole(model_dir)

@@ -137,7 +137,20 @@ def _load(root: str | Path):
         _ = [im.name for im in rec.images.values()]  # a damaged name is no UTF-8: fails here, not later
         return rec, model_dir
     except Exception as e:  # pycolmap raises plain exceptions for corrupt models
-        raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
+        why = dangling_camera(model_dir) or f"unreadable COLMAP model ({type(e).__name__}: {e})"
+        raise InputError(model_dir, why) from None
+
+
+def dangling_camera(model_dir: Path) -> str | None:
+    """Which image of the model in ``model_dir`` names a camera the model lacks, as a line, else
+    None. pycolmap refuses such a model as a whole, naming the rig or frame it made for the camera
+    (text models have neither); the add-on's plain parser (numpy and struct) can name the image."""
+    from ..bridge.colmap_model import missing_camera, read_model
+
+    try:
+        return missing_camera(*read_model(model_dir))
+    except InputError:
+        return None  # damaged otherwise: pycolmap's own message stands
 
 
 #: Bytes of one record of each binary file after its count, at the least (COLMAP's

@@ -14,6 +14,7 @@ import random
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -233,7 +234,17 @@ COLMAP_CASES = [
      "images/004.png"),
     ("images-folder-missing", lambda r: shutil.rmtree(r / "images"), "image folder not found", "images"),
     ("fisheye", _fisheye, "OPENCV_FISHEYE is a fisheye model", "sparse/0"),
+    ("camera-missing", lambda r: _first_image_camera(r / "sparse/0/images.bin", 77),
+     "image 000.png refers to camera 77, which is not in the model", "sparse/0"),
 ]
+
+
+def _first_image_camera(images_bin: Path, camera_id: int):
+    """Set the camera id of the first image of a binary model (after the count, the image's id and
+    its pose: COLMAP's reconstruction_io_binary.cc)."""
+    data = bytearray(images_bin.read_bytes())
+    struct.pack_into("<I", data, 8 + 4 + 56, camera_id)
+    images_bin.write_bytes(bytes(data))
 
 
 def _png_size_at(p: Path):
