@@ -293,12 +293,19 @@ def test_outputs_used_alone_give_the_reference_gradients(use):
         torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-7)
 
 
+def _equal(a: torch.Tensor, b: torch.Tensor, **_) -> None:
+    assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("bg", ["black", "grey"])
 def test_rgb_mode_gives_the_image_and_gradients_of_the_full_render(backend, bg):
     """``render_mode="RGB"`` (a training step) composites the colours alone: the same image and,
-    for a loss on it, the same gradients, bit for bit, as the full render; no alpha or depth. A
-    background that is blended still gets its alpha composited (the image changes with it)."""
+    for a loss on it, the same gradients as the full render, bit for bit on the fast path; no alpha
+    or depth. The reference path's compositing is a batched product whose BLAS kernel, and so
+    summation order, may change with the channel count (on an AMD Zen 4 it does: 1 ulp), so there
+    the two agree to float32 rounding. A background that is blended still gets its alpha composited
+    (the image changes with it)."""
     means, quats, scales, opac, cols = random_scene(11, 80)
     W, H = 45, 31
     vm, K = camera(W, H)
@@ -314,10 +321,11 @@ def test_rgb_mode_gives_the_image_and_gradients_of_the_full_render(backend, bg):
         res[mode] = (img.detach(), [t.grad for t in inputs] + [meta["means2d"].grad], alpha, depth)
     full, rgb = res["RGB+ED"], res["RGB"]
     assert rgb[2] is None and rgb[3] is None and full[2] is not None and full[3] is not None
-    assert torch.equal(rgb[0], full[0])
+    same = torch.testing.assert_close if backend == "reference" else _equal
+    same(rgb[0], full[0], rtol=1e-6, atol=1e-7)
     assert float(full[1][0].abs().sum()) > 0
     for a, b in zip(full[1], rgb[1]):
-        assert torch.equal(a, b)
+        same(b, a, rtol=1e-6, atol=1e-7)
     with pytest.raises(ValueError, match="render_mode"):
         rasterize(means, quats, scales, opac, cols, vm, K, W, H, render_mode="D")
 
