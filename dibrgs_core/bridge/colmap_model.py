@@ -193,11 +193,11 @@ def read_model(model_dir: str | Path) -> tuple[dict[int, ColmapCamera], list[Col
         raise InputError(model_dir, f"unreadable COLMAP model ({type(e).__name__}: {e})") from None
 
 
-
 def missing_camera(cams: dict[int, ColmapCamera], images: list[ColmapImage]) -> str | None:
     """The line for the first image (by name) whose camera id is not among ``cams``, else None."""
     im = min((im for im in images if im.camera_id not in cams), key=lambda im: im.name, default=None)
     return None if im is None else f"image {im.name} refers to camera {im.camera_id}, which is not in the model"
+
 
 def _data_lines(path: Path):
     for line in path.read_text().splitlines():
