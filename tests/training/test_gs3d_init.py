@@ -10,7 +10,6 @@ import shutil
 import numpy as np
 import pytest
 import torch
-
 from paths import shared_file
 
 from dibrgs_core.models.gs3d import rgb_to_sh
