@@ -174,6 +174,24 @@ def test_height_planes_chosen_for_nadir_views(scene128):
         sweep_up(cams, MvsConfig(planes="diagonal"))
 
 
+
+def test_fronto_parallel_planes_find_the_depth_as_well(scene128, caplog):
+    """``planes="fronto"`` (what ``auto`` sweeps for views more than 60 degrees from nadir): planes
+    uniform in inverse depth across each view's range. On this orbit they find about half the pixels' depth
+    within 1 %, as the height planes do (at 128 px: 47-53 % of the pixels, median 0.3-0.35 %; height
+    planes 55-62 %, 0.2 %)."""
+    import logging
+
+    vs = scene128.train_views()
+    with caplog.at_level(logging.INFO, logger="dibrgs"):
+        res = mvs_depths([v.camera for v in vs], [v.image for v in vs], None, 120.0, MvsConfig(planes="fronto"),
+                         progress=False)
+    assert caplog.text.count("fronto-parallel planes") == len(vs)
+    for v, r in zip(vs, res):
+        ok = np.isfinite(r.depth)
+        assert ok.mean() > 0.35, (v.name, ok.mean())
+        assert np.median(np.abs(r.depth[ok] - v.depth[ok]) / v.depth[ok]) < 0.01
+
 def test_semi_global_aggregation_recovers_planes_that_winner_take_all_misses():
     """A two-plane cost volume (left half at plane 10, right half at plane 30) whose true plane is
     only 0.3 cheaper than the others under noise of 0.15: winner-take-all on the raw cost is right
