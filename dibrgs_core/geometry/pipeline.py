@@ -307,11 +307,12 @@ def load_result(out_dir: str | Path, config: InitConfig, inputs: str | None = No
         log.warning("%s unreadable (%s); initialising again", rep_path, e)
         return None
     old = report.values.get("config", {})
-    if inputs is not None and report.values.get("inputs") != inputs:
-        log.info("%s was made from other training views; initialising again", out)
-        return None
+    # The prior first: the oracle's inputs hold the depth maps, so a change of prior changes them too.
     if old.get("depth_prior") != config.depth_prior or old.get("depth_model") != config.depth_model:
         log.info("%s was made with another depth prior; initialising again", out)
+        return None
+    if inputs is not None and report.values.get("inputs") != inputs:
+        log.info("%s was made from other training views; initialising again", out)
         return None
     try:
         pts, cols = read_ply(ply)

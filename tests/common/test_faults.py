@@ -454,6 +454,25 @@ def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
     assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
 
 
+
+def test_init_with_another_depth_prior_is_not_reused(scene24, tmp_path, caplog):
+    """`init --depth-prior gt` (the oracle) then `train` with the default prior: the geometry is
+    made again with the weight-free one, never the oracle's cloud reused; `train --depth-prior gt`
+    after that makes it again as well."""
+    work = tmp_path / "w"
+    rc, err = dibrgs("init", scene24, "--out", work, "--depth-prior", "gt", "--threads", "1")
+    assert rc == 0, err
+    assert strict_json(work / "init" / "init_report.json")["values"]["config"]["depth_prior"] == "gt"
+    for prior, want in ((None, "auto"), ("gt", "gt")):
+        caplog.clear()
+        with caplog.at_level("INFO", logger="dibrgs"):
+            rc, err = dibrgs("train", scene24, "--out", work, *QUICK, "--iterations", "2", "--no-pseudo",
+                             *(["--depth-prior", prior] if prior else []))
+        assert rc == 0, err
+        assert "made with another depth prior; initialising again" in caplog.text, prior
+        assert "reusing the geometry initialisation" not in caplog.text
+        assert strict_json(work / "init" / "init_report.json")["values"]["config"]["depth_prior"] == want
+
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", ["report-not-json", "points-truncated", "height-map-garbage"])
 def test_a_damaged_geometry_cache_is_made_again(scene24, finished_run, tmp_path, caplog, damage):
