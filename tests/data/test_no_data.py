@@ -14,12 +14,12 @@ from PIL import Image
 from dibrgs_core.camera.pinhole import Camera, look_at
 from dibrgs_core.common.errors import InputError
 from dibrgs_core.data.colmap import read_colmap_scene
-from dibrgs_core.data.images import read_pixels
+from dibrgs_core.data.images import read_masked, read_pixels
 from dibrgs_core.data.levir import read_scene, write_scene
 from dibrgs_core.data.scene import View
 from dibrgs_core.data.frame_layouts import read_frames_scene
 
-from photo_synth import H, W, pattern, write_distorted_model
+from photo_synth import H, W, pattern, save_turned_jpeg, write_distorted_model
 
 RGB8 = (pattern(W, H) * 255).astype(np.uint8)
 
@@ -83,6 +83,28 @@ def _grid_cameras(n: int = 3) -> list[Camera]:
     return [Camera(K=K, w2c=look_at([10.0 * i, 0, 100], [10.0 * i, 0, 0], [0, 1, 0]), width=W, height=H,
                    name=f"{i:03d}") for i in range(n)]
 
+
+
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_a_mask_turns_upright_with_its_photo(tmp_path, orientation):
+    """A photo stored turned (a camera held on its side, EXIF orientation 3, 6 or 8) is read upright;
+    its mask counts where it is upright too: a mask stored turned the same way with the same tag,
+    and one saved upright without a tag, leave out the same pixels of the upright photo."""
+    up = _corner()
+    photo = tmp_path / "p.jpg"
+    save_turned_jpeg(photo, pattern(W, H), orientation)
+    im = Image.fromarray(np.where(up, 255, 0).astype(np.uint8))
+    turn = {3: Image.Transpose.ROTATE_180, 6: Image.Transpose.ROTATE_90, 8: Image.Transpose.ROTATE_270}[orientation]
+    stored = im.transpose(turn)
+    exif = stored.getexif()
+    exif[0x0112] = orientation
+    stored.save(tmp_path / "turned.png", exif=exif)
+    im.save(tmp_path / "upright.png")
+    for mask in ("turned.png", "upright.png"):
+        image, valid = read_masked(photo, tmp_path / mask)
+        assert image.shape[:2] == (H, W) and valid is not None
+        np.testing.assert_array_equal(valid, up, err_msg=mask)
+        assert (image[~up] == 0).all()
 
 def test_levir_masks_round_trip_and_change_the_digest(tmp_path):
     """A view's valid map is written as Masks/NNN.png and read back the same; a scene whose masks differ
