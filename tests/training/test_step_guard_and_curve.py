@@ -3,6 +3,7 @@
 the training clock."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -147,6 +148,43 @@ def test_nan_gradients_never_reach_the_parameters(synth, init_cache, tmp_path, m
     assert all(torch.isfinite(p).all() for p in t2.method.parameters())
     assert any(not torch.equal(p, t2.snapshot[n]) for n, p in t2.method.model.named_parameters())
 
+
+
+class NanTargetTrainer(Trainer):
+    """A real run whose chosen iterations supervise a view with a NaN pixel in its target image (a
+    photo read wrong), so the loss itself is not finite."""
+
+    poison: set[int] = set()
+
+    def setup(self):
+        ck = super().setup()
+        self.snapshot = {n: p.detach().clone() for n, p in self.method.model.named_parameters()}
+        return ck
+
+    def _next_frame(self, it, pseudo):
+        frame = super()._next_frame(it, pseudo)
+        if it not in self.poison:
+            return frame
+        image = frame.image.clone()
+        image[0, 0, 0] = math.nan
+        return dataclasses.replace(frame, image=image)
+
+
+@pytest.mark.parametrize("method", ["dibrgs", "3dgs"])
+def test_a_step_whose_loss_is_not_finite_is_skipped(synth, init_cache, tmp_path, caplog, method):
+    t = NanTargetTrainer(synth, _work(init_cache, tmp_path / "all"), _cfg(6, method))
+    t.poison = set(range(1, 7))
+    with caplog.at_level("WARNING", logger="dibrgs"):
+        res = t.run()
+    assert res.skipped_steps == 6 and caplog.text.count("loss is not finite; step skipped") == 6
+    for n, p in t.method.model.named_parameters():
+        if not (method == "3dgs" and n == "opacity"):  # (its scheduled reset needs no gradient)
+            assert torch.equal(p, t.snapshot[n]), n
+    t2 = NanTargetTrainer(synth, _work(init_cache, tmp_path / "one"), _cfg(6, method))
+    t2.poison = {2}
+    assert t2.run().skipped_steps == 1
+    assert all(torch.isfinite(p).all() for p in t2.method.parameters())
+    assert any(not torch.equal(p, t2.snapshot[n]) for n, p in t2.method.model.named_parameters())
 
 def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_cache, tmp_path, monkeypatch):
     assert curve_views(17, 4) == [0, 5, 11, 16] and curve_views(3, 4) == [0, 1, 2]
