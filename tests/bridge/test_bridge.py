@@ -7,6 +7,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
@@ -462,6 +463,41 @@ def test_runner_cancel_sends_sigint_so_the_process_can_save(tmp_path):
     assert r.wait(interval_s=0.02, timeout_s=60) == "cancelled"
     assert (tmp_path / "ckpt").read_text() == "checkpoint"  # saved on SIGINT, not killed
     assert not (tmp_path / "other").exists() and len(r.steps) == 1
+
+
+def test_runner_kills_a_step_that_ignores_the_stop_and_cancels_at_its_timeout(tmp_path):
+    """Cancel asks with SIGINT; a step that does not stop within the grace period (hung, or
+    ignoring the signal) is killed, so Blender's Cancel always ends the job. ``wait`` with a
+    timeout cancels the job when the time is up."""
+    import time
+
+    deaf = _script(tmp_path, "deaf.py", """
+        import signal, time
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print("ready", flush=True)
+        time.sleep(120)
+    """)
+    r = jobs.JobRunner([jobs.Step("Training", deaf, tmp_path / "d.log")], on_line=lambda _: None)
+    r.start()
+    t0 = time.monotonic()
+    while "ready" not in (tmp_path / "d.log").read_text() and time.monotonic() - t0 < 30:
+        r.poll()
+        time.sleep(0.02)
+    r.cancel(grace_s=0.5)
+    assert r.wait(interval_s=0.02) == "cancelled"
+    assert time.monotonic() - t0 < 30 and r.returncode == -signal.SIGKILL
+    sleepy = _script(tmp_path, "sleepy.py", """
+        import signal, sys, time
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            time.sleep(120)
+        except KeyboardInterrupt:
+            sys.exit(130)
+    """)
+    r2 = jobs.JobRunner([jobs.Step("Training", sleepy, tmp_path / "s.log")])
+    t0 = time.monotonic()
+    assert r2.wait(interval_s=0.02, timeout_s=0.5) == "cancelled"
+    assert time.monotonic() - t0 < 5 and r2.returncode == 130  # stopped by SIGINT, not killed
 
 
 # ---------------------------------------------------------------------------
