@@ -189,6 +189,34 @@ def test_ablation_flags_switch_components_off(synth, synth_init, tmp_path):
     assert st["ibr_feats"] is None and not any(k.startswith("e_mod") for k in st["model"])
 
 
+
+@pytest.mark.slow
+def test_ground_level_views_leave_out_the_height_parts(tmp_path):
+    """Photos taken at ground level looking sideways (a facade survey, not an aerial one): the run
+    decides from the scene that the height field's parts do not apply (no height map, so no
+    height constraint; no up axis for the pseudo views' depth), says why, and trains."""
+    from geom_synth import make_synthetic_scene
+
+    from dibrgs_core.data.levir import write_scene
+
+    scene, _ = make_synthetic_scene(32, n_views=6, horizontal=True)  # 6 s: ray-marched to the horizon
+    write_scene(tmp_path / "s", scene.views)
+    cfg = _cfg(5)
+    cfg.depth_prior = "gt"  # the oracle's depth: this checks the decisions, not the plane sweep
+    res = Trainer(tmp_path / "s", tmp_path / "w", cfg, train_ids=["000", "002", "004"],
+                  test_ids=["001", "003", "005"]).run()
+    assert res.status == "done"
+    init = {d["step"]: d for d in json.loads((tmp_path / "w" / "init" / "init_report.json").read_text())["decisions"]}
+    assert not init["height_map"]["applied"] and not init["overlap_removal"]["applied"]
+    steps = {d["step"]: d for d in json.loads((tmp_path / "w" / "report.json").read_text())["decisions"]}
+    assert not steps["height_constraint"]["applied"]
+    assert "built no height map" in steps["height_constraint"]["reason"]
+    hf = steps["pseudo_depth_height_field"]
+    assert not hf["applied"] and "up axis is ambiguous" in hf["reason"]
+    assert steps["pseudo_views"]["applied"]
+    st = torch.load(tmp_path / "w" / MODEL, weights_only=False)
+    assert all(torch.isfinite(v).all() for v in st["model"].values() if torch.is_tensor(v) and v.is_floating_point())
+
 # -- extremes -------------------------------------------------------------------------
 @pytest.mark.stability
 @pytest.mark.parametrize("factor", [1e4, 1e-8])
