@@ -21,11 +21,12 @@ from dibrgs_core.training.trainer import Trainer
 REAL = shared_file("data/brighton_north")
 
 
-def _cfg(min_sfm_points: int):
+def _cfg(min_sfm_points: int | None = None):
     cfg = preset("test")
     cfg.method = "3dgs"
     cfg.pseudo.mode = "off"
-    cfg.gs3d.min_sfm_points = min_sfm_points
+    if min_sfm_points is not None:
+        cfg.gs3d.min_sfm_points = min_sfm_points
     cfg.gs3d.random_points = 500
     return cfg
 
@@ -38,7 +39,7 @@ def _decision(tr: Trainer, step: str):
 def sfm_init(tmp_path_factory):
     """``init/`` of a 3DGS run on the real flight: its SfM points triangulated once."""
     work = tmp_path_factory.mktemp("gs3d") / "base"
-    Trainer(REAL, work, _cfg(min_sfm_points=1)).setup()
+    Trainer(REAL, work, _cfg()).setup()
     return work / "init"
 
 
@@ -53,10 +54,10 @@ def _cache(work):
 
 
 def test_3dgs_starts_from_the_sfm_points_when_there_are_enough(sfm_init, tmp_path):
-    tr = Trainer(REAL, _work(sfm_init, tmp_path / "w"), _cfg(min_sfm_points=1))
+    tr = Trainer(REAL, _work(sfm_init, tmp_path / "w"), _cfg())
     tr.setup()
     pts, cols, _ = _cache(tmp_path / "w")
-    assert len(pts) >= 10 and cols.dtype == np.uint8
+    assert len(pts) >= tr.cfg.gs3d.min_sfm_points and cols.dtype == np.uint8
     d = _decision(tr, "sfm_init")
     assert d.applied and f"starts from {len(pts)} SfM points" in d.reason
     model = tr.method.model
@@ -87,7 +88,7 @@ def test_the_sfm_points_cache_is_made_again_when_it_is_not_this_runs(sfm_init, t
         cache.write_bytes(b"not a numpy file")
         says = "unreadable"
     with caplog.at_level(logging.INFO, logger="dibrgs"):
-        tr = Trainer(REAL, work, _cfg(min_sfm_points=1))
+        tr = Trainer(REAL, work, _cfg())
         tr.setup()
     assert says in caplog.text and str(cache) in caplog.text
     again, again_cols, again_key = _cache(work)
