@@ -454,7 +454,6 @@ def test_init_of_another_split_is_not_reused(scene24, tmp_path, caplog):
     assert "split from default (LEVIR-NVS 3-view protocol)" in (work / "train.log").read_text()
 
 
-
 def test_init_with_another_depth_prior_is_not_reused(scene24, tmp_path, caplog):
     """`init --depth-prior gt` (the oracle) then `train` with the default prior: the geometry is
     made again with the weight-free one, never the oracle's cloud reused; `train --depth-prior gt`
@@ -472,6 +471,7 @@ def test_init_with_another_depth_prior_is_not_reused(scene24, tmp_path, caplog):
         assert "made with another depth prior; initialising again" in caplog.text, prior
         assert "reusing the geometry initialisation" not in caplog.text
         assert strict_json(work / "init" / "init_report.json")["values"]["config"]["depth_prior"] == want
+
 
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", ["report-not-json", "points-truncated", "height-map-garbage"])
@@ -684,7 +684,6 @@ def test_a_model_file_of_another_kind(finished_run, tmp_path):
     assert not (work / "metrics.json").exists()
 
 
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name,damaged", [("report.json", {"values": []}), ("config.json", {"run": [1, 2]}),
                                           ("config.json", {"run": {"resolution_scale": "x"}})],
@@ -697,6 +696,7 @@ def test_eval_of_a_run_with_damaged_records(scene24, finished_run, tmp_path, nam
     rc, err = dibrgs("eval", work, "--scene", scene24, "--threads", "1")
     assert rc == 0, err
     assert json.loads((work / "metrics.json").read_text())["psnr"] > 0
+
 
 def test_eval_after_the_scene_moved(scene24, other_scene24, finished_run, tmp_path):
     """A run folder outlives its scene's place (another disk, a colleague's machine): ``eval`` says

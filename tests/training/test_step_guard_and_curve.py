@@ -92,15 +92,24 @@ def test_make_finite_mends_only_the_tensors_that_need_it():
     assert not make_finite([good, bad]) and torch.equal(good, keep)
 
 
-class PoisonedTrainer(Trainer):
-    """A real run whose chosen iterations get a NaN in one element of a parameter's gradient
-    (a gradient hook on the model's parameter, as a failing backward would produce)."""
+class FaultyTrainer(Trainer):
+    """A real run with a fault at its chosen iterations (``poison``); keeps the model's parameters
+    as set up, to tell which steps reached them."""
 
     poison: set[int] = set()
 
     def setup(self):
         ck = super().setup()
         self.snapshot = {n: p.detach().clone() for n, p in self.method.model.named_parameters()}
+        return ck
+
+
+class PoisonedTrainer(FaultyTrainer):
+    """Chosen backward passes get a NaN in one element of a parameter's gradient (a gradient hook on
+    the model's parameter, as a failing backward would produce)."""
+
+    def setup(self):
+        ck = super().setup()
         self.backward_calls = 0
         target = next(p for p in self.method.parameters() if p.requires_grad)
 
@@ -113,6 +122,19 @@ class PoisonedTrainer(Trainer):
 
         target.register_hook(hook)
         return ck
+
+
+class NanTargetTrainer(FaultyTrainer):
+    """Chosen iterations supervise a view with a NaN pixel in its target image (a photo read
+    wrong), so the loss itself is not finite."""
+
+    def _next_frame(self, it, pseudo):
+        frame = super()._next_frame(it, pseudo)
+        if it not in self.poison:
+            return frame
+        image = frame.image.clone()
+        image[0, 0, 0] = math.nan
+        return dataclasses.replace(frame, image=image)
 
 
 def test_all_finite_split_over_two_threads():
@@ -132,59 +154,25 @@ def test_all_finite_split_over_two_threads():
 
 
 @pytest.mark.parametrize("method", ["dibrgs", "3dgs"])
-def test_nan_gradients_never_reach_the_parameters(synth, init_cache, tmp_path, method):
-    t = PoisonedTrainer(synth, _work(init_cache, tmp_path / "all"), _cfg(6, method))
+@pytest.mark.parametrize("fault,says", [(PoisonedTrainer, "gradients are not finite"),
+                                        (NanTargetTrainer, "loss is not finite")], ids=["gradient", "loss"])
+def test_non_finite_steps_never_reach_the_parameters(synth, init_cache, tmp_path, caplog, method, fault, says):
+    t = fault(synth, _work(init_cache, tmp_path / "all"), _cfg(6, method))
     t.poison = set(range(1, 100))  # every step
-    res = t.run()
-    assert res.skipped_steps == 6
+    with caplog.at_level("WARNING", logger="dibrgs"):
+        res = t.run()
+    assert res.skipped_steps == 6 and caplog.text.count(f"{says}; step skipped") == 6
     # (3DGS's scheduled opacity reset changes opacities without any gradient)
     for n, p in t.method.model.named_parameters():
         if not (method == "3dgs" and n == "opacity"):
-            assert torch.equal(p, t.snapshot[n]), f"{n} changed although every step had a NaN gradient"
-    t2 = PoisonedTrainer(synth, _work(init_cache, tmp_path / "one"), _cfg(6, method))
+            assert torch.equal(p, t.snapshot[n]), f"{n} changed although every step was non-finite"
+    t2 = fault(synth, _work(init_cache, tmp_path / "one"), _cfg(6, method))
     t2.poison = {3}
     res2 = t2.run()
     assert res2.skipped_steps == 1
     assert all(torch.isfinite(p).all() for p in t2.method.parameters())
     assert any(not torch.equal(p, t2.snapshot[n]) for n, p in t2.method.model.named_parameters())
 
-
-
-class NanTargetTrainer(Trainer):
-    """A real run whose chosen iterations supervise a view with a NaN pixel in its target image (a
-    photo read wrong), so the loss itself is not finite."""
-
-    poison: set[int] = set()
-
-    def setup(self):
-        ck = super().setup()
-        self.snapshot = {n: p.detach().clone() for n, p in self.method.model.named_parameters()}
-        return ck
-
-    def _next_frame(self, it, pseudo):
-        frame = super()._next_frame(it, pseudo)
-        if it not in self.poison:
-            return frame
-        image = frame.image.clone()
-        image[0, 0, 0] = math.nan
-        return dataclasses.replace(frame, image=image)
-
-
-@pytest.mark.parametrize("method", ["dibrgs", "3dgs"])
-def test_a_step_whose_loss_is_not_finite_is_skipped(synth, init_cache, tmp_path, caplog, method):
-    t = NanTargetTrainer(synth, _work(init_cache, tmp_path / "all"), _cfg(6, method))
-    t.poison = set(range(1, 7))
-    with caplog.at_level("WARNING", logger="dibrgs"):
-        res = t.run()
-    assert res.skipped_steps == 6 and caplog.text.count("loss is not finite; step skipped") == 6
-    for n, p in t.method.model.named_parameters():
-        if not (method == "3dgs" and n == "opacity"):  # (its scheduled reset needs no gradient)
-            assert torch.equal(p, t.snapshot[n]), n
-    t2 = NanTargetTrainer(synth, _work(init_cache, tmp_path / "one"), _cfg(6, method))
-    t2.poison = {2}
-    assert t2.run().skipped_steps == 1
-    assert all(torch.isfinite(p).all() for p in t2.method.parameters())
-    assert any(not torch.equal(p, t2.snapshot[n]) for n, p in t2.method.model.named_parameters())
 
 def test_curve_points_use_a_fixed_subset_and_all_views_at_the_end(synth, init_cache, tmp_path, monkeypatch):
     assert curve_views(17, 4) == [0, 5, 11, 16] and curve_views(3, 4) == [0, 1, 2]

@@ -189,7 +189,6 @@ def test_ablation_flags_switch_components_off(synth, synth_init, tmp_path):
     assert st["ibr_feats"] is None and not any(k.startswith("e_mod") for k in st["model"])
 
 
-
 @pytest.mark.slow
 def test_ground_level_views_leave_out_the_height_parts(tmp_path):
     """Photos taken at ground level looking sideways (a facade survey, not an aerial one): the run
@@ -216,6 +215,7 @@ def test_ground_level_views_leave_out_the_height_parts(tmp_path):
     assert steps["pseudo_views"]["applied"]
     st = torch.load(tmp_path / "w" / MODEL, weights_only=False)
     assert all(torch.isfinite(v).all() for v in st["model"].values() if torch.is_tensor(v) and v.is_floating_point())
+
 
 # -- extremes -------------------------------------------------------------------------
 @pytest.mark.stability
